@@ -1,0 +1,520 @@
+"""Pydantic v2 models of a W-ARa tunnel project: the whole machine, not only the planner.
+
+Every model forbids unknown keys and is frozen. Keys carry engineering units in their
+names; each model offers SI properties (``stroke_m``, ``cap_area_m2``) computed with
+:mod:`config.units`, so the code never converts units itself.
+"""
+
+from __future__ import annotations
+
+from collections import Counter
+from typing import Annotated, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, model_validator
+
+from config import units
+
+Positive = Annotated[float, Field(gt=0)]
+NonNegative = Annotated[float, Field(ge=0)]
+Vec3 = tuple[float, float, float]
+
+
+class Strict(BaseModel):
+    """Base: unknown keys are errors, values are immutable after loading."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+# --------------------------------------------------------------------------- project
+
+
+class ProjectInfo(Strict):
+    name: str = Field(min_length=1)
+    section: str = ""
+    description: str = ""
+
+
+class Tunnel(Strict):
+    outer_diameter_m: Positive
+    inner_diameter_m: Positive
+    ring_width_m: Positive
+
+    @model_validator(mode="after")
+    def _inner_smaller(self) -> Tunnel:
+        if self.inner_diameter_m >= self.outer_diameter_m:
+            raise ValueError(
+                f"inner_diameter_m ({self.inner_diameter_m}) must be smaller than "
+                f"outer_diameter_m ({self.outer_diameter_m})"
+            )
+        return self
+
+
+class Workpiece(Strict):
+    """The precast arc part."""
+
+    length_m: Positive
+    height_m: Positive
+    width_m: Positive
+    mass_kg: Positive
+
+
+class Robot(Strict):
+    length_mm: Positive
+    width_mm: Positive
+    height_mm: Positive
+    mass_kg: Positive
+
+
+class Base(Strict):
+    """Attitude of the tunnel invert under the standing frame (model.md section 1)."""
+
+    roll_deg: Annotated[float, Field(ge=-15, le=15)] = 0.0
+    pitch_deg: Annotated[float, Field(ge=-15, le=15)] = 0.0
+
+    @property
+    def roll_rad(self) -> float:
+        return units.deg(self.roll_deg)
+
+    @property
+    def pitch_rad(self) -> float:
+        return units.deg(self.pitch_deg)
+
+
+class Body(Strict):
+    """A rigid body carried by a platform: point mass at its centre of gravity.
+
+    ``cog_m`` is in the platform frame, origin at the centre of the four action
+    points at mid-stroke (model.md section 5).
+    """
+
+    name: str = Field(min_length=1)
+    mass_kg: Positive
+    cog_m: Vec3
+
+
+# --------------------------------------------------------------------------- cylinders
+
+CylinderRole = Literal[
+    "main_leg", "sub_leg", "upper_attitude", "travel", "rotation", "central_axis", "lateral"
+]
+
+#: How many cylinders of each role the machine has (19 in all, model.md section 2).
+ROLE_COUNTS: dict[str, int] = {
+    "main_leg": 4,
+    "sub_leg": 4,
+    "upper_attitude": 4,
+    "travel": 2,
+    "rotation": 2,
+    "central_axis": 1,
+    "lateral": 2,
+}
+N_CYLINDERS = sum(ROLE_COUNTS.values())
+
+
+class CylinderPlant(Strict):
+    """Hydraulic parameters of one valve-controlled cylinder (paper Table 3).
+
+    ``damping_ratio`` is the paper's "viscous damping factor", read as the damping
+    ratio of the hydraulic spring-mass mode (see docs/model-choices.md).
+    """
+
+    internal_leakage_m3_s_pa: NonNegative = 7.2e-12
+    external_leakage_m3_s_pa: NonNegative = 7.2e-12
+    area_gradient_mm: Positive = 26.0
+    damping_ratio: NonNegative = 0.65
+    dead_volume_l: Positive = 1.0
+    coulomb_friction_n: NonNegative = 2000.0
+    moving_mass_kg: Positive = 9000.0
+
+    @property
+    def area_gradient_m(self) -> float:
+        return units.mm(self.area_gradient_mm)
+
+    @property
+    def dead_volume_m3(self) -> float:
+        return self.dead_volume_l * units.LITRE
+
+
+class Cylinder(Strict):
+    """One of the 19 cylinders: identity, geometry and its place on the CAN wire."""
+
+    id: str = Field(pattern=r"^[a-z][a-z0-9_]*$")
+    role: CylinderRole
+    group: str = Field(pattern=r"^[a-z][a-z0-9_]*$")
+    position: Annotated[int, Field(ge=1, le=4)] | None = None
+    bore_mm: Positive
+    rod_mm: Positive
+    stroke_mm: Positive
+    can_index: Annotated[int, Field(ge=0, lt=N_CYLINDERS)]
+    plant: CylinderPlant | None = None
+
+    @model_validator(mode="after")
+    def _rod_fits(self) -> Cylinder:
+        if self.rod_mm >= self.bore_mm:
+            raise ValueError(
+                f"rod_mm ({self.rod_mm}) must be smaller than bore_mm ({self.bore_mm})"
+            )
+        return self
+
+    @property
+    def stroke_m(self) -> float:
+        return units.mm(self.stroke_mm)
+
+    @property
+    def cap_area_m2(self) -> float:
+        return units.circle_area_m2(units.mm(self.bore_mm))
+
+    @property
+    def rod_area_m2(self) -> float:
+        """Annulus area on the rod side."""
+        return units.annulus_area_m2(units.mm(self.bore_mm), units.mm(self.rod_mm))
+
+
+# --------------------------------------------------------------------------- layers
+
+
+class Layer(Strict):
+    """One attitude layer: four vertical cylinders under a rigid platform."""
+
+    half_span_x_m: Positive
+    half_span_y_m: Positive
+    bore_mm: Positive
+    rod_mm: Positive
+    stroke_mm: Positive
+    reserve_mm: NonNegative
+    cylinders: tuple[str, str, str, str]
+    bodies: tuple[Body, ...] = ()
+
+    @model_validator(mode="after")
+    def _geometry(self) -> Layer:
+        if self.rod_mm >= self.bore_mm:
+            raise ValueError(
+                f"rod_mm ({self.rod_mm}) must be smaller than bore_mm ({self.bore_mm})"
+            )
+        if self.reserve_mm >= self.stroke_mm / 2:
+            raise ValueError(
+                f"reserve_mm ({self.reserve_mm}) must be smaller than half the stroke "
+                f"({self.stroke_mm / 2} mm)"
+            )
+        if len(set(self.cylinders)) != 4:
+            raise ValueError(f"cylinders must name four different cylinders, got {self.cylinders}")
+        return self
+
+    @property
+    def a_m(self) -> float:
+        return self.half_span_x_m
+
+    @property
+    def b_m(self) -> float:
+        return self.half_span_y_m
+
+    @property
+    def stroke_m(self) -> float:
+        return units.mm(self.stroke_mm)
+
+    @property
+    def reserve_m(self) -> float:
+        return units.mm(self.reserve_mm)
+
+    @property
+    def extension_limit_m(self) -> float:
+        """Largest planned |extension| from mid-stroke: stroke/2 - reserve."""
+        return self.stroke_m / 2 - self.reserve_m
+
+    @property
+    def cap_area_m2(self) -> float:
+        return units.circle_area_m2(units.mm(self.bore_mm))
+
+    @property
+    def rod_area_m2(self) -> float:
+        return units.annulus_area_m2(units.mm(self.bore_mm), units.mm(self.rod_mm))
+
+
+class UpperLayer(Layer):
+    """The fine stage; its base is the lower platform."""
+
+    origin_in_lower_m: Vec3 = (0.0, 0.0, 0.0)
+
+
+class Layers(Strict):
+    lower: Layer
+    upper: UpperLayer
+
+
+# --------------------------------------------------------------------------- hydraulics
+
+
+class Hydraulics(Strict):
+    supply_pressure_mpa: Positive
+    tank_pressure_mpa: NonNegative = 0.0
+    rated_pressure_mpa: Positive
+    load_sensing_margin_mpa: NonNegative
+    oil_density_kg_m3: Positive
+    bulk_modulus_mpa: Positive
+    discharge_coefficient: Annotated[float, Field(gt=0, le=1)] = 0.61
+    pump_flow_l_min: Positive
+    valve_natural_frequency_hz: Positive = 60.0
+    valve_damping_ratio: Positive = 0.7
+    valve_max_opening_mm: Positive = 0.5
+    cylinder_defaults: CylinderPlant = CylinderPlant()
+
+    @model_validator(mode="after")
+    def _pressures(self) -> Hydraulics:
+        if self.tank_pressure_mpa >= self.supply_pressure_mpa:
+            raise ValueError("tank_pressure_mpa must be below supply_pressure_mpa")
+        return self
+
+    @property
+    def supply_pressure_pa(self) -> float:
+        return units.mpa(self.supply_pressure_mpa)
+
+    @property
+    def tank_pressure_pa(self) -> float:
+        return units.mpa(self.tank_pressure_mpa)
+
+    @property
+    def rated_pressure_pa(self) -> float:
+        return units.mpa(self.rated_pressure_mpa)
+
+    @property
+    def load_sensing_margin_pa(self) -> float:
+        return units.mpa(self.load_sensing_margin_mpa)
+
+    @property
+    def bulk_modulus_pa(self) -> float:
+        return units.mpa(self.bulk_modulus_mpa)
+
+    @property
+    def pump_flow_m3_s(self) -> float:
+        return self.pump_flow_l_min * units.L_PER_MIN
+
+    @property
+    def valve_max_opening_m(self) -> float:
+        return units.mm(self.valve_max_opening_mm)
+
+
+# --------------------------------------------------------------------------- planner
+
+
+class LdwPso(Strict):
+    """The paper's planner: particle swarm, linearly decreasing inertia weight."""
+
+    swarm_size: Annotated[int, Field(ge=4, le=10_000)] = 40
+    iterations: Annotated[int, Field(ge=1, le=100_000)] = 200
+    inertia_start: Positive = 0.9
+    inertia_end: Positive = 0.4
+    c1: Positive = 2.0
+    c2: Positive = 2.0
+    seed: int = 0
+    penalty_pa: Positive = 1e9
+
+
+class Exact(Strict):
+    """The project's deterministic planner (grid search with successive zoom)."""
+
+    grid_points: Annotated[int, Field(ge=5, le=1001)] = 41
+    zoom_points: Annotated[int, Field(ge=3, le=101)] = 9
+    zoom_factor: Annotated[float, Field(gt=1, le=10)] = 2.5
+    tolerance_m: Annotated[float, Field(gt=0, le=1e-3)] = 1e-10
+
+
+class Trajectory(Strict):
+    profile: Literal["quintic", "trapezoidal"] = "quintic"
+    max_rod_speed_mm_s: Positive = 20.0
+    max_rod_accel_mm_s2: Positive = 20.0
+    sample_period_s: Positive = 0.05
+
+    @property
+    def max_rod_speed_m_s(self) -> float:
+        return units.mm(self.max_rod_speed_mm_s)
+
+    @property
+    def max_rod_accel_m_s2(self) -> float:
+        return units.mm(self.max_rod_accel_mm_s2)
+
+
+class Planner(Strict):
+    objective: Literal["sum_pressure", "peak_pressure", "pump_energy"] = "pump_energy"
+    method: Literal["exact", "ldw_pso"] = "exact"
+    min_rod_force_kn: NonNegative
+    coplanarity_tolerance_mm: Positive
+    attitude_tolerance_rad: Positive = 1e-9
+    ldw_pso: LdwPso = LdwPso()
+    exact: Exact = Exact()
+    trajectory: Trajectory = Trajectory()
+
+    @property
+    def min_rod_force_n(self) -> float:
+        return self.min_rod_force_kn * units.KN
+
+    @property
+    def coplanarity_tolerance_m(self) -> float:
+        return units.mm(self.coplanarity_tolerance_mm)
+
+
+# --------------------------------------------------------------------------- control
+
+
+class Ladrc(Strict):
+    order: Literal[1, 2] = 1
+    wc_rad_s: Positive = 20.0
+    wo_rad_s: Positive = 80.0
+    discretization: Literal["euler", "zoh"] = "zoh"
+    rate_limit_per_s: Positive = 20.0
+
+
+class Pid(Strict):
+    kp_per_m: NonNegative = 100.0
+    ki_per_m_s: NonNegative = 20.0
+    kd_s_per_m: NonNegative = 0.0
+
+
+class Sync(Strict):
+    scheme: Literal["mean_deviation", "cross_coupled"] = "mean_deviation"
+    coupling_lambda: NonNegative = 1.0
+
+
+class Realtime(Strict):
+    """Applied by the service when asked and allowed; reported when refused."""
+
+    priority: Annotated[int, Field(ge=0, le=99)] = 0
+    cpu_affinity: tuple[int, ...] = ()
+    lock_memory: bool = False
+
+
+class Control(Strict):
+    loop_rate_hz: Annotated[float, Field(gt=0, le=2000)] = 200.0
+    controller: Literal["ladrc", "pid"] = "ladrc"
+    ladrc: Ladrc = Ladrc()
+    pid: Pid = Pid()
+    sync: Sync = Sync()
+    realtime: Realtime = Realtime()
+
+    @property
+    def period_s(self) -> float:
+        return 1.0 / self.loop_rate_hz
+
+
+# --------------------------------------------------------------------------- CAN link
+
+
+class CanLink(Strict):
+    interface: Literal["socketcan", "virtual", "udp_multicast", "remote"] = "virtual"
+    channel: str = "wara"
+    bitrate: Annotated[int, Field(ge=10_000, le=1_000_000)] = 500_000
+    max_bus_load_percent: Annotated[float, Field(gt=0, le=100)] = 50.0
+
+
+# --------------------------------------------------------------------------- safety
+
+
+class Safety(Strict):
+    max_twist_mm: Positive = 1.5
+    max_sync_error_mm: Positive = 2.0
+    max_pressure_mpa: Positive = 24.0
+    stroke_end_margin_mm: NonNegative = 5.0
+    sensor_timeout_ms: Positive = 50.0
+    plc_heartbeat_timeout_ms: Positive = 100.0
+    command_timeout_ms: Positive = 100.0
+
+
+# --------------------------------------------------------------------------- acceptance
+
+
+class Acceptance(Strict):
+    """Paper Table 4. The angle rows lost their values in the source: no default."""
+
+    vertical_misalignment_mm: Positive
+    horizontal_misalignment_mm: Positive
+    max_gap_mm: Positive
+    centreline_deviation_x_mm: Positive
+    centreline_deviation_y_mm: Positive
+    pitch_angle_deg: Positive | None = None
+    tilt_angle_deg: Positive | None = None
+    rotation_angle_deg: Positive | None = None
+
+
+class Task(Strict):
+    assembly_time_min: Positive = 5.0
+
+
+# --------------------------------------------------------------------------- project
+
+
+class ProjectConfig(Strict):
+    """A complete tunnel-project parameter set (one YAML file)."""
+
+    project: ProjectInfo
+    tunnel: Tunnel
+    workpiece: Workpiece
+    robot: Robot
+    base: Base
+    layers: Layers
+    cylinders: tuple[Cylinder, ...]
+    hydraulics: Hydraulics
+    planner: Planner
+    control: Control = Control()
+    can: CanLink = CanLink()
+    safety: Safety = Safety()
+    acceptance: Acceptance
+    task: Task = Task()
+
+    @model_validator(mode="after")
+    def _inventory(self) -> ProjectConfig:
+        ids = Counter(c.id for c in self.cylinders)
+        dup = sorted(k for k, n in ids.items() if n > 1)
+        if dup:
+            raise ValueError(f"duplicate cylinder id(s): {', '.join(dup)}")
+        idx = Counter(c.can_index for c in self.cylinders)
+        dup_idx = sorted(k for k, n in idx.items() if n > 1)
+        if dup_idx:
+            raise ValueError(f"duplicate cylinder can_index(es): {dup_idx}")
+        roles = Counter(c.role for c in self.cylinders)
+        if dict(roles) != ROLE_COUNTS:
+            raise ValueError(
+                f"the machine has {N_CYLINDERS} cylinders {ROLE_COUNTS}; got {dict(roles)}"
+            )
+        by_id = {c.id: c for c in self.cylinders}
+        for name, layer, ok_roles in (
+            ("lower", self.layers.lower, ("main_leg", "sub_leg")),
+            ("upper", self.layers.upper, ("upper_attitude",)),
+        ):
+            for pos, cid in enumerate(layer.cylinders, start=1):
+                if cid not in by_id:
+                    raise ValueError(f"layers.{name}.cylinders: unknown cylinder id {cid!r}")
+                cyl = by_id[cid]
+                if cyl.role not in ok_roles:
+                    raise ValueError(
+                        f"layers.{name}.cylinders: {cid!r} has role {cyl.role!r}, "
+                        f"expected one of {ok_roles}"
+                    )
+                if cyl.position != pos:
+                    raise ValueError(
+                        f"layers.{name}.cylinders: {cid!r} is listed at position {pos} "
+                        f"but its position is {cyl.position}"
+                    )
+                if (cyl.bore_mm, cyl.rod_mm, cyl.stroke_mm) != (
+                    layer.bore_mm,
+                    layer.rod_mm,
+                    layer.stroke_mm,
+                ):
+                    raise ValueError(
+                        f"layers.{name}.cylinders: {cid!r} bore/rod/stroke "
+                        f"{(cyl.bore_mm, cyl.rod_mm, cyl.stroke_mm)} differ from the layer's "
+                        f"{(layer.bore_mm, layer.rod_mm, layer.stroke_mm)}"
+                    )
+        return self
+
+    def cylinder(self, cylinder_id: str) -> Cylinder:
+        for c in self.cylinders:
+            if c.id == cylinder_id:
+                return c
+        raise KeyError(f"no cylinder {cylinder_id!r} in the inventory")
+
+    def plant_of(self, cylinder: Cylinder) -> CylinderPlant:
+        """The cylinder's own plant parameters, or the hydraulics defaults."""
+        return cylinder.plant if cylinder.plant is not None else self.hydraulics.cylinder_defaults
+
+    @property
+    def cylinders_by_can_index(self) -> tuple[Cylinder, ...]:
+        return tuple(sorted(self.cylinders, key=lambda c: c.can_index))

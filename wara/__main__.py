@@ -1,0 +1,5 @@
+import sys
+
+from wara.cli import main
+
+sys.exit(main())

@@ -1,0 +1,70 @@
+"""Entry point of the ``wara`` command.
+
+Each verb lives in its own module under :mod:`wara.commands` (one module per verb, as
+cantools does) exposing ``register(subparsers)``. Exit codes: 0 success, 1 the job ran
+but did not meet its goal, 2 bad arguments or configuration, 3 unreachable target.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+from collections.abc import Sequence
+
+from config import ConfigError
+
+EXIT_OK = 0
+EXIT_FAILED = 1
+EXIT_USAGE = 2
+EXIT_INFEASIBLE = 3
+
+#: Modules under wara.commands, in the order ``wara --help`` lists them.
+COMMANDS: tuple[str, ...] = (
+    "config_cmd",
+    "bench",
+)
+
+
+class UsageError(Exception):
+    """Arguments that parse but make no sense (e.g. four start extensions expected)."""
+
+
+class _Parser(argparse.ArgumentParser):
+    def error(self, message: str) -> None:  # type: ignore[override]
+        # One line, exit 2: what argparse does, minus the usage block.
+        self.exit(EXIT_USAGE, f"{self.prog}: error: {message}\n")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = _Parser(
+        prog="wara",
+        description="W-ARa attitude adjustment: planning, control, CAN bridge and HIL simulator.",
+    )
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
+    sub.required = True
+    for name in COMMANDS:
+        module = importlib.import_module(f"wara.commands.{name}")
+        module.register(sub)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        code = args.func(args)
+    except ConfigError as exc:
+        print(f"wara: configuration error:\n{exc}", file=sys.stderr)
+        return EXIT_USAGE
+    except UsageError as exc:
+        print(f"wara {args.command}: error: {exc}", file=sys.stderr)
+        return EXIT_USAGE
+    except KeyboardInterrupt:
+        print("wara: interrupted", file=sys.stderr)
+        return 130
+    return int(code or 0)
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

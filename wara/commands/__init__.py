@@ -1,0 +1,1 @@
+"""One module per ``wara`` verb; each exposes ``register(subparsers)``."""
