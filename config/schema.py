@@ -299,22 +299,25 @@ class Hydraulics(Strict):
 class LdwPso(Strict):
     """The paper's planner: particle swarm, linearly decreasing inertia weight."""
 
-    swarm_size: Annotated[int, Field(ge=4, le=10_000)] = 40
-    iterations: Annotated[int, Field(ge=1, le=100_000)] = 200
+    swarm_size: Annotated[int, Field(ge=4, le=10_000)] = 50
+    iterations: Annotated[int, Field(ge=1, le=100_000)] = 1000
     inertia_start: Positive = 0.9
     inertia_end: Positive = 0.4
     c1: Positive = 2.0
     c2: Positive = 2.0
     seed: int = 0
-    penalty_pa: Positive = 1e9
+    #: Weight of one unit of dimensionless violation against the objective divided by
+    #: its median over the initial swarm.
+    penalty_weight: Positive = 1.0
 
 
 class Exact(Strict):
-    """The project's deterministic planner (grid search with successive zoom)."""
+    """The project's deterministic planner (grid, Newton on vertices, pattern search)."""
 
-    grid_points: Annotated[int, Field(ge=5, le=1001)] = 41
-    zoom_points: Annotated[int, Field(ge=3, le=101)] = 9
-    zoom_factor: Annotated[float, Field(gt=1, le=10)] = 2.5
+    grid_points: Annotated[int, Field(ge=5, le=1001)] = 21
+    newton_iterations: Annotated[int, Field(ge=0, le=100)] = 8
+    zoom_points: Annotated[int, Field(ge=3, le=201)] = 7
+    zoom_factor: Annotated[float, Field(gt=1, le=50)] = 3.0
     tolerance_m: Annotated[float, Field(gt=0, le=1e-3)] = 1e-10
 
 

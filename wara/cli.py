@@ -21,6 +21,7 @@ EXIT_INFEASIBLE = 3
 
 #: Modules under wara.commands, in the order ``wara --help`` lists them.
 COMMANDS: tuple[str, ...] = (
+    "plan",
     "config_cmd",
     "bench",
 )

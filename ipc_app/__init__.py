@@ -1,0 +1,1 @@
+"""The IPC controller application."""
