@@ -23,6 +23,7 @@ EXIT_INFEASIBLE = 3
 COMMANDS: tuple[str, ...] = (
     "config_cmd",
     "bench",
+    "acceptance",
 )
 
 

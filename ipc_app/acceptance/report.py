@@ -149,7 +149,7 @@ th{background:#f0f0f0}td.l,th.l{text-align:left}
 .incomplete{background:#fff3cd}
 .meta{color:#555;font-size:.9em}.big{font-size:1.15em}
 figure{margin:1em 0}img{max-width:100%;height:auto;border:1px solid #ddd}
-.rules{font-size:.9em;color:#333}
+.rules{font-size:.9em;color:#333}.wide{overflow-x:auto}
 """
 
 # Marks the page as checked once every embedded plot decoded (used by the test suite's
@@ -235,7 +235,7 @@ def render_html(summary: Summary, plots: dict[str, bytes], meta: ReportMeta) -> 
     parts.append("<h2>Per ring</h2>")
     head = "".join(f"<th>{e(it.item.label)}<br>({e(it.item.unit)})</th>" for it in summary.items)
     parts.append(
-        "<table><thead><tr><th>ring</th><th class=l>measured at</th>"
+        '<div class="wide"><table><thead><tr><th>ring</th><th class=l>measured at</th>'
         f"{head}<th>verdict</th><th>plan</th><th class=l>operator</th>"
         "<th class=l>remarks</th></tr></thead><tbody>"
     )
@@ -254,7 +254,7 @@ def render_html(summary: Summary, plots: dict[str, bytes], meta: ReportMeta) -> 
             f"<td>{'yes' if r.has_plan else ''}</td>"
             f"<td class=l>{e(m.operator)}</td><td class=l>{e(m.remarks)}</td></tr>"
         )
-    parts.append("</tbody></table>")
+    parts.append("</tbody></table></div>")
     parts.append(
         '<h2>How items are judged</h2><ul class="rules">'
         "<li>An item passes when |value| ≤ limit: a value exactly on the limit passes. "

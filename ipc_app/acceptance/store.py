@@ -483,6 +483,11 @@ class AcceptanceStore:
         """Ring numbers that have at least one plan attached."""
         return {r[0] for r in self._conn.execute("SELECT DISTINCT ring FROM ring_plan")}
 
+    def record_counts(self) -> dict[int, int]:
+        """Ring -> number of records (1 = never re-recorded)."""
+        rows = self._conn.execute("SELECT ring, COUNT(*) FROM ring_record GROUP BY ring")
+        return {int(r[0]): int(r[1]) for r in rows}
+
     def record_count(self) -> int:
         """Number of stored records, history included."""
         return int(self._conn.execute("SELECT COUNT(*) FROM ring_record").fetchone()[0])
