@@ -348,7 +348,7 @@ def _history(args: argparse.Namespace) -> int:
                 indent=2,
             )
         )
-        return EXIT_OK
+        return EXIT_OK if records or plans else EXIT_FAILED
     if not records and not plans:
         print(f"ring {args.ring}: no records")
         return EXIT_FAILED
