@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import re
 from dataclasses import dataclass, field
-from functools import lru_cache
+from functools import cached_property, lru_cache
 from pathlib import Path
 from typing import Any
 
@@ -84,7 +84,7 @@ class MessageSpec:
     signals: tuple[SignalSpec, ...]
     comment: str = ""
 
-    @property
+    @cached_property
     def slots(self) -> tuple[int, ...]:
         """Cylinder ``can_index`` values this message carries (sorted, unique)."""
         return tuple(sorted({s.slot for s in self.signals if s.slot is not None}))

@@ -20,7 +20,7 @@ import math
 from collections.abc import Sequence
 
 from plc_bridge.catalog import MessageSpec
-from plc_bridge.e2e import CRC_TABLE, crc8_p01
+from plc_bridge.e2e import CRC_TABLE
 
 
 class FrameCodec:
@@ -34,6 +34,8 @@ class FrameCodec:
     """
 
     __slots__ = (
+        "_crc0",
+        "_enc",
         "_fields",
         "_n",
         "data_id",
@@ -63,6 +65,10 @@ class FrameCodec:
             )
         self._fields = tuple(fields)
         self._n = len(fields)
+        # encode loop: (shift, mask, offset, scale, raw_min, raw_max, nan_raw)
+        self._enc = tuple((f[0], f[1], f[4], f[3], f[5], f[6], f[7]) for f in fields)
+        # CRC state after the two data id bytes: the same for every frame of this id
+        self._crc0 = CRC_TABLE[CRC_TABLE[self.data_id & 0xFF] ^ (self.data_id >> 8)]
 
     # ------------------------------------------------------------------ encode
 
@@ -83,27 +89,52 @@ class FrameCodec:
             raws.append(lo if r < lo else hi if r > hi else r)
         return raws
 
+    def _finish(self, word: int) -> bytes:
+        body = bytearray(word.to_bytes(self.dlc, "little"))
+        t = CRC_TABLE
+        crc = self._crc0
+        for b in body[1:]:
+            crc = t[crc ^ b]
+        body[0] = crc
+        return bytes(body)
+
     def encode_raw(self, counter: int, raws: Sequence[int]) -> bytes:
         """Frame bytes from raw signal values (not range-checked) and the alive counter."""
         word = (counter & 0xF) << 8
         for r, (shift, mask, *_rest) in zip(raws, self._fields, strict=True):
             word |= (r & mask) << shift
-        body = word.to_bytes(self.dlc, "little")
-        t = CRC_TABLE
-        crc = t[t[self.data_id & 0xFF] ^ (self.data_id >> 8)]
-        for b in body[1:]:
-            crc = t[crc ^ b]
-        return bytes((crc,)) + body[1:]
+        return self._finish(word)
 
     def encode(self, counter: int, values: Sequence[float]) -> bytes:
         """Frame bytes from physical values in DBC units (mm, MPa, deg, normalized)."""
-        return self.encode_raw(counter, self.to_raw(values))
+        if len(values) != self._n:
+            raise ValueError(
+                f"{self.name}: expected {self._n} values {self.signal_names}, got {len(values)}"
+            )
+        word = (counter & 0xF) << 8
+        for v, (shift, mask, offset, scale, lo, hi, nan_raw) in zip(values, self._enc):  # noqa: B905
+            if v != v:  # NaN
+                r = nan_raw
+            else:
+                r = round((v - offset) / scale)
+                if r < lo:
+                    r = lo
+                elif r > hi:
+                    r = hi
+            word |= (r & mask) << shift
+        return self._finish(word)
 
     # ------------------------------------------------------------------ decode
 
     def check_crc(self, data: bytes | bytearray) -> bool:
         """True if ``data`` has this message's length and a correct CRC-8."""
-        return len(data) == self.dlc and crc8_p01(self.data_id, data[1:]) == data[0]
+        if len(data) != self.dlc:
+            return False
+        t = CRC_TABLE
+        crc = self._crc0
+        for b in data[1:]:
+            crc = t[crc ^ b]
+        return crc == data[0]
 
     @staticmethod
     def counter_of(data: bytes | bytearray) -> int:

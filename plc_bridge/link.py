@@ -630,17 +630,19 @@ class IpcLink(_Side):
         si_per_unit: float,
         now: float,
     ) -> Reading:
-        val = np.full((N_CYLINDERS, width), math.nan)
-        age = np.full(N_CYLINDERS, math.inf)
+        vals = [math.nan] * (N_CYLINDERS * width)
+        ages = [math.inf] * N_CYLINDERS
         for rec, slots in rows:
             a = rec.age_s(now)
-            age[slots] = a
             v = rec.latest(now)
-            if v is not None:
-                val[slots] = np.asarray(v).reshape(len(slots), width)
-        val = val * si_per_unit  # DBC unit -> SI, factor from config.units
-        if width == 1:
-            val = val[:, 0]
+            for j, i in enumerate(slots):
+                ages[i] = a
+                if v is not None:
+                    vals[i * width : (i + 1) * width] = v[j * width : (j + 1) * width]
+        val = np.array(vals) * si_per_unit  # DBC unit -> SI, factor from config.units
+        if width > 1:
+            val = val.reshape(N_CYLINDERS, width)
+        age = np.array(ages)
         return Reading(value=val, valid=~np.isnan(val), age_s=age)
 
     def positions_m(self, now: float | None = None) -> Reading:
