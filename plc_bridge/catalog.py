@@ -56,9 +56,12 @@ class SignalSpec:
 
     @property
     def sna_raw(self) -> int | None:
-        """Raw value that means 'sensor fault', if the value table names one."""
+        """Raw value outside [raw_min, raw_max] that the value table names SENSOR_FAULT.
+
+        (A SENSOR_FAULT entry inside the range, like fault code 7, is an ordinary value.)
+        """
         for raw, name in self.choices.items():
-            if name == SENSOR_FAULT:
+            if name == SENSOR_FAULT and not self.raw_min <= raw <= self.raw_max:
                 return raw
         return None
 
