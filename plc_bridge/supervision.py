@@ -108,7 +108,7 @@ class RxRecord:
 
     def set_timeout(self, timeout_s: float, now: float) -> None:
         """Change the stale timeout; a shorter one applies after one old timeout of grace."""
-        if timeout_s < self.timeout_s:
+        if timeout_s < self.timeout_s and self.last_rx is not None:
             self.grace_timeout_s = self.timeout_s
             self.grace_until = now + self.timeout_s
         self.timeout_s = timeout_s
