@@ -35,7 +35,7 @@ from plc_bridge import (
     load_catalog,
 )
 from plc_bridge.bus import CAN_ERR_BUSOFF, CAN_ERR_CRTL, CAN_ERR_RESTARTED, socketcan_available
-from tests.plc_fakes import Clock, QueueBus, frame, with_can
+from tests.plc_fakes import Clock, QueueBus, frame
 
 DT = 0.005
 CAT = load_catalog()
@@ -234,7 +234,7 @@ def _status(counter: int, **over: Any) -> can.Message:
 def test_crc_error_is_rejected_counted_and_logged_once(
     project: ProjectConfig, caplog: pytest.LogCaptureFixture
 ) -> None:
-    ipc, bus, clock = _ipc(project)
+    ipc, bus, _clock = _ipc(project)
     for c in (0, 1):
         bus.inject(_status(c))
     ipc.poll()
@@ -267,7 +267,7 @@ def test_counter_stuck_is_rejected_then_stale(project: ProjectConfig) -> None:
 
 
 def test_counter_jump_and_lost_frames(project: ProjectConfig) -> None:
-    ipc, bus, clock = _ipc(project)
+    ipc, bus, _clock = _ipc(project)
     for c in (0, 1, 3):  # 2 lost: max_delta_counter 2 accepts it and counts it
         bus.inject(_status(c))
     ipc.poll()
@@ -284,7 +284,7 @@ def test_counter_jump_and_lost_frames(project: ProjectConfig) -> None:
 
 
 def test_value_out_of_range_rejects_the_word(project: ProjectConfig) -> None:
-    ipc, bus, clock = _ipc(project)
+    ipc, bus, _clock = _ipc(project)
     codec = FrameCodec(CAT.by_name("PLC_Status"))
     raws = [2, 0, 1, 1, 0, 0, 3200]
     bus.inject(frame(0x090, codec.encode_raw(0, raws)))
@@ -317,7 +317,7 @@ def test_degraded_while_a_non_critical_message_is_missing(project: ProjectConfig
 def test_bus_off_from_error_frames_then_restart(
     project: ProjectConfig, caplog: pytest.LogCaptureFixture
 ) -> None:
-    ipc, bus, clock = _ipc(project)
+    ipc, bus, _clock = _ipc(project)
     err = can.Message(arbitration_id=CAN_ERR_BUSOFF, is_error_frame=True, data=bytes(8))
     with caplog.at_level(logging.INFO, logger="plc_bridge"):
         for _ in range(5):
