@@ -142,3 +142,15 @@ def test_bench_can_quick(capsys: pytest.CaptureFixture[str]) -> None:
     assert d["frames_per_cycle"]["ipc_tx"] == pytest.approx(3.0)
     # Ratios within one run, not absolute times (shared, noisy machine).
     assert d["speedup_vs_cantools"] > 1.0
+
+
+def test_remote_without_its_plugin_is_a_clean_error(project: ProjectConfig) -> None:
+    from plc_bridge import BusOpenError
+
+    link = project.can.model_copy(update={"interface": "remote", "channel": "localhost:54701"})
+    try:
+        bus = open_bus(link)
+    except BusOpenError as exc:
+        assert "python-can-remote" in str(exc)
+    else:  # the plug-in is installed here: it opened (or will fail to connect later)
+        bus.shutdown()
