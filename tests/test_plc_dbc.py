@@ -102,3 +102,12 @@ def test_default_configuration_within_bus_load_budget(project: ProjectConfig) ->
     # 250 Hz at 1 Mbit/s fits easily.
     fast = with_can(project, bitrate=1_000_000)
     assert bus_load(fast).load_percent < 25
+
+
+def test_unknown_active_group_is_a_config_error(project: ProjectConfig) -> None:
+    from pydantic import ValidationError
+
+    with pytest.raises(
+        ValidationError, match=r"can.active_groups: unknown cylinder group\(s\) \['legs'\]"
+    ):
+        with_can(project, active_groups=["legs", "upper"])
