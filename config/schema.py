@@ -402,10 +402,27 @@ class Control(Strict):
 
 
 class CanLink(Strict):
+    """The IPC <-> PLC CAN link (plc_bridge; docs/can-protocol.md).
+
+    ``channel`` is the interface name for ``socketcan`` (``can0``, ``vcan0``), any
+    name for ``virtual`` (in-process), the multicast group for ``udp_multicast``
+    (``239.74.163.2``) and ``host:port`` for ``remote``. ``bitrate`` is the bus's
+    bit rate for the load budget; on ``socketcan`` the OS sets it (deploy/).
+    """
+
     interface: Literal["socketcan", "virtual", "udp_multicast", "remote"] = "virtual"
     channel: str = "wara"
     bitrate: Annotated[int, Field(ge=10_000, le=1_000_000)] = 500_000
     max_bus_load_percent: Annotated[float, Field(gt=0, le=100)] = 50.0
+    #: Cylinder groups whose frames run at the loop rate at start-up (the attitude
+    #: group with the main frame standing); the IPC may switch it at run time.
+    active_groups: tuple[str, ...] = ("main_legs", "upper")
+    #: A received message is stale after this many of its cycle times without a valid frame.
+    stale_cycles: Annotated[float, Field(ge=1.5, le=100)] = 3.0
+    #: E2E MaxDeltaCounter: accept a counter step of up to this (max_delta - 1 lost frames).
+    max_delta_counter: Annotated[int, Field(ge=1, le=7)] = 2
+    #: UDP port of the ``udp_multicast`` interface.
+    udp_port: Annotated[int, Field(ge=1024, le=65535)] = 43113
 
 
 # --------------------------------------------------------------------------- safety
@@ -476,6 +493,12 @@ class ProjectConfig(Strict):
         if dict(roles) != ROLE_COUNTS:
             raise ValueError(
                 f"the machine has {N_CYLINDERS} cylinders {ROLE_COUNTS}; got {dict(roles)}"
+            )
+        unknown_groups = sorted(set(self.can.active_groups) - {c.group for c in self.cylinders})
+        if unknown_groups:
+            raise ValueError(
+                f"can.active_groups: unknown cylinder group(s) {unknown_groups}; "
+                f"groups are {sorted({c.group for c in self.cylinders})}"
             )
         by_id = {c.id: c for c in self.cylinders}
         for name, layer, ok_roles in (

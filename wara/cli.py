@@ -23,6 +23,7 @@ EXIT_INFEASIBLE = 3
 COMMANDS: tuple[str, ...] = (
     "plan",
     "config_cmd",
+    "can",
     "bench",
     "acceptance",
 )

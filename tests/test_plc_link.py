@@ -1,0 +1,391 @@
+"""IPC side against PLC side, and the supervision rules, under a simulated clock.
+
+``TestBackToBackVirtual`` runs both sides on python-can's ``virtual`` bus;
+``TestBackToBackSocketcan`` re-runs the same class on ``vcan0`` where the kernel has it.
+The supervision tests feed hand-made frames through a queue-backed fake bus.
+"""
+
+from __future__ import annotations
+
+import errno
+import logging
+import math
+import uuid
+from collections.abc import Iterator
+from typing import Any
+
+import can
+import numpy as np
+import pytest
+
+from config import ProjectConfig
+from plc_bridge import (
+    BusLoadError,
+    BusState,
+    ControlWord,
+    FrameCodec,
+    HmiTarget,
+    IpcLink,
+    LinkState,
+    Mode,
+    PlcLink,
+    PlcStatus,
+    TargetAck,
+    TargetRequest,
+    load_catalog,
+)
+from plc_bridge.bus import CAN_ERR_BUSOFF, CAN_ERR_CRTL, CAN_ERR_RESTARTED, socketcan_available
+from tests.plc_fakes import Clock, QueueBus, frame
+
+DT = 0.005
+CAT = load_catalog()
+X = np.linspace(0.0105, 0.7805, 19)  # m
+P = np.stack([np.linspace(1e6, 19e6, 19), np.linspace(0.5e6, 2e6, 19)], axis=1)  # Pa
+U = np.linspace(-1.0, 1.0, 19)
+
+
+class BackToBack:
+    """The IPC and the PLC side on one bus; subclasses choose the bus."""
+
+    def buses(self, cfg: ProjectConfig) -> tuple[can.BusABC, can.BusABC]:
+        raise NotImplementedError
+
+    @pytest.fixture
+    def pair(self, project: ProjectConfig) -> Iterator[tuple[IpcLink, PlcLink, Clock]]:
+        clock = Clock()
+        a, b = self.buses(project)
+        ipc = IpcLink(project, a, clock=clock)
+        plc = PlcLink(project, b, clock=clock)
+        plc.set_positions_m(X)
+        plc.set_pressures_pa(P)
+        plc.set_status(
+            PlcStatus(mode=Mode.ATTITUDE_ADJUST, pump_running=True, supply_pressure_pa=16e6)
+        )
+        yield ipc, plc, clock
+        ipc.close()
+        plc.close()
+
+    def settle(self) -> None:
+        """Give the transport time to deliver (nothing to wait for on virtual)."""
+
+    def run(
+        self,
+        ipc: IpcLink | None,
+        plc: PlcLink | None,
+        clock: Clock,
+        seconds: float,
+        u: np.ndarray = U,
+    ) -> None:
+        for _ in range(round(seconds / DT)):
+            if plc is not None:
+                plc.poll()
+            self.settle()
+            if ipc is not None:
+                ipc.poll()
+                ipc.send_valve_commands(u)
+            self.settle()
+            clock.advance(DT)
+
+    def test_values_cross_with_their_resolution(self, pair: Any) -> None:
+        ipc, plc, clock = pair
+        ipc.set_control(mode=Mode.ATTITUDE_ADJUST, enable=True)
+        plc.set_hmi_target(HmiTarget(math.radians(-3.0), math.radians(2.0), seq=7))
+        plc.set_limit_switches([i == 4 for i in range(19)], [i == 18 for i in range(19)])
+        self.run(ipc, plc, clock, 0.3)
+        assert ipc.state() is LinkState.OK and plc.state() is LinkState.OK
+        x = ipc.positions_m()
+        assert x.all_valid() and np.max(np.abs(x.value - X)) <= 0.5e-6  # 1 um steps
+        assert np.all(x.age_s < 0.06)
+        p = ipc.pressures_pa()
+        assert p.value.shape == (19, 2) and np.max(np.abs(p.value - P)) <= 2.5e3  # 0.005 MPa
+        st = ipc.status()
+        assert st is not None and st.mode is Mode.ATTITUDE_ADJUST and st.pump_running
+        assert st.supply_pressure_pa == pytest.approx(16e6) and not st.command_timeout
+        t = ipc.hmi_target()
+        assert t is not None and t.seq == 7 and t.request is TargetRequest.NEW_TARGET
+        assert math.degrees(t.roll_rad) == pytest.approx(-3.0, abs=5e-5)
+        assert math.degrees(t.pitch_rad) == pytest.approx(2.0, abs=5e-5)
+        lim = ipc.limit_switches()
+        assert lim is not None and lim.retracted.tolist() == [i == 4 for i in range(19)]
+        assert lim.extended[18] and lim.extended.sum() == 1
+        u = plc.valve_commands()
+        assert u.all_valid() and np.max(np.abs(u.value - U)) <= 0.5 / 2047 + 1e-12
+        c = plc.control()
+        assert c == ControlWord(mode=Mode.ATTITUDE_ADJUST, enable=True)
+        assert not plc.command_timeout()
+        assert ipc.health()["rx"].keys() <= {"accepted", "initial"}
+
+    def test_hmi_request_is_reported_once_and_acknowledged(self, pair: Any) -> None:
+        ipc, plc, clock = pair
+        plc.set_hmi_target(HmiTarget(0.01, -0.02, seq=3))
+        self.run(ipc, plc, clock, 0.3)
+        req = ipc.new_hmi_request()
+        assert req is not None and req.seq == 3
+        assert ipc.new_hmi_request() is None
+        ipc.set_control(ack_seq=req.seq, ack_status=TargetAck.ACCEPTED)
+        self.run(ipc, plc, clock, 0.05)
+        c = plc.control()
+        assert c is not None and (c.ack_seq, c.ack_status) == (3, TargetAck.ACCEPTED)
+
+    def test_plc_silent_means_lost_and_no_values(self, pair: Any) -> None:
+        ipc, plc, clock = pair
+        self.run(ipc, plc, clock, 0.2)
+        assert ipc.state() is LinkState.OK
+        self.run(ipc, None, clock, 0.12)  # longer than plc_heartbeat_timeout_ms = 100
+        assert ipc.state() is LinkState.LOST and ipc.status() is None
+        self.run(ipc, None, clock, 0.2)  # the HMI target too (3 x 100 ms)
+        assert ipc.status() is None and ipc.hmi_target() is None
+        x = ipc.positions_m()
+        assert not x.valid.any() and np.isnan(x.value).all()
+        assert ipc.health()["messages"]["PLC_Status"]["timeouts"] == 1
+        self.run(ipc, plc, clock, 0.3)  # the PLC comes back: counters re-synchronise
+        assert ipc.state() is LinkState.DEGRADED and ipc.positions_m().all_valid()
+        self.run(ipc, plc, clock, 1.0)  # OK again one fault-free second later
+        assert ipc.state() is LinkState.OK
+
+    def test_ipc_silent_means_command_timeout_on_the_plc(self, pair: Any) -> None:
+        ipc, plc, clock = pair
+        self.run(ipc, plc, clock, 0.2)
+        assert not plc.command_timeout()
+        self.run(None, plc, clock, 0.02)  # valve frames stop: 3 x 5 ms
+        assert plc.command_timeout()
+        u = plc.valve_commands()
+        assert np.isnan(u.value[[0, 1, 2, 3, 8, 9, 10, 11]]).all()
+        assert plc.state() is LinkState.LOST
+        # The PLC tells the IPC, once the IPC listens again.
+        plc.poll()
+        self.settle()
+        ipc.poll()
+        st = ipc.status()
+        assert st is not None and st.command_timeout
+
+    def test_sensor_fault_is_nan_not_a_number(self, pair: Any) -> None:
+        ipc, plc, clock = pair
+        x = X.copy()
+        x[2] = math.nan
+        plc.set_positions_m(x)
+        self.run(ipc, plc, clock, 0.2)
+        r = ipc.positions_m()
+        assert not r.valid[2] and math.isnan(r.value[2]) and r.valid[3]
+        assert r.all_valid([0, 1, 3]) and not r.all_valid([0, 1, 2, 3])
+
+    def test_active_group_switch_moves_the_fast_frames(self, pair: Any) -> None:
+        ipc, plc, clock = pair
+        self.run(ipc, plc, clock, 0.1)
+        rx = ipc._rx_by_name["PLC_RodPos_2"]  # cylinders 4, 5: sub frame legs
+        before = rx.counters["accepted"]
+        self.run(ipc, plc, clock, 0.1)
+        assert rx.counters["accepted"] - before <= 3  # 20 Hz
+        load = ipc.set_active_cylinders([4, 5, 6, 7, 8, 9, 10, 11])
+        assert load.ok
+        self.run(ipc, plc, clock, 0.05)
+        assert plc.active_cylinders == (4, 5, 6, 7, 8, 9, 10, 11)
+        before = rx.counters["accepted"]
+        self.run(ipc, plc, clock, 0.1)
+        assert rx.counters["accepted"] - before >= 18  # 200 Hz
+        assert ipc.state() is LinkState.OK and plc.state() is LinkState.OK
+        with pytest.raises(BusLoadError, match="would load the bus"):
+            ipc.set_active_cylinders(range(19))
+        assert ipc.active_cylinders == (4, 5, 6, 7, 8, 9, 10, 11)
+
+
+class TestBackToBackVirtual(BackToBack):
+    def buses(self, cfg: ProjectConfig) -> tuple[can.BusABC, can.BusABC]:
+        ch = f"test-{uuid.uuid4().hex}"
+        return can.Bus(interface="virtual", channel=ch), can.Bus(interface="virtual", channel=ch)
+
+
+_NO_VCAN = socketcan_available("vcan0")
+
+
+@pytest.mark.skipif(_NO_VCAN is not None, reason=f"socketcan: {_NO_VCAN}")
+class TestBackToBackSocketcan(BackToBack):
+    """The same tests through the kernel (vcan0), with kernel receive filters."""
+
+    def buses(self, cfg: ProjectConfig) -> tuple[can.BusABC, can.BusABC]:
+        from plc_bridge import open_bus
+
+        link = cfg.can.model_copy(update={"interface": "socketcan", "channel": "vcan0"})
+        a = open_bus(link, [m.frame_id for m in CAT.sent_by("PLC")])
+        b = open_bus(link, [m.frame_id for m in CAT.sent_by("IPC")])
+        return a, b
+
+    def settle(self) -> None:
+        import time
+
+        time.sleep(0.0005)
+
+
+# --------------------------------------------------------------------------- supervision
+
+
+def _ipc(project: ProjectConfig) -> tuple[IpcLink, QueueBus, Clock]:
+    bus = QueueBus()
+    clock = Clock()
+    return IpcLink(project, bus, clock=clock), bus, clock
+
+
+def _status(counter: int, **over: Any) -> can.Message:
+    codec = FrameCodec(CAT.by_name("PLC_Status"))
+    vals = dict(zip(codec.signal_names, [2, 0, 1, 1, 0, 0, 16.0], strict=True)) | over
+    return frame(codec.frame_id, codec.encode(counter, list(vals.values())))
+
+
+def test_crc_error_is_rejected_counted_and_logged_once(
+    project: ProjectConfig, caplog: pytest.LogCaptureFixture
+) -> None:
+    ipc, bus, _clock = _ipc(project)
+    for c in (0, 1):
+        bus.inject(_status(c))
+    ipc.poll()
+    assert ipc.status() is not None
+    for c in (2, 3, 4):
+        bad = bytearray(_status(c, SupplyPressure=20.0).data)
+        bad[4] ^= 0x10
+        bus.inject(frame(0x090, bytes(bad)))
+    with caplog.at_level(logging.WARNING, logger="plc_bridge"):
+        ipc.poll()
+    st = ipc.status()
+    assert st is not None and st.supply_pressure_pa == pytest.approx(16e6)  # old value kept
+    assert ipc.rx_outcomes["crc_error"] == 3
+    assert len([r for r in caplog.records if "crc_error" in r.getMessage()]) == 1
+    assert ipc.health()["messages"]["PLC_Status"]["crc_error"] == 3
+
+
+def test_counter_stuck_is_rejected_then_stale(project: ProjectConfig) -> None:
+    ipc, bus, clock = _ipc(project)
+    bus.inject(_status(0))
+    bus.inject(_status(1))
+    ipc.poll()
+    for _ in range(30):  # the PLC hangs and repeats its last frame
+        clock.advance(0.005)
+        bus.inject(_status(1, EStop=1))
+        ipc.poll()
+    # Rejected while fresh; once stale, the counter re-synchronises (one "initial").
+    assert ipc.rx_outcomes["counter_repeated"] == 29 and ipc.rx_outcomes["initial"] == 2
+    assert ipc.status() is None  # 150 ms > 100 ms heartbeat timeout: no value at all
+
+
+def test_counter_jump_and_lost_frames(project: ProjectConfig) -> None:
+    ipc, bus, _clock = _ipc(project)
+    for c in (0, 1, 3):  # 2 lost: max_delta_counter 2 accepts it and counts it
+        bus.inject(_status(c))
+    ipc.poll()
+    assert ipc.rx_outcomes["accepted"] == 2 and ipc.health()["lost_frames"] == 1
+    bus.inject(_status(9, EStop=1))  # jumped 6: rejected, re-synchronised on 9
+    bus.inject(_status(10, EStop=1))
+    ipc.poll()
+    assert ipc.rx_outcomes["counter_wrong_sequence"] == 1
+    st = ipc.status()
+    assert st is not None and st.estop
+    bus.inject(_status(15))
+    ipc.poll()
+    assert ipc.rx_outcomes["counter_invalid"] == 1
+
+
+def test_value_out_of_range_rejects_the_word(project: ProjectConfig) -> None:
+    ipc, bus, _clock = _ipc(project)
+    codec = FrameCodec(CAT.by_name("PLC_Status"))
+    raws = [2, 0, 1, 1, 0, 0, 3200]
+    bus.inject(frame(0x090, codec.encode_raw(0, raws)))
+    bus.inject(frame(0x090, codec.encode_raw(1, raws)))
+    bus.inject(frame(0x090, codec.encode_raw(2, [9, *raws[1:]])))  # mode 9 does not exist
+    ipc.poll()
+    assert ipc.rx_outcomes["value_error"] == 1
+    st = ipc.status()
+    assert st is not None and st.mode is Mode.ATTITUDE_ADJUST
+
+
+def test_degraded_while_a_non_critical_message_is_missing(project: ProjectConfig) -> None:
+    plc_bus, ipc_bus = QueueBus(), QueueBus()
+    clock = Clock()
+    plc = PlcLink(project, plc_bus, clock=clock)
+    ipc = IpcLink(project, ipc_bus, clock=clock)
+    plc.set_positions_m(X)
+    for _ in range(60):
+        plc.poll()
+        for m in plc_bus.sent:
+            if m.arbitration_id != 0x190:  # the HMI target never arrives
+                ipc_bus.inject(m)
+        plc_bus.sent.clear()
+        ipc.poll()
+        clock.advance(DT)
+    assert ipc.state() is LinkState.DEGRADED
+    assert ipc.hmi_target() is None and ipc.positions_m().all_valid()
+
+
+def test_bus_off_from_error_frames_then_restart(
+    project: ProjectConfig, caplog: pytest.LogCaptureFixture
+) -> None:
+    ipc, bus, _clock = _ipc(project)
+    err = can.Message(arbitration_id=CAN_ERR_BUSOFF, is_error_frame=True, data=bytes(8))
+    with caplog.at_level(logging.INFO, logger="plc_bridge"):
+        for _ in range(5):
+            bus.inject(err)
+        ipc.poll()
+        assert ipc.bus_health.state is BusState.BUS_OFF and ipc.state() is LinkState.LOST
+        n_sent = len(bus.sent)
+        ipc.send_valve_commands(np.zeros(19))
+        assert len(bus.sent) == n_sent and ipc.tx_counts["tx_suppressed"] >= 1
+        bus.inject(
+            can.Message(arbitration_id=CAN_ERR_RESTARTED, is_error_frame=True, data=bytes(8))
+        )
+        ipc.poll()
+    assert ipc.bus_health.state is BusState.ACTIVE
+    logs = [r.getMessage() for r in caplog.records]
+    assert sum("-> BUS_OFF" in m for m in logs) == 1  # once per event, not per frame
+    assert sum("BUS_OFF -> ACTIVE" in m for m in logs) == 1
+    assert ipc.health()["bus"]["error_frames"] == 6
+    passive = bytearray(8)
+    passive[1] = 0x20  # CAN_ERR_CRTL_TX_PASSIVE
+    bus.inject(can.Message(arbitration_id=CAN_ERR_CRTL, is_error_frame=True, data=bytes(passive)))
+    ipc.poll()
+    assert ipc.bus_health.state is BusState.PASSIVE
+
+
+def test_full_transmit_queue_is_counted_not_waited_on(
+    project: ProjectConfig, caplog: pytest.LogCaptureFixture
+) -> None:
+    ipc, bus, clock = _ipc(project)
+    bus.send_error = lambda: can.CanOperationError(
+        "Failed to transmit: No buffer space", errno.ENOBUFS
+    )
+    with caplog.at_level(logging.WARNING, logger="plc_bridge"):
+        for _ in range(10):
+            ipc.send_valve_commands(U)  # must not raise
+            clock.advance(DT)
+    assert ipc.bus_health.counters["tx_queue_full"] >= 20
+    assert sum("queue full" in r.getMessage() for r in caplog.records) == 1
+    bus.send_error = None
+    assert ipc.send_valve_commands(U) == 2
+
+
+def test_interface_down_is_reopened_with_back_off(project: ProjectConfig) -> None:
+    clock = Clock()
+    buses: list[QueueBus] = []
+    failures = {"left": 2}
+
+    def factory() -> can.BusABC:
+        if buses and failures["left"] > 0:
+            failures["left"] -= 1
+            raise can.CanInitializationError("No such device")
+        buses.append(QueueBus())
+        return buses[-1]
+
+    ipc = IpcLink(project, bus_factory=factory, clock=clock)
+    buses[0].recv_error = lambda: can.CanOperationError(
+        "Failed to receive: Network is down", errno.ENETDOWN
+    )
+    ipc.poll()
+    assert ipc.bus_health.state is BusState.DOWN
+    attempts = []
+    for _ in range(200):  # 1 s in 5 ms steps
+        clock.advance(DT)
+        before = ipc.bus_health.counters["reopen_attempts"]
+        ipc.poll()
+        if ipc.bus_health.counters["reopen_attempts"] != before:
+            attempts.append(round(clock.t - 100.0, 3))
+    assert ipc.bus_health.state is BusState.ACTIVE and len(buses) == 2
+    assert ipc.bus_health.counters["reopen_failures"] == 2
+    gaps = np.diff(attempts)
+    assert len(attempts) == 3 and gaps[1] > gaps[0]  # back-off grows

@@ -1,0 +1,77 @@
+"""Cross-process test on ``udp_multicast``, only inside a private network namespace.
+
+The namespace is made with ``unshare --user --map-root-user --net`` and gets its own
+loopback with multicast routed to it; the root namespace's network is never touched.
+Where the namespace cannot be made (no user namespaces, no ``unshare``/``ip``), the
+test is skipped with the reason.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+NETNS_SETUP = "ip link set lo up && ip link set lo multicast on && ip route add 239.0.0.0/8 dev lo"
+
+
+def _in_private_netns(command: str, timeout: float) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        [
+            "unshare",
+            "--user",
+            "--map-root-user",
+            "--net",
+            "sh",
+            "-c",
+            f"{NETNS_SETUP} && {command}",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+        cwd=REPO,
+        env={**os.environ, "PYTHONPATH": str(REPO)},
+        check=False,
+    )
+
+
+def _namespace_problem() -> str | None:
+    for tool in ("unshare", "ip"):
+        if shutil.which(tool) is None:
+            return f"{tool} not found"
+    try:
+        probe = _in_private_netns("true", timeout=10)
+    except (OSError, subprocess.TimeoutExpired) as exc:
+        return f"cannot run unshare: {exc}"
+    if probe.returncode != 0:
+        return (
+            f"cannot make a private network namespace: {probe.stderr.strip() or probe.returncode}"
+        )
+    return None
+
+
+@pytest.fixture(scope="module")
+def netns() -> None:
+    problem = _namespace_problem()
+    if problem is not None:
+        pytest.skip(f"udp_multicast cross-process test needs a private netns: {problem}")
+
+
+def test_ipc_and_plc_processes_talk_over_udp_multicast(netns: None) -> None:
+    proc = _in_private_netns(
+        f"exec {sys.executable} -m tests.udp_multicast_peer ipc 1.5", timeout=60
+    )
+    assert proc.returncode == 0, proc.stderr
+    result = json.loads(proc.stdout.strip().splitlines()[-1])
+    assert result["ever_ok"] and result["state"] in ("OK", "DEGRADED"), result
+    assert result["positions_valid"] and result["max_position_error_m"] <= 0.5e-6
+    assert result["echoed_command_position_m"] == pytest.approx(0.1 + 0.01 * 0.5, abs=1e-5)
+    assert result["status_mode"] == "ATTITUDE_ADJUST"
+    # The multicast socket echoes our own frames: dropped and counted, never decoded.
+    assert result["own_echo"] > 0 and result["unknown_id"] == 0 and result["crc_error"] == 0
