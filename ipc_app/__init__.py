@@ -1,0 +1,1 @@
+"""The controller on the IPC: model, planner, control loops, service."""
