@@ -489,6 +489,10 @@ class CylinderBank:
             raise ValueError(
                 f"duration_s ({duration_s}) must be a whole number of steps of {self.step_s} s"
             )
+        self.advance_steps(command, load_force_n, n_steps)
+
+    def advance_steps(self, command: FloatArray, load_force_n: FloatArray, n_steps: int) -> None:
+        """Integrate ``n_steps`` RK4 steps with command (N,) and load force (N,) held."""
         u = np.ascontiguousarray(command, dtype=np.float64)
         f = np.ascontiguousarray(load_force_n, dtype=np.float64)
         _rk4_advance(self.state, u, f, self._p, self.step_s, n_steps)
