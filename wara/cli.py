@@ -22,6 +22,7 @@ EXIT_INFEASIBLE = 3
 #: Modules under wara.commands, in the order ``wara --help`` lists them.
 COMMANDS: tuple[str, ...] = (
     "config_cmd",
+    "sim",
     "bench",
 )
 
