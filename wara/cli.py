@@ -24,6 +24,7 @@ COMMANDS: tuple[str, ...] = (
     "plan",
     "config_cmd",
     "can",
+    "sim",
     "bench",
     "acceptance",
 )
