@@ -1,0 +1,126 @@
+"""Closed-loop attitude control of the eight attitude cylinders (two linked groups of 4).
+
+The planner's trajectory gives each cylinder's extension from mid-stroke over time; the
+wire carries rod positions from the retracted end, so ``x_ref = stroke / 2 + d(t)``.
+Each layer is one :class:`SyncGroup` (dual-error feedback, model.md section 10) of
+LADRC (or PID) controllers; every other cylinder's valve stays closed (command 0).
+
+Work per cycle is bounded: one trajectory sample and 8 controller updates.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from config.schema import ProjectConfig
+from ipc_app.control.ladrc import LADRC
+from ipc_app.control.pid import PID
+from ipc_app.control.plant_gain import cylinder_b0
+from ipc_app.control.sync import Controller, SyncGroup
+from ipc_app.model.kinematics import twist
+from ipc_app.planner.trajectory import Trajectory
+
+FloatArray = NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class LayerMetrics:
+    """What the operator sees of one layer in one cycle (m)."""
+
+    sync_error_m: float  # largest |synchronization error| in the group
+    twist_m: float  # |twist| of the measured extensions
+    tracking_error_m: float  # largest |reference - measurement|
+
+
+class AttitudeController:
+    """Follows a trajectory (or holds) with the lower and upper synchronization groups."""
+
+    def __init__(self, cfg: ProjectConfig, period_s: float) -> None:
+        self.cfg = cfg
+        n = len(cfg.cylinders)
+        self.n = n
+        self.layers: dict[str, list[int]] = {}
+        self.half_stroke = np.zeros(n)
+        for c in cfg.cylinders:
+            self.half_stroke[c.can_index] = c.stroke_m / 2
+        self.groups: dict[str, SyncGroup] = {}
+        ctl = cfg.control
+        for name in ("lower", "upper"):
+            ids = getattr(cfg.layers, name).cylinders
+            idx = [cfg.cylinder(i).can_index for i in ids]
+            self.layers[name] = idx
+            members: list[Controller] = []
+            for cid in ids:
+                cyl = cfg.cylinder(cid)
+                if ctl.controller == "ladrc":
+                    b0 = cylinder_b0(cyl, cfg.hydraulics, order=ctl.ladrc.order)
+                    members.append(LADRC.from_config(ctl.ladrc, b0, period_s))
+                else:
+                    members.append(
+                        PID.from_config(ctl.pid, period_s, rate_limit=ctl.ladrc.rate_limit_per_s)
+                    )
+            self.groups[name] = SyncGroup(members, ctl.sync.scheme, ctl.sync.coupling_lambda)
+        self.trajectory: Trajectory | None = None
+        self.t_start = 0.0
+        self.hold_ref = np.zeros(n)
+        self.metrics: dict[str, LayerMetrics] = {
+            k: LayerMetrics(0.0, 0.0, 0.0) for k in ("lower", "upper")
+        }
+
+    # ------------------------------------------------------------------ engage
+
+    def engage(self, x_rod_m: FloatArray, t_now: float, trajectory: Trajectory | None) -> None:
+        """Start following ``trajectory`` from now (``None``: hold the present positions).
+
+        Bumpless: every controller is reset at its measurement with a zero command.
+        """
+        self.trajectory = trajectory
+        self.t_start = t_now
+        self.hold_ref = np.array(x_rod_m, dtype=float)
+        for name, idx in self.layers.items():
+            self.groups[name].reset(self.hold_ref[idx])
+
+    def hold(self, x_ref_rod_m: FloatArray) -> None:
+        """Keep regulating at fixed references (after a motion: its end point)."""
+        self.trajectory = None
+        self.hold_ref = np.array(x_ref_rod_m, dtype=float)
+
+    def motion_done(self, t_now: float) -> bool:
+        return self.trajectory is None or t_now - self.t_start >= self.trajectory.duration_s
+
+    def references(self, t_now: float) -> FloatArray:
+        """Rod-position references (m from the retracted end) of all 19 cylinders."""
+        ref = self.hold_ref.copy()
+        if self.trajectory is not None:
+            d_lower, d_upper, _, _ = self.trajectory.reference(t_now - self.t_start)
+            lo, up = self.layers["lower"], self.layers["upper"]
+            ref[lo] = self.half_stroke[lo] + d_lower
+            ref[up] = self.half_stroke[up] + d_upper
+        return ref
+
+    def final_references(self) -> FloatArray:
+        """End point of the present trajectory (or the hold references)."""
+        if self.trajectory is None:
+            return self.hold_ref.copy()
+        return self.references(self.t_start + self.trajectory.duration_s)
+
+    # ------------------------------------------------------------------ update
+
+    def update(self, t_now: float, x_rod_m: FloatArray) -> FloatArray:
+        """Valve commands (19 values in [-1, 1]) for this cycle."""
+        ref = self.references(t_now)
+        u = np.zeros(self.n)
+        for name, idx in self.layers.items():
+            group = self.groups[name]
+            y = x_rod_m[idx]
+            u[idx] = group.update(ref[idx].tolist(), y)
+            ext = y - self.half_stroke[idx]
+            self.metrics[name] = LayerMetrics(
+                sync_error_m=float(np.max(np.abs(group.last_sync_error))),
+                twist_m=float(abs(twist(ext))),
+                tracking_error_m=float(np.max(np.abs(ref[idx] - y))),
+            )
+        return u
