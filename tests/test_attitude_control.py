@@ -27,7 +27,7 @@ def test_follows_example_1_synchronized(project: ProjectConfig) -> None:
     x[:] = ac.half_stroke
     x[idx] = bank.x_m
     ac.engage(x, 0.0, p.trajectory)
-    steps = int(round(period / bank.step_s))
+    steps = round(period / bank.step_s)
     t = 0.0
     worst_sync = 0.0
     duration = p.trajectory.duration_s
