@@ -15,6 +15,7 @@ from typing import Any
 #: a JSON-serialisable dict.
 BENCHES: dict[str, str] = {
     "planner": "wara.benches.planner:run",
+    "loop": "wara.benches.loop:run",
 }
 
 
