@@ -25,6 +25,7 @@ COMMANDS: tuple[str, ...] = (
     "config_cmd",
     "bench",
     "acceptance",
+    "ctl",
 )
 
 
