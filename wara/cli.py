@@ -27,6 +27,7 @@ COMMANDS: tuple[str, ...] = (
     "sim",
     "bench",
     "acceptance",
+    "ctl",
 )
 
 

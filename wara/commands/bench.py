@@ -17,6 +17,7 @@ BENCHES: dict[str, str] = {
     "planner": "wara.benches.planner:run",
     "can": "wara.benches.can:run",
     "sim": "wara.benches.sim:run",
+    "loop": "wara.benches.loop:run",
 }
 
 

@@ -1,0 +1,409 @@
+"""The fixed-rate loop: one thread, absolute deadlines, counted overruns, measured jitter.
+
+The shape is ros2_control's: the service's ``step(cycle_index, t_now)`` does
+``read -> update -> write``; the loop then advances its deadline by exactly one period
+(``next += period``, never ``now + period``, so the rate does not drift). When a step
+ends after the next deadline, the loop *skips whole periods*: it does not run late cycles
+back to back to catch up, it jumps the deadline to the next period boundary still in the
+future, counts the skipped periods and logs it (throttled to one line per
+``overrun_log_every_s``). ``cycle_index`` is the period number since start, so a skip
+shows as a gap in the index and ``t0 + cycle_index * period`` is always the deadline the
+step was scheduled for.
+
+Statistics come from fixed-size ring buffers (``ring_size`` cycles, no growth):
+
+- ``jitter``: wake-up time minus the deadline (how late the step started), ms;
+- ``period``: actual time between consecutive wake-ups minus the nominal period, ms
+  (absolute value; only pairs without a skip in between);
+- ``compute``: time spent in ``step``, ms;
+
+each as p50/p99/max over the window, plus totals ``cycles``, ``overruns`` (events) and
+``skipped_periods``. :meth:`FixedRateLoop.stats` returns the dict from any thread;
+``on_stats`` receives it from the loop thread every ``stats_every_s`` (keep it cheap:
+log it or put it on a queue).
+
+Garbage collector (decision). After start-up the service calls ``gc.freeze()``
+(:func:`freeze_startup_heap`), which moves every object allocated so far (modules, config,
+numpy, the planner's imports) to a permanent generation the collector never scans again,
+so a collection only walks what was allocated since. Then, ``gc_mode``:
+
+- ``"freeze"`` (default): automatic collection stays on. A young-generation pass over the
+  few objects a cycle allocates costs tens of microseconds; it is safe when the loop is
+  starved (memory cannot grow without bound) and it is what the measured jitter includes.
+- ``"slack"``: the collector is disabled *process-wide* (CPython has no per-thread switch)
+  and the loop thread collects itself, generation by generation as the allocation counts
+  call for it, only when at least half a period of slack remains before the next deadline;
+  if the counts reach 10x the thresholds it collects anyway, so a starved loop cannot grow
+  memory without bound. Use it when the jitter p99 shows collection spikes.
+
+Real-time settings (:func:`apply_realtime`) are applied from inside the loop thread when
+the config asks (``control.realtime``): SCHED_FIFO priority and CPU affinity for that
+thread only (Linux applies both per thread), and ``mlockall`` for the process. Each
+setting the system refuses is reported (returned and logged with the errno) and the loop
+runs anyway.
+
+Example::
+
+    loop = FixedRateLoop(step, cfg.control.period_s, realtime=cfg.control.realtime,
+                         on_stats=lambda s: log.info("loop_stats", **s))
+    loop.start()
+    ...
+    loop.stop()
+"""
+
+from __future__ import annotations
+
+import ctypes
+import ctypes.util
+import gc
+import math
+import os
+import resource
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any, Literal, Protocol
+
+import numpy as np
+import structlog
+
+from config.schema import Realtime
+
+log = structlog.get_logger("wara.service.loop")
+
+StepFn = Callable[[int, float], None]
+GcMode = Literal["freeze", "slack"]
+
+MCL_CURRENT = 1
+MCL_FUTURE = 2
+
+
+# --------------------------------------------------------------------------- real time
+
+
+class OsApi(Protocol):
+    """The system calls :func:`apply_realtime` uses (a fake in tests)."""
+
+    def sched_setscheduler(self, priority: int) -> None: ...
+    def sched_setaffinity(self, cpus: tuple[int, ...]) -> None: ...
+    def mlockall(self, flags: int) -> None: ...
+    def memlock_unlimited(self) -> bool: ...
+
+
+class LinuxOsApi:
+    """The real calls, on the calling thread (pid 0)."""
+
+    def sched_setscheduler(self, priority: int) -> None:
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
+
+    def sched_setaffinity(self, cpus: tuple[int, ...]) -> None:
+        os.sched_setaffinity(0, cpus)
+
+    def mlockall(self, flags: int) -> None:
+        libc = ctypes.CDLL(ctypes.util.find_library("c"), use_errno=True)
+        if libc.mlockall(ctypes.c_int(flags)) != 0:
+            err = ctypes.get_errno()
+            raise OSError(err, os.strerror(err))
+
+    def memlock_unlimited(self) -> bool:
+        soft, _ = resource.getrlimit(resource.RLIMIT_MEMLOCK)
+        return soft == resource.RLIM_INFINITY
+
+
+@dataclass(frozen=True)
+class RealtimeReport:
+    """What :func:`apply_realtime` did: one line per setting applied or refused."""
+
+    applied: tuple[str, ...] = ()
+    refused: tuple[str, ...] = ()
+
+    def to_dict(self) -> dict[str, list[str]]:
+        return {"applied": list(self.applied), "refused": list(self.refused)}
+
+
+def _why(exc: OSError) -> str:
+    hint = {
+        1: "needs CAP_SYS_NICE / LimitRTPRIO (or CAP_IPC_LOCK / LimitMEMLOCK)",
+        12: "LimitMEMLOCK too small",
+        22: "invalid value for this system",
+    }.get(exc.errno or 0, "")
+    return f"{exc.strerror or exc}" + (f" ({hint})" if hint else "")
+
+
+def apply_realtime(rt: Realtime, os_api: OsApi | None = None) -> RealtimeReport:
+    """Apply ``control.realtime`` to the calling thread; never raises for a refusal.
+
+    ``priority`` 0 means "leave the scheduler alone", an empty ``cpu_affinity`` "any CPU".
+    ``mlockall`` locks current and future pages when RLIMIT_MEMLOCK is unlimited, else the
+    current pages only (future allocations beyond a finite limit would fail).
+    """
+    api = os_api or LinuxOsApi()
+    applied: list[str] = []
+    refused: list[str] = []
+    if rt.cpu_affinity:
+        try:
+            api.sched_setaffinity(tuple(rt.cpu_affinity))
+            applied.append(f"cpu_affinity {list(rt.cpu_affinity)}")
+        except OSError as exc:
+            refused.append(f"cpu_affinity {list(rt.cpu_affinity)}: {_why(exc)}")
+    if rt.priority > 0:
+        try:
+            api.sched_setscheduler(rt.priority)
+            applied.append(f"SCHED_FIFO priority {rt.priority}")
+        except OSError as exc:
+            refused.append(f"SCHED_FIFO priority {rt.priority}: {_why(exc)}")
+    if rt.lock_memory:
+        future = api.memlock_unlimited()
+        flags = MCL_CURRENT | (MCL_FUTURE if future else 0)
+        what = "mlockall(MCL_CURRENT|MCL_FUTURE)" if future else "mlockall(MCL_CURRENT)"
+        try:
+            api.mlockall(flags)
+            applied.append(what)
+        except OSError as exc:
+            refused.append(f"{what}: {_why(exc)}")
+    report = RealtimeReport(tuple(applied), tuple(refused))
+    if applied:
+        log.info("realtime_applied", settings=list(applied))
+    for line in refused:
+        log.warning("realtime_refused", setting=line)
+    return report
+
+
+def freeze_startup_heap() -> int:
+    """Collect once and ``gc.freeze()`` everything allocated so far; returns the count."""
+    gc.collect()
+    gc.freeze()
+    return gc.get_freeze_count()
+
+
+# --------------------------------------------------------------------------- statistics
+
+
+class _Ring:
+    """Fixed-size float ring; ``values()`` is the filled part (a copy)."""
+
+    def __init__(self, size: int) -> None:
+        self._buf = np.zeros(size)
+        self._n = 0
+
+    def add(self, x: float) -> None:
+        self._buf[self._n % self._buf.size] = x
+        self._n += 1
+
+    def values(self) -> np.ndarray:
+        return self._buf[: min(self._n, self._buf.size)].copy()
+
+
+def _pct(ring: _Ring, name: str) -> dict[str, float]:
+    v = ring.values()
+    if v.size == 0:
+        return {f"{name}_p50_ms": 0.0, f"{name}_p99_ms": 0.0, f"{name}_max_ms": 0.0}
+    p50, p99 = np.percentile(v, [50, 99])
+    return {
+        f"{name}_p50_ms": float(p50) * 1e3,
+        f"{name}_p99_ms": float(p99) * 1e3,
+        f"{name}_max_ms": float(v.max()) * 1e3,
+    }
+
+
+@dataclass
+class _Counters:
+    cycles: int = 0
+    overruns: int = 0
+    skipped_periods: int = 0
+    gc_collections: int = 0
+    overruns_since_log: int = 0
+    skipped_since_log: int = 0
+    last_overrun_log: float = -math.inf
+    worst_overrun_s: float = 0.0
+
+
+# --------------------------------------------------------------------------- the loop
+
+
+class FixedRateLoop:
+    """Run ``step(cycle_index, t_now)`` every ``period_s`` on absolute deadlines.
+
+    ``clock`` (monotonic seconds) and ``sleep(seconds)`` are injectable; by default the
+    sleep is an :class:`threading.Event` wait so :meth:`stop` wakes the loop at once.
+    A step that raises stops the loop; the exception is kept in :attr:`error` and logged
+    (the service turns that into a fault and a controlled stop).
+    """
+
+    def __init__(
+        self,
+        step: StepFn,
+        period_s: float,
+        *,
+        clock: Callable[[], float] = time.monotonic,
+        sleep: Callable[[float], object] | None = None,
+        realtime: Realtime | None = None,
+        os_api: OsApi | None = None,
+        on_stats: Callable[[dict[str, Any]], None] | None = None,
+        stats_every_s: float = 5.0,
+        overrun_log_every_s: float = 5.0,
+        ring_size: int = 4096,
+        gc_mode: GcMode = "freeze",
+        name: str = "wara-loop",
+    ) -> None:
+        if not (period_s > 0 and math.isfinite(period_s)):
+            raise ValueError(f"period_s must be a positive number of seconds, got {period_s}")
+        if gc_mode not in ("freeze", "slack"):
+            raise ValueError(f"gc_mode must be 'freeze' or 'slack', got {gc_mode!r}")
+        self._step = step
+        self.period_s = float(period_s)
+        self._clock = clock
+        self._stop = threading.Event()
+        self._sleep: Callable[[float], object] = sleep or self._stop.wait
+        self._realtime = realtime
+        self._os_api = os_api
+        self._on_stats = on_stats
+        self._stats_every_s = stats_every_s
+        self._overrun_log_every_s = overrun_log_every_s
+        self._gc_mode: GcMode = gc_mode
+        self._name = name
+        self._jitter = _Ring(ring_size)
+        self._period_dev = _Ring(ring_size)
+        self._compute = _Ring(ring_size)
+        self._c = _Counters()
+        self._thread: threading.Thread | None = None
+        self.realtime_report = RealtimeReport()
+        self.error: BaseException | None = None
+
+    # ------------------------------------------------------------------ control
+    def start(self) -> None:
+        """Run the loop in a new thread (the only thread the RT settings touch)."""
+        if self._thread is not None:
+            raise RuntimeError("loop already started")
+        self._thread = threading.Thread(target=self.run, name=self._name, daemon=True)
+        self._thread.start()
+
+    def stop(self, timeout_s: float = 2.0) -> bool:
+        """Ask the loop to stop after the current step; True when it has stopped."""
+        self._stop.set()
+        if self._thread is not None and self._thread is not threading.current_thread():
+            self._thread.join(timeout_s)
+            return not self._thread.is_alive()
+        return True
+
+    @property
+    def running(self) -> bool:
+        return self._thread is not None and self._thread.is_alive()
+
+    def run(self) -> None:
+        """The loop itself, in the calling thread, until :meth:`stop` (or a step raises)."""
+        if self._realtime is not None:
+            self.realtime_report = apply_realtime(self._realtime, self._os_api)
+        gc_was_enabled = gc.isenabled()
+        if self._gc_mode == "slack":
+            gc.disable()
+        log.info(
+            "loop_start",
+            period_ms=self.period_s * 1e3,
+            gc_mode=self._gc_mode,
+            gc_frozen=gc.get_freeze_count(),
+        )
+        try:
+            self._run()
+        except BaseException as exc:  # the service decides; the loop only reports
+            self.error = exc
+            log.exception("loop_step_failed", error=repr(exc))
+        finally:
+            if self._gc_mode == "slack" and gc_was_enabled:
+                gc.enable()
+            log.info("loop_stop", **self.stats())
+
+    def _run(self) -> None:
+        clock, period, stop = self._clock, self.period_s, self._stop
+        deadline = clock()
+        index = 0
+        prev_wake: float | None = None
+        next_stats = deadline + self._stats_every_s
+        c = self._c
+        while not stop.is_set():
+            now = clock()
+            if now < deadline:
+                self._sleep(deadline - now)
+                if stop.is_set():
+                    break
+                now = clock()
+            wake = now
+            self._jitter.add(max(wake - deadline, 0.0))
+            if prev_wake is not None:
+                self._period_dev.add(abs(wake - prev_wake - period))
+            prev_wake = wake
+            self._step(index, wake)
+            end = clock()
+            self._compute.add(end - wake)
+            c.cycles += 1
+            deadline += period
+            index += 1
+            if end > deadline:
+                missed = int((end - deadline) // period) + 1
+                self._overrun(end, end - (deadline - period), missed)
+                deadline += missed * period
+                index += missed
+                prev_wake = None
+            if self._gc_mode == "slack":
+                self._collect_in_slack(deadline - clock())
+            if end >= next_stats:
+                next_stats = end + self._stats_every_s
+                if self._on_stats is not None:
+                    self._on_stats(self.stats())
+
+    def _overrun(self, now: float, took_s: float, missed: int) -> None:
+        c = self._c
+        c.overruns += 1
+        c.skipped_periods += missed
+        c.overruns_since_log += 1
+        c.skipped_since_log += missed
+        c.worst_overrun_s = max(c.worst_overrun_s, took_s)
+        if now - c.last_overrun_log >= self._overrun_log_every_s:
+            log.warning(
+                "loop_overrun",
+                overruns=c.overruns_since_log,
+                skipped_periods=c.skipped_since_log,
+                last_cycle_ms=round(took_s * 1e3, 3),
+                period_ms=self.period_s * 1e3,
+                throttle_s=self._overrun_log_every_s,
+            )
+            c.last_overrun_log = now
+            c.overruns_since_log = c.skipped_since_log = 0
+
+    def _collect_in_slack(self, slack_s: float) -> None:
+        counts = gc.get_count()
+        thresholds = gc.get_threshold()
+        gen = -1
+        for g in (2, 1, 0):
+            if thresholds[g] and counts[g] >= thresholds[g]:
+                gen = g
+                break
+        if gen < 0:
+            return
+        forced = counts[gen] >= 10 * thresholds[gen]
+        if slack_s >= self.period_s / 2 or forced:
+            gc.collect(gen)
+            self._c.gc_collections += 1
+
+    # ------------------------------------------------------------------ statistics
+    def stats(self) -> dict[str, Any]:
+        """Counters and p50/p99/max of jitter, period deviation and compute time, ms."""
+        c = self._c
+        out: dict[str, Any] = {
+            "period_ms": self.period_s * 1e3,
+            "cycles": c.cycles,
+            "overruns": c.overruns,
+            "skipped_periods": c.skipped_periods,
+            "worst_overrun_cycle_ms": c.worst_overrun_s * 1e3,
+            "window_cycles": int(self._compute.values().size),
+        }
+        out.update(_pct(self._jitter, "jitter"))
+        out.update(_pct(self._period_dev, "period_dev"))
+        out.update(_pct(self._compute, "compute"))
+        out["compute_p99_fraction"] = out["compute_p99_ms"] / out["period_ms"]
+        if self._gc_mode == "slack":
+            out["gc_collections"] = c.gc_collections
+        if self.realtime_report.refused:
+            out["realtime_refused"] = list(self.realtime_report.refused)
+        return out

@@ -1,0 +1,27 @@
+"""Fake planner functions for the worker tests (imported in the worker process).
+
+Magic roll values pick a misbehaviour; anything else runs the real planner.
+"""
+
+from __future__ import annotations
+
+import os
+import time
+
+from config.schema import ProjectConfig
+from ipc_app.planner.plan import Plan
+from ipc_app.service.worker import PlanRequest, run_planner
+
+HANG_ROLL_DEG = 99.0
+CRASH_ROLL_DEG = 98.0
+RAISE_ROLL_DEG = 97.0
+
+
+def misbehaving_plan(cfg: ProjectConfig, req: PlanRequest) -> Plan:
+    if req.roll_deg == HANG_ROLL_DEG:
+        time.sleep(3600)
+    if req.roll_deg == CRASH_ROLL_DEG:
+        os._exit(7)
+    if req.roll_deg == RAISE_ROLL_DEG:
+        raise ValueError("singular allocation")
+    return run_planner(cfg, req)

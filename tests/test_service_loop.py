@@ -1,0 +1,241 @@
+"""FixedRateLoop on an injected clock (exact arithmetic), plus one short real-clock run."""
+
+from __future__ import annotations
+
+import gc
+import threading
+import time
+from collections.abc import Callable
+
+import pytest
+from structlog.testing import capture_logs
+
+from config.schema import Realtime
+from ipc_app.service.loop import FixedRateLoop, RealtimeReport, apply_realtime
+
+
+class FakeTime:
+    """A clock that only moves when the loop sleeps or a step 'computes'."""
+
+    def __init__(self) -> None:
+        self.t = 100.0
+        self.sleeps: list[float] = []
+
+    def clock(self) -> float:
+        return self.t
+
+    def sleep(self, dt: float) -> None:
+        self.sleeps.append(dt)
+        self.t += dt
+
+
+def make(
+    ft: FakeTime,
+    compute: Callable[[int], float],
+    n_cycles: int,
+    period: float = 1.0,
+    **kw: object,
+) -> tuple[FixedRateLoop, list[tuple[int, float]]]:
+    calls: list[tuple[int, float]] = []
+    holder: list[FixedRateLoop] = []
+
+    def step(k: int, t: float) -> None:
+        calls.append((k, t))
+        ft.t += compute(k)
+        if len(calls) >= n_cycles:
+            holder[0].stop()
+
+    loop = FixedRateLoop(step, period, clock=ft.clock, sleep=ft.sleep, **kw)  # type: ignore[arg-type]
+    holder.append(loop)
+    return loop, calls
+
+
+def test_absolute_deadlines_do_not_drift() -> None:
+    ft = FakeTime()
+    loop, calls = make(ft, lambda k: 0.25, 50)
+    loop.run()
+    assert [k for k, _ in calls] == list(range(50))
+    # every wake-up exactly on t0 + k * period: next += period, not now + period
+    assert all(t == 100.0 + k for k, t in calls)
+    s = loop.stats()
+    assert s["cycles"] == 50 and s["overruns"] == 0 and s["skipped_periods"] == 0
+    assert s["compute_p50_ms"] == pytest.approx(250.0)
+    assert s["compute_p99_fraction"] == pytest.approx(0.25)
+    assert s["jitter_max_ms"] == 0.0 and s["period_dev_max_ms"] == 0.0
+
+
+def test_overrun_skips_whole_periods_and_is_counted() -> None:
+    ft = FakeTime()
+    # cycle 10 takes 3.5 periods: deadlines 11, 12, 13 are gone; the next step is 14
+    loop, calls = make(ft, lambda k: 3.5 if k == 10 else 0.25, 15)
+    loop.run()
+    ks = [k for k, _ in calls]
+    assert ks[:11] == list(range(11))
+    assert ks[11] == 14
+    t14 = dict(calls)[14]
+    assert t14 == 100.0 + 14  # back on the grid, not late
+    s = loop.stats()
+    assert s["overruns"] == 1 and s["skipped_periods"] == 3
+    assert s["worst_overrun_cycle_ms"] == pytest.approx(3500.0)
+    assert s["cycles"] == 15
+
+
+def test_ending_on_the_deadline_is_on_time_and_just_after_skips_one() -> None:
+    on_time, calls = make(FakeTime(), lambda k: 1.0 if k == 2 else 0.0, 5)
+    on_time.run()
+    assert [k for k, _ in calls] == [0, 1, 2, 3, 4]
+    assert on_time.stats()["skipped_periods"] == 0
+    late, calls = make(FakeTime(), lambda k: 1.25 if k == 2 else 0.0, 5)
+    late.run()
+    assert [k for k, _ in calls] == [0, 1, 2, 4, 5]
+    assert late.stats()["skipped_periods"] == 1
+
+
+def test_overrun_log_is_throttled() -> None:
+    ft = FakeTime()
+    # every 4th cycle overruns by 1 period; 5 overruns within 20 s, throttle 100 s
+    loop, _ = make(ft, lambda k: 1.5 if k % 4 == 0 else 0.1, 15, overrun_log_every_s=100.0)
+    with capture_logs() as logs:
+        loop.run()
+    lines = [e for e in logs if e["event"] == "loop_overrun"]
+    assert loop.stats()["overruns"] >= 4
+    assert len(lines) == 1
+    assert lines[0]["log_level"] == "warning" and lines[0]["skipped_periods"] == 1
+
+
+def test_ring_is_bounded_and_stats_exported_periodically() -> None:
+    ft = FakeTime()
+    exported: list[dict[str, object]] = []
+    loop, _ = make(
+        ft,
+        lambda k: 0.5 if k < 100 else 0.1,
+        200,
+        ring_size=32,
+        stats_every_s=50.0,
+        on_stats=exported.append,
+    )
+    loop.run()
+    s = loop.stats()
+    assert s["window_cycles"] == 32 and s["cycles"] == 200
+    # the window only holds the last 32 cycles: all at 0.1 s
+    assert s["compute_max_ms"] == pytest.approx(100.0)
+    assert len(exported) == 3  # at t0+50, +100, +150 (s)
+    assert all(e["period_ms"] == 1000.0 for e in exported)
+
+
+def test_step_exception_stops_loop_and_is_kept() -> None:
+    ft = FakeTime()
+
+    def step(k: int, t: float) -> None:
+        if k == 3:
+            raise RuntimeError("bus gone")
+
+    loop = FixedRateLoop(step, 1.0, clock=ft.clock, sleep=ft.sleep)
+    with capture_logs() as logs:
+        loop.run()
+    assert isinstance(loop.error, RuntimeError)
+    assert loop.stats()["cycles"] == 3
+    assert any(e["event"] == "loop_step_failed" for e in logs)
+
+
+def test_bad_period_refused() -> None:
+    with pytest.raises(ValueError, match="period_s"):
+        FixedRateLoop(lambda k, t: None, 0.0)
+
+
+def test_slack_gc_mode_collects_in_loop_thread_and_restores() -> None:
+    ft = FakeTime()
+    keep: list[object] = []
+    old = gc.get_threshold()
+    gc.set_threshold(50, 5, 5)
+    try:
+
+        def alloc(k: int) -> float:
+            # cycles of garbage so that the young generation fills up
+            for _ in range(60):
+                a: list[object] = []
+                a.append(a)
+            keep.append(gc.isenabled())
+            return 0.1
+
+        loop, _ = make(ft, alloc, 20, gc_mode="slack")
+        assert gc.isenabled()
+        loop.run()
+    finally:
+        gc.set_threshold(*old)
+    assert keep and not any(keep)  # collector off while the loop ran
+    assert gc.isenabled()  # and back on after
+    assert loop.stats()["gc_collections"] > 0
+
+
+def test_real_thread_stops_promptly_on_request() -> None:
+    cycles = threading.Event()
+    count = [0]
+
+    def step(k: int, t: float) -> None:
+        count[0] += 1
+        if count[0] >= 5:
+            cycles.set()
+
+    loop = FixedRateLoop(step, 0.002, name="test-loop")
+    loop.start()
+    assert cycles.wait(10.0)
+    t0 = time.monotonic()
+    assert loop.stop(timeout_s=5.0)
+    assert time.monotonic() - t0 < 5.0
+    assert not loop.running and loop.error is None
+    assert loop.stats()["cycles"] >= 5
+
+
+class FakeOs:
+    def __init__(self, refuse: set[str], unlimited: bool = True) -> None:
+        self.refuse = refuse
+        self.unlimited = unlimited
+        self.calls: list[tuple[str, object]] = []
+
+    def _do(self, name: str, arg: object) -> None:
+        self.calls.append((name, arg))
+        if name in self.refuse:
+            raise PermissionError(1, "Operation not permitted")
+
+    def sched_setscheduler(self, priority: int) -> None:
+        self._do("sched", priority)
+
+    def sched_setaffinity(self, cpus: tuple[int, ...]) -> None:
+        self._do("affinity", cpus)
+
+    def mlockall(self, flags: int) -> None:
+        self._do("mlock", flags)
+
+    def memlock_unlimited(self) -> bool:
+        return self.unlimited
+
+
+def test_realtime_nothing_asked_nothing_done() -> None:
+    fake = FakeOs(set())
+    assert apply_realtime(Realtime(), fake) == RealtimeReport()
+    assert fake.calls == []
+
+
+def test_realtime_refusals_reported_never_fatal() -> None:
+    fake = FakeOs({"sched", "mlock"}, unlimited=False)
+    rt = Realtime(priority=80, cpu_affinity=(1,), lock_memory=True)
+    with capture_logs() as logs:
+        rep = apply_realtime(rt, fake)
+    assert rep.applied == ("cpu_affinity [1]",)
+    assert len(rep.refused) == 2
+    assert "SCHED_FIFO priority 80" in rep.refused[0] and "CAP_SYS_NICE" in rep.refused[0]
+    assert "mlockall(MCL_CURRENT)" in rep.refused[1]  # finite limit: current pages only
+    assert ("mlock", 1) in fake.calls
+    assert sum(e["event"] == "realtime_refused" for e in logs) == 2
+
+
+def test_realtime_applied_from_loop_and_reported_in_stats() -> None:
+    ft = FakeTime()
+    fake = FakeOs({"sched"})
+    loop, _ = make(
+        ft, lambda k: 0.1, 3, realtime=Realtime(priority=50, lock_memory=True), os_api=fake
+    )
+    loop.run()
+    assert loop.realtime_report.applied == ("mlockall(MCL_CURRENT|MCL_FUTURE)",)
+    assert loop.stats()["realtime_refused"][0].startswith("SCHED_FIFO priority 50")

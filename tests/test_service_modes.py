@@ -1,0 +1,136 @@
+"""The operator-visible mode machine: legal paths, refusals, latching, restart."""
+
+from __future__ import annotations
+
+import itertools
+
+import pytest
+from structlog.testing import capture_logs
+
+from ipc_app.service.modes import Mode, ModeMachine
+
+
+def fresh(causes: list[str] | None = None) -> ModeMachine:
+    active = causes if causes is not None else []
+    ticks = itertools.count()
+    m = ModeMachine(active_causes=lambda: list(active), clock=lambda: float(next(ticks)))
+    assert m.boot_complete().accepted
+    return m
+
+
+def test_restart_starts_in_boot_then_idle_with_valves_closed() -> None:
+    m = ModeMachine()
+    assert m.mode is Mode.BOOT and not m.valves_enabled
+    assert m.boot_complete().mode is Mode.IDLE
+    assert not m.valves_enabled
+    # a second boot_complete is refused: BOOT happens once per process
+    assert not m.boot_complete().accepted
+
+
+def test_nominal_cycle_and_valve_permission() -> None:
+    m = fresh()
+    seen = []
+    for event in (
+        lambda: m.request_adjust(-3.0, 2.0),
+        m.plan_ready,
+        m.motion_done,
+        m.stop,
+    ):
+        out = event()
+        assert out.accepted, out.message
+        seen.append((m.mode, m.valves_enabled))
+    assert seen == [
+        (Mode.PLANNING, False),
+        (Mode.ADJUSTING, True),
+        (Mode.HOLDING, True),
+        (Mode.IDLE, False),
+    ]
+    assert [t.event for t in m.history] == [
+        "boot_complete",
+        "request_adjust",
+        "plan_ready",
+        "motion_done",
+        "stop",
+    ]
+
+
+def test_infeasible_plan_returns_to_idle_with_reasons() -> None:
+    m = fresh()
+    m.request_adjust(30.0, 0.0)
+    out = m.plan_failed(["upper_1 beyond stroke"])
+    assert out.accepted and m.mode is Mode.IDLE
+    assert "upper_1 beyond stroke" in out.message
+    assert m.target_deg is None
+
+
+def test_new_adjustment_from_holding() -> None:
+    m = fresh()
+    m.request_adjust(1.0, 1.0)
+    m.plan_ready()
+    m.motion_done()
+    assert m.request_adjust(2.0, 0.0).mode is Mode.PLANNING
+    assert m.target_deg == (2.0, 0.0)
+
+
+@pytest.mark.parametrize("mode_path", ["idle", "planning", "adjusting", "holding"])
+def test_fault_latches_from_every_mode_and_closes_valves(mode_path: str) -> None:
+    m = fresh()
+    steps = {"idle": 0, "planning": 1, "adjusting": 2, "holding": 3}[mode_path]
+    events = [lambda: m.request_adjust(1.0, 0.0), m.plan_ready, m.motion_done][:steps]
+    for e in events:
+        e()
+    out = m.fault("twist 0.8 mm above 0.5 mm")
+    assert out.accepted and m.mode is Mode.FAULT and not m.valves_enabled
+    # latched: stop does not clear it, adjust is refused with the reason and the cure
+    assert m.stop().mode is Mode.FAULT
+    refused = m.request_adjust(0.0, 0.0)
+    assert not refused.accepted
+    assert "FAULT" in refused.message and "twist" in refused.message
+    assert "reset" in refused.message
+
+
+def test_reset_only_when_cause_gone() -> None:
+    causes = ["plc heartbeat lost"]
+    m = fresh(causes)
+    m.fault("plc heartbeat lost")
+    out = m.reset()
+    assert not out.accepted and m.mode is Mode.FAULT
+    assert "plc heartbeat lost" in out.message
+    causes.clear()
+    out = m.reset()
+    assert out.accepted and m.mode is Mode.IDLE
+    assert m.fault_reasons == ()
+    assert not m.reset().accepted  # nothing to reset
+
+
+def test_second_fault_adds_reason() -> None:
+    m = fresh()
+    m.fault("pressure 25 MPa above 24 MPa")
+    m.fault("stroke end upper_2")
+    assert m.fault_reasons == ("pressure 25 MPa above 24 MPa", "stroke end upper_2")
+    assert m.snapshot()["fault_reasons"] == list(m.fault_reasons)
+
+
+def test_estop_overrides_fault_and_needs_release_and_reset() -> None:
+    m = fresh()
+    m.request_adjust(1.0, 0.0)
+    m.plan_ready()
+    assert m.estop(True).mode is Mode.ESTOP and not m.valves_enabled
+    assert m.fault("late fault").mode is Mode.ESTOP  # noted, ESTOP kept
+    out = m.reset()
+    assert not out.accepted and "e-stop still pressed" in out.message
+    m.estop(False)
+    assert m.mode is Mode.ESTOP  # release alone does not re-arm
+    assert m.reset().mode is Mode.IDLE
+
+
+def test_transitions_and_refusals_are_logged_with_reason() -> None:
+    with capture_logs() as logs:
+        m = fresh()
+        m.fault("sensor data stale")
+        m.request_adjust(1.0, 1.0)
+    modes = [e for e in logs if e["event"] == "mode"]
+    assert modes[-1]["mode"] == "FAULT" and modes[-1]["reason"] == "sensor data stale"
+    refused = [e for e in logs if e["event"] == "refused"]
+    assert refused and refused[0]["event_name"] == "request_adjust"
+    assert refused[0]["log_level"] == "warning"

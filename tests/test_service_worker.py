@@ -1,0 +1,114 @@
+"""PlannerWorker with real worker processes: results, refusals, timeout, crash, restart."""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from config import ConfigError, ProjectConfig
+from ipc_app.planner import plan
+from ipc_app.service.worker import PlannerWorker, PlanResult
+from tests.service_helpers import CRASH_ROLL_DEG, HANG_ROLL_DEG, RAISE_ROLL_DEG
+
+WAIT_S = 60.0  # generous: a loaded 2-core machine; never a timing assertion
+
+
+def wait_result(w: PlannerWorker, timeout_s: float = WAIT_S) -> PlanResult:
+    polls = 0
+    end = time.monotonic() + timeout_s
+    while time.monotonic() < end:
+        r = w.poll()
+        polls += 1
+        if r is not None:
+            return r
+        time.sleep(0.01)
+    raise AssertionError(f"no result after {timeout_s} s ({polls} polls)")
+
+
+@pytest.fixture(scope="module")
+def worker() -> Iterator[PlannerWorker]:
+    w = PlannerWorker(None, timeout_s=2.0, plan_fn="tests.service_helpers:misbehaving_plan")
+    w.start()
+    yield w
+    w.close()
+
+
+def test_feasible_plan_with_followable_trajectory(
+    worker: PlannerWorker, project: ProjectConfig
+) -> None:
+    start_upper = (0.002, 0.002, 0.002, 0.002)  # a heave the path removes
+    assert worker.submit(1, -3.0, 2.0, start_upper_m=start_upper)
+    r = wait_result(worker)
+    assert r.request_id == 1 and r.ok and r.feasible and r.reasons == ()
+    assert r.plan is not None and r.plan["feasible"] is True
+    direct = plan(project, -3.0, 2.0, start_upper_m=start_upper)
+    assert r.duration_s == pytest.approx(direct.trajectory_duration_s)
+    d_lower, d_upper, v_lower, _ = r.reference(0.0)
+    np.testing.assert_allclose(d_lower, 0.0, atol=1e-12)
+    np.testing.assert_allclose(d_upper, start_upper, atol=1e-12)
+    np.testing.assert_allclose(v_lower, 0.0, atol=1e-9)
+    _, d_upper_end, _, _ = r.reference(r.duration_s + 1.0)
+    np.testing.assert_allclose(d_upper_end, direct.upper.displacement_m, atol=1e-9)
+
+
+def test_infeasible_target_is_a_result_not_an_error(worker: PlannerWorker) -> None:
+    assert worker.submit(2, 40.0, 0.0)
+    r = wait_result(worker)
+    assert r.ok and not r.feasible and r.reasons
+    assert r.trajectory is None
+    with pytest.raises(ValueError, match="no trajectory"):
+        r.reference(0.0)
+
+
+def test_one_request_at_a_time_and_poll_never_blocks(worker: PlannerWorker) -> None:
+    assert worker.poll() is None
+    assert worker.submit(3, 1.0, 1.0)
+    assert worker.busy
+    assert not worker.submit(4, 1.0, 1.0)  # refused while 3 is pending
+    r = wait_result(worker)
+    assert r.request_id == 3 and not worker.busy
+
+
+def test_planner_exception_is_an_error_result(worker: PlannerWorker) -> None:
+    restarts = worker.restarts
+    assert worker.submit(5, RAISE_ROLL_DEG, 0.0)
+    r = wait_result(worker)
+    assert not r.ok and "ValueError: singular allocation" in (r.error or "")
+    assert worker.restarts == restarts  # the process survived
+
+
+def test_timeout_kills_and_restarts_the_worker(worker: PlannerWorker) -> None:
+    restarts, pid = worker.restarts, worker.pid
+    assert worker.submit(6, HANG_ROLL_DEG, 0.0)
+    r = wait_result(worker)
+    assert r.request_id == 6 and not r.ok
+    assert "timeout" in (r.error or "") and "restarted" in (r.error or "")
+    assert worker.submit(7, 2.0, 1.0)  # the next request works on a new process
+    r = wait_result(worker)
+    assert r.request_id == 7 and r.ok and r.feasible
+    assert worker.restarts == restarts + 1 and worker.pid != pid
+
+
+def test_crash_is_detected_and_the_worker_restarted(worker: PlannerWorker) -> None:
+    restarts = worker.restarts
+    assert worker.submit(8, CRASH_ROLL_DEG, 0.0)
+    r = wait_result(worker)
+    assert not r.ok and "died (exit code 7)" in (r.error or "")
+    assert worker.submit(9, -1.0, 0.5)
+    r = wait_result(worker)
+    assert r.request_id == 9 and r.ok and r.feasible
+    assert worker.restarts == restarts + 1
+
+
+def test_bad_config_fails_in_the_caller(tmp_path: Path) -> None:
+    with pytest.raises(ConfigError, match="file not found"):
+        PlannerWorker(tmp_path / "missing.yaml")
+
+
+def test_bad_start_extensions_refused(worker: PlannerWorker) -> None:
+    with pytest.raises(ValueError, match="four extensions"):
+        worker.submit(10, 1.0, 1.0, start_upper_m=(0.0, 0.0))

@@ -1,0 +1,104 @@
+"""``wara ctl``: talk to the running service over its local control socket.
+
+    wara ctl adjust --roll-deg -3 --pitch-deg 2
+    wara ctl status [--json]
+    wara ctl stop
+    wara ctl reset
+    wara ctl --socket /tmp/wara-test/ctl.sock status
+
+The socket defaults to the service's (``$WARA_CTL_SOCKET``, ``/run/wara/ctl.sock`` on an
+installed IPC, see :func:`ipc_app.service.ctl.default_socket_path`); it is owner-only,
+so run as the service user (``sudo -u wara wara ctl status``).
+
+Exit codes: 0 accepted; 1 refused by the service (e.g. adjust while FAULT, reset while
+the cause is still present); 3 infeasible target (the planner's reasons are printed);
+2 bad arguments or no service listening (one line on stderr).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+from typing import Any
+
+from ipc_app.service.ctl import CtlError, request
+from wara.cli import EXIT_FAILED, EXIT_INFEASIBLE, EXIT_OK, UsageError
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    common = argparse.ArgumentParser(add_help=False)
+    common.add_argument(
+        "--socket",
+        default=argparse.SUPPRESS,
+        metavar="PATH",
+        help="control socket of the service (default: the service's)",
+    )
+    common.add_argument("--json", action="store_true", help="print the reply as JSON")
+    p = sub.add_parser(
+        "ctl",
+        parents=[common],
+        help="control the running service (adjust, status, stop, reset)",
+        description="Send one command to the running W-ARa service over its local socket.",
+    )
+    verbs = p.add_subparsers(dest="verb", metavar="VERB", parser_class=type(p))
+    verbs.required = True
+    adj = verbs.add_parser("adjust", parents=[common], help="plan and run an adjustment")
+    adj.add_argument("--roll-deg", type=float, required=True, help="target workpiece roll, deg")
+    adj.add_argument("--pitch-deg", type=float, required=True, help="target workpiece pitch, deg")
+    adj.add_argument("--timeout-s", type=float, default=60.0, help="wait this long for the answer")
+    verbs.add_parser("status", parents=[common], help="mode, faults, loop statistics")
+    verbs.add_parser("stop", parents=[common], help="controlled stop: valves closed, load held")
+    verbs.add_parser("reset", parents=[common], help="clear a latched FAULT once its cause is gone")
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    fields: dict[str, Any] = {}
+    timeout_s = 10.0
+    if args.verb == "adjust":
+        if not (math.isfinite(args.roll_deg) and math.isfinite(args.pitch_deg)):
+            raise UsageError("--roll-deg and --pitch-deg must be finite numbers")
+        fields = {"roll_deg": args.roll_deg, "pitch_deg": args.pitch_deg}
+        timeout_s = args.timeout_s
+    try:
+        reply = request(
+            args.verb, socket_path=getattr(args, "socket", None), timeout_s=timeout_s, **fields
+        )
+    except CtlError as exc:
+        raise UsageError(str(exc)) from None
+    if args.json:
+        print(json.dumps(reply, indent=2))
+    elif reply.get("ok"):
+        print(render(reply))
+    if reply.get("ok"):
+        return EXIT_OK
+    if not args.json:
+        print(f"wara ctl {args.verb}: {reply.get('error', 'refused')}", file=sys.stderr)
+        for reason in reply.get("reasons", []):
+            print(f"  - {reason}", file=sys.stderr)
+    return EXIT_INFEASIBLE if reply.get("code") == "infeasible" else EXIT_FAILED
+
+
+def render(reply: dict[str, Any]) -> str:
+    """``key: value`` lines, nested objects flattened with dots, ``mode`` first."""
+    lines: list[str] = []
+
+    def walk(prefix: str, obj: Any) -> None:
+        if isinstance(obj, dict):
+            for k, v in obj.items():
+                if not prefix and k == "ok":
+                    continue
+                walk(f"{prefix}.{k}" if prefix else str(k), v)
+        elif isinstance(obj, float):
+            lines.append(f"{prefix}: {obj:.6g}")
+        elif isinstance(obj, list) and obj and all(isinstance(x, str) for x in obj):
+            lines.append(f"{prefix}:")
+            lines.extend(f"  - {x}" for x in obj)
+        else:
+            lines.append(f"{prefix}: {obj if obj is not None else '-'}")
+
+    ordered = {k: reply[k] for k in ("mode",) if k in reply} | reply
+    walk("", ordered)
+    return "\n".join(lines)
