@@ -1,0 +1,359 @@
+"""The service's control step: read -> interlocks -> modes -> update -> write.
+
+:class:`ServiceCore` owns no thread and no clock: :meth:`ServiceCore.step` is called once
+per period with the time, by :class:`~ipc_app.service.loop.FixedRateLoop` in the service
+or in lockstep with the HIL simulator in tests and the demo. Its work per cycle is
+bounded: drain the CAN receive queue, a fixed set of checks, one trajectory sample, eight
+controller updates, two CAN sends. Planning runs in the worker process; the control
+channel's threads only call the (thread-safe) mode machine and read the last snapshot.
+
+Interlocks and their reaction (a controlled stop: valves closed, load held, FAULT
+latched until ``reset``, the reason logged and shown by ``wara ctl status``):
+
+==================  ===========================================================
+``plc heartbeat``   PLC status stale or the link LOST
+``sensor``          a rod position of the active group stale, corrupt or missing
+``pressure``        a valid chamber pressure above ``safety.max_pressure_mpa``
+``plc fault``       the PLC reports a fault code (other than e-stop)
+``twist``           a layer's measured twist above ``safety.max_twist_mm`` (moving)
+``sync error``      a group's synchronization error above ``safety.max_sync_error_mm``
+``stroke end``      an active rod within ``stroke_end_margin_mm`` of an end, or its
+                    limit switch (moving)
+``planner``         the planner process crashed or timed out
+==================  ===========================================================
+
+E-stop from the PLC takes the machine to ESTOP (valves closed) until released and reset.
+"""
+
+from __future__ import annotations
+
+import threading
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any, Protocol
+
+import numpy as np
+import structlog
+
+from config import units
+from config.schema import ProjectConfig
+from ipc_app.control.attitude import AttitudeController
+from ipc_app.model.composition import check_attitude
+from ipc_app.model.kinematics import fit_layer
+from ipc_app.service.modes import Mode, ModeMachine
+from ipc_app.service.worker import PlanResult
+from plc_bridge.link import Fault, IpcLink, LinkState, TargetRequest
+from plc_bridge.link import Mode as PlcMode
+
+log = structlog.get_logger("wara.service")
+
+
+class Planner(Protocol):
+    """What the core needs of the planner worker (non-blocking)."""
+
+    def submit(
+        self,
+        request_id: int,
+        roll_deg: float,
+        pitch_deg: float,
+        start_upper_m: Any = ...,
+        start_lower_m: Any = ...,
+    ) -> bool: ...
+
+    def poll(self) -> PlanResult | None: ...
+
+
+@dataclass
+class MotionStats:
+    """Figures of the present / last adjustment, for the operator and the demo."""
+
+    target_deg: tuple[float, float] = (0.0, 0.0)
+    started_s: float = 0.0
+    duration_s: float = 0.0
+    max_twist_m: float = 0.0
+    max_sync_error_m: float = 0.0
+    hold_sync_error_m: float = 0.0
+    hold_samples: int = 0
+    plan: dict[str, Any] | None = None
+
+
+class ServiceCore:
+    """One IPC service: modes, interlocks, planner hand-off and the attitude loops."""
+
+    #: Cycles of HOLDING before the standstill figures are taken (let the hold settle).
+    HOLD_SETTLE_S = 1.0
+
+    def __init__(
+        self,
+        cfg: ProjectConfig,
+        link: IpcLink,
+        planner: Planner,
+        *,
+        record: Callable[[dict[str, Any]], None] | None = None,
+        boot_timeout_s: float = 5.0,
+    ) -> None:
+        self.cfg = cfg
+        self.link = link
+        self.planner = planner
+        self.record = record
+        self.period_s = cfg.control.period_s
+        self.boot_timeout_s = boot_timeout_s
+        self.attitude = AttitudeController(cfg, self.period_s)
+        self.active = self.attitude.layers["lower"] + self.attitude.layers["upper"]
+        link.set_active_cylinders(self.active)
+        self.stroke = np.array([c.stroke_m for c in cfg.cylinders_by_can_index])
+        s = cfg.safety
+        self.max_twist_m = units.mm(s.max_twist_mm)
+        self.max_sync_m = units.mm(s.max_sync_error_mm)
+        self.max_pressure_pa = units.mpa(s.max_pressure_mpa)
+        self.end_margin_m = units.mm(s.stroke_end_margin_mm)
+        self._present: list[str] = []  # interlock conditions present this cycle
+        self.modes = ModeMachine(active_causes=lambda: list(self._present))
+        self._request_id = 0
+        self._submitted = False
+        self._boot_since: float | None = None
+        self._now = 0.0
+        self.motion = MotionStats()
+        self.last_motion: MotionStats | None = None
+        self._outcome_cv = threading.Condition()
+        self._outcome: dict[str, Any] | None = None
+        self._snapshot: dict[str, Any] = {"mode": str(Mode.BOOT)}
+        self.loop_stats: dict[str, Any] = {}
+        self.cycles = 0
+
+    # ------------------------------------------------------------------ operator side
+
+    def request_adjust(
+        self, roll_deg: float, pitch_deg: float, wait_s: float = 0.0
+    ) -> dict[str, Any]:
+        """Ask for an adjustment; with ``wait_s`` > 0 wait for the planner's verdict."""
+        with self._outcome_cv:
+            self._outcome = None
+        out = self.modes.request_adjust(roll_deg, pitch_deg)
+        if not out.accepted:
+            return {"ok": False, "code": "refused", "error": out.message, "mode": str(out.mode)}
+        if wait_s <= 0:
+            return {"ok": True, "mode": str(Mode.PLANNING)}
+        with self._outcome_cv:
+            self._outcome_cv.wait_for(lambda: self._outcome is not None, timeout=wait_s)
+            result = self._outcome
+        if result is None:
+            return {"ok": True, "mode": str(self.modes.mode), "note": "still planning"}
+        return result
+
+    def snapshot(self) -> dict[str, Any]:
+        """The last cycle's status (safe to call from any thread)."""
+        return dict(self._snapshot)
+
+    # ------------------------------------------------------------------ the step
+
+    def step(self, cycle: int, now: float) -> None:
+        self._now = now
+        self.cycles += 1
+        link = self.link
+        link.poll(now)
+        pos = link.positions_m(now)
+        prs = link.pressures_pa(now)
+        status = link.status(now)
+        lstate = link.state(now)
+        x = pos.value
+        mode = self.modes.mode
+
+        # E-stop first: it needs nothing else to be valid.
+        if status is not None:
+            self.modes.estop(status.estop)
+
+        present = self._conditions(pos.all_valid(self.active), status, lstate, prs.value, prs.valid)
+        self._present = present
+        if mode == Mode.BOOT:
+            if self._boot_since is None:
+                self._boot_since = now
+            if not present:
+                self.modes.boot_complete()
+            elif now - self._boot_since > self.boot_timeout_s:
+                self.modes.fault("start-up: " + "; ".join(present))
+        else:
+            for cause in present:
+                self.modes.fault(cause)
+
+        moving = self.modes.valves_enabled
+        if moving and pos.all_valid(self.active):
+            self._motion_checks(x)
+
+        hmi = link.new_hmi_request(now)
+        if hmi is not None:
+            if hmi.request == TargetRequest.NEW_TARGET:
+                self.request_adjust(units.to_deg(hmi.roll_rad), units.to_deg(hmi.pitch_rad))
+            elif hmi.request == TargetRequest.CANCEL:
+                self.modes.stop("HMI cancel")
+
+        self._planning(x, pos.all_valid(self.active), now)
+
+        mode = self.modes.mode
+        if mode == Mode.ADJUSTING and self.attitude.motion_done(now):
+            self.modes.motion_done()
+            self.attitude.hold(self.attitude.final_references())
+            self.motion.duration_s = now - self.motion.started_s
+        u = np.zeros(len(self.cfg.cylinders))
+        if self.modes.valves_enabled and pos.all_valid(self.active):
+            u = self.attitude.update(now, x)
+            self._motion_figures(now)
+        link.set_control(
+            mode=PlcMode.ATTITUDE_ADJUST if self.modes.valves_enabled else PlcMode.IDLE,
+            enable=self.modes.valves_enabled,
+        )
+        link.send_valve_commands(u, now)
+        self._publish(now, x, u, lstate)
+
+    # ------------------------------------------------------------------ pieces
+
+    def _conditions(
+        self,
+        positions_valid: bool,
+        status: Any,
+        lstate: LinkState,
+        p: np.ndarray,
+        p_valid: np.ndarray,
+    ) -> list[str]:
+        """Interlock conditions present now (each also blocks a reset)."""
+        out: list[str] = []
+        if status is None or lstate == LinkState.LOST:
+            out.append("plc heartbeat: PLC status lost (stale or link LOST)")
+        if not positions_valid:
+            out.append("sensor: rod position of the active group stale, corrupt or missing")
+        if status is not None and status.fault not in (Fault.NONE, Fault.ESTOP):
+            name = (
+                Fault(status.fault).name
+                if status.fault in Fault._value2member_map_
+                else status.fault
+            )
+            out.append(f"plc fault: {name}")
+        if p_valid.any():
+            pv = np.where(p_valid, p, 0.0)
+            i = int(np.argmax(pv.max(axis=1)))
+            peak = float(pv[i].max())
+            if peak > self.max_pressure_pa:
+                cid = self.cfg.cylinders_by_can_index[i].id
+                out.append(
+                    f"pressure: {cid} {units.to_mpa(peak):.2f} MPa above the limit "
+                    f"{units.to_mpa(self.max_pressure_pa):.2f} MPa"
+                )
+        return out
+
+    def _motion_checks(self, x: np.ndarray) -> None:
+        for name, m in self.attitude.metrics.items():
+            if m.twist_m > self.max_twist_m:
+                self.modes.fault(
+                    f"twist: {name} layer {units.to_mm(m.twist_m):.2f} mm above the limit "
+                    f"{units.to_mm(self.max_twist_m):.2f} mm"
+                )
+            if m.sync_error_m > self.max_sync_m:
+                self.modes.fault(
+                    f"sync error: {name} group {units.to_mm(m.sync_error_m):.2f} mm above the "
+                    f"limit {units.to_mm(self.max_sync_m):.2f} mm"
+                )
+        idx = self.active
+        near = (x[idx] < self.end_margin_m) | (x[idx] > self.stroke[idx] - self.end_margin_m)
+        limits = self.link.limit_switches(self._now)
+        if limits is not None:
+            near |= limits.retracted[idx] | limits.extended[idx]
+        if near.any():
+            cid = self.cfg.cylinders_by_can_index[idx[int(np.argmax(near))]].id
+            self.modes.fault(f"stroke end: {cid} at {units.to_mm(float(x[idx][near][0])):.1f} mm")
+
+    def _planning(self, x: np.ndarray, valid: bool, now: float) -> None:
+        mode = self.modes.mode
+        if mode == Mode.PLANNING and not self._submitted and valid:
+            target = self.modes.target_deg
+            if target is not None:
+                self._request_id += 1
+                half = self.stroke / 2
+                lo, up = self.attitude.layers["lower"], self.attitude.layers["upper"]
+                ok = self.planner.submit(
+                    self._request_id,
+                    target[0],
+                    target[1],
+                    start_upper_m=tuple((x[up] - half[up]).tolist()),
+                    start_lower_m=tuple((x[lo] - half[lo]).tolist()),
+                )
+                self._submitted = ok
+        res = self.planner.poll()
+        if res is None or res.request_id != self._request_id:
+            return
+        self._submitted = False
+        if self.modes.mode != Mode.PLANNING:
+            return  # stopped or faulted meanwhile: the plan is dropped
+        if not res.ok:
+            self.modes.fault(f"planner: {res.error}")
+            verdict: dict[str, Any] = {"ok": False, "code": "planner", "error": res.error}
+        elif not res.feasible or res.trajectory is None:
+            self.modes.plan_failed(list(res.reasons))
+            verdict = {"ok": False, "code": "infeasible", "reasons": list(res.reasons)}
+        else:
+            self.modes.plan_ready()
+            target = (res.plan or {}).get("target", {})
+            self.motion = MotionStats(
+                target_deg=(target.get("roll_deg", 0.0), target.get("pitch_deg", 0.0)),
+                started_s=now,
+                plan=res.plan,
+            )
+            self.attitude.engage(x, now, res.trajectory)
+            verdict = {"ok": True, "mode": str(Mode.ADJUSTING), "duration_s": res.duration_s}
+        log.info("plan", request_id=res.request_id, **verdict)
+        with self._outcome_cv:
+            self._outcome = verdict
+            self._outcome_cv.notify_all()
+
+    def _motion_figures(self, now: float) -> None:
+        m = self.motion
+        sync = max(g.sync_error_m for g in self.attitude.metrics.values())
+        tw = max(g.twist_m for g in self.attitude.metrics.values())
+        if self.modes.mode == Mode.ADJUSTING:
+            m.max_twist_m = max(m.max_twist_m, tw)
+            m.max_sync_error_m = max(m.max_sync_error_m, sync)
+        elif now - (m.started_s + m.duration_s) >= self.HOLD_SETTLE_S:
+            m.hold_sync_error_m = max(m.hold_sync_error_m, sync)
+            m.hold_samples += 1
+
+    def achieved_attitude_deg(self, x: np.ndarray) -> tuple[float, float]:
+        """Workpiece (roll, pitch) from measured rod positions (sensor view)."""
+        lo, up = self.attitude.layers["lower"], self.attitude.layers["upper"]
+        half = self.stroke / 2
+        ll, ul = self.cfg.layers.lower, self.cfg.layers.upper
+        fl = fit_layer(x[lo] - half[lo], ll.a_m, ll.b_m)
+        fu = fit_layer(x[up] - half[up], ul.a_m, ul.b_m)
+        chk = check_attitude(
+            (self.cfg.base.roll_rad, self.cfg.base.pitch_rad),
+            (float(fl.roll), float(fl.pitch)),
+            (float(fu.roll), float(fu.pitch)),
+            (0.0, 0.0),
+        )
+        return units.to_deg(chk.roll), units.to_deg(chk.pitch)
+
+    def _publish(self, now: float, x: np.ndarray, u: np.ndarray, lstate: LinkState) -> None:
+        snap = self.modes.snapshot()
+        snap.update(
+            time_s=now,
+            link=str(lstate.name),
+            positions_mm={
+                self.cfg.cylinders_by_can_index[i].id: units.to_mm(float(x[i])) for i in self.active
+            },
+            sync_error_mm={
+                k: units.to_mm(m.sync_error_m) for k, m in self.attitude.metrics.items()
+            },
+            twist_mm={k: units.to_mm(m.twist_m) for k, m in self.attitude.metrics.items()},
+            loop=self.loop_stats,
+        )
+        self._snapshot = snap
+        if self.record is not None:
+            self.record(
+                {
+                    "t": now,
+                    "mode": snap.get("mode"),
+                    "x": x[self.active].tolist(),
+                    "ref": self.attitude.references(now)[self.active].tolist()
+                    if self.modes.valves_enabled
+                    else [],
+                    "u": u[self.active].tolist(),
+                }
+            )

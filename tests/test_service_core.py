@@ -1,0 +1,126 @@
+"""The service core on real parts: a python-can virtual bus, the PLC side of the
+protocol (PlcLink) driving the real cylinder model for all 19 cylinders, the real planner
+worker process. (The full rigid-platform rig is hil_sim's; see the end-to-end tests.)"""
+
+from __future__ import annotations
+
+import itertools
+import time
+from collections.abc import Iterator
+
+import can
+import numpy as np
+import pytest
+
+from config import ProjectConfig
+from hil_sim.hydraulics import CylinderBank, CylinderParams
+from ipc_app.model import MachineStatics
+from ipc_app.service.core import ServiceCore
+from ipc_app.service.modes import Mode
+from ipc_app.service.worker import PlannerWorker
+from plc_bridge.link import IpcLink, PlcLink, PlcStatus
+
+_channels = itertools.count()
+
+
+class MiniRig:
+    """Stand-in PLC + rig: every cylinder standalone with its static share of the load."""
+
+    def __init__(self, cfg: ProjectConfig, bus: can.BusABC, clock: list[float]) -> None:
+        self.cfg = cfg
+        self.clock = clock
+        self.plc = PlcLink(cfg, bus, clock=lambda: clock[0])
+        cyls = cfg.cylinders_by_can_index
+        self.bank = CylinderBank(CylinderParams.from_config(cyls, cfg.hydraulics), step_s=0.5e-3)
+        fl, fu = MachineStatics(cfg).forces(0.0, 0.0, 0.0, 0.0)
+        self.load = np.full(len(cyls), 5e3)
+        for i, cid in enumerate(cfg.layers.lower.cylinders):
+            self.load[cfg.cylinder(cid).can_index] = fl[i]
+        for i, cid in enumerate(cfg.layers.upper.cylinders):
+            self.load[cfg.cylinder(cid).can_index] = fu[i]
+        self.bank.hold_at(np.array([c.stroke_m / 2 for c in cyls]), self.load)
+        self.silent = False
+
+    def step(self, dt: float) -> None:
+        now = self.clock[0]
+        if self.silent:
+            self.bank.advance(np.zeros(self.bank.n), self.load, dt)
+            return
+        self.plc.poll(now)
+        word = self.plc.control(now)
+        u = np.nan_to_num(self.plc.valve_commands(now).value)
+        if word is None or not word.enable:
+            u = np.zeros_like(u)
+        self.bank.advance(u, self.load, dt)
+        self.plc.set_positions_m(self.bank.x_m)
+        self.plc.set_pressures_pa(np.stack([self.bank.p_a_pa, self.bank.p_b_pa], axis=1))
+        self.plc.set_status(PlcStatus(pump_running=True, drives_enabled=True))
+
+
+@pytest.fixture(scope="module")
+def worker() -> Iterator[PlannerWorker]:
+    w = PlannerWorker(None, timeout_s=30.0)
+    w.start()
+    yield w
+    w.close()
+
+
+def _setup(cfg: ProjectConfig, worker: PlannerWorker) -> tuple[ServiceCore, MiniRig, list[float]]:
+    ch = f"core-test-{next(_channels)}"
+    clock = [0.0]
+    rig = MiniRig(cfg, can.Bus(interface="virtual", channel=ch), clock)
+    link = IpcLink(cfg, can.Bus(interface="virtual", channel=ch), clock=lambda: clock[0])
+    return ServiceCore(cfg, link, worker), rig, clock
+
+
+def _run(
+    core: ServiceCore, rig: MiniRig, clock: list[float], seconds: float, until: Mode | None = None
+) -> int:
+    dt = core.period_s
+    n = round(seconds / dt)
+    for k in range(n):
+        rig.step(dt)
+        clock[0] += dt
+        core.step(k, clock[0])
+        if until is not None and core.modes.mode == until:
+            return k
+        if core.modes.mode == Mode.PLANNING:
+            time.sleep(0.002)  # the planner process works in wall-clock time
+    return n
+
+
+def test_adjusts_to_example_1_and_holds(project: ProjectConfig, worker: PlannerWorker) -> None:
+    core, rig, clock = _setup(project, worker)
+    _run(core, rig, clock, 0.5)
+    assert core.modes.mode == Mode.IDLE, core.modes.snapshot()
+    assert core.request_adjust(2.0, 1.0)["ok"]
+    _run(core, rig, clock, 30.0, until=Mode.ADJUSTING)
+    assert core.modes.mode == Mode.ADJUSTING, core.modes.snapshot()
+    _run(core, rig, clock, 60.0, until=Mode.HOLDING)
+    assert core.modes.mode == Mode.HOLDING
+    _run(core, rig, clock, 2.0)
+    x = rig.bank.x_m
+    roll, pitch = core.achieved_attitude_deg(x)
+    assert roll == pytest.approx(2.0, abs=0.01) and pitch == pytest.approx(1.0, abs=0.01)
+    assert core.motion.max_twist_m < 0.5e-3
+    assert core.motion.hold_samples > 0
+
+
+def test_silent_plc_faults_within_stated_cycles(
+    project: ProjectConfig, worker: PlannerWorker
+) -> None:
+    core, rig, clock = _setup(project, worker)
+    _run(core, rig, clock, 0.5)
+    assert core.modes.mode == Mode.IDLE
+    rig.silent = True
+    # heartbeat timeout (safety.plc_heartbeat_timeout_ms) plus one cycle
+    limit = int(project.safety.plc_heartbeat_timeout_ms / 1e3 / core.period_s) + 2
+    k = _run(core, rig, clock, 1.0, until=Mode.FAULT)
+    assert core.modes.mode == Mode.FAULT and k <= limit, (k, limit)
+    assert any("plc heartbeat" in r for r in core.modes.fault_reasons)
+    # reset is refused while the cause is present
+    assert not core.modes.reset().accepted
+    rig.silent = False
+    _run(core, rig, clock, 0.5)
+    assert core.modes.reset().accepted
+    assert core.modes.mode == Mode.IDLE
