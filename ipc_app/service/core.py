@@ -171,10 +171,13 @@ class ServiceCore:
             if not present:
                 self.modes.boot_complete()
             elif now - self._boot_since > self.boot_timeout_s:
-                self.modes.fault("start-up: " + "; ".join(present))
+                for cause in present:  # no valid PLC data within the start-up time
+                    self.modes.fault(cause)
         else:
+            latched = self.modes.fault_reasons
             for cause in present:
-                self.modes.fault(cause)
+                if cause not in latched:
+                    self.modes.fault(cause)
 
         moving = self.modes.valves_enabled
         if moving and pos.all_valid(self.active):
@@ -336,7 +339,10 @@ class ServiceCore:
             time_s=now,
             link=str(lstate.name),
             positions_mm={
-                self.cfg.cylinders_by_can_index[i].id: units.to_mm(float(x[i])) for i in self.active
+                self.cfg.cylinders_by_can_index[i].id: (
+                    units.to_mm(float(x[i])) if np.isfinite(x[i]) else None
+                )
+                for i in self.active
             },
             sync_error_mm={
                 k: units.to_mm(m.sync_error_m) for k, m in self.attitude.metrics.items()

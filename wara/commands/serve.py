@@ -1,0 +1,24 @@
+"""``wara serve``: run the IPC service (what the systemd unit starts)."""
+
+from __future__ import annotations
+
+import argparse
+
+from ipc_app.service.app import run_service
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("serve", help="run the IPC service: CAN link, planner, control loop")
+    p.add_argument("--config", default=None, help="project YAML (default: shipped project)")
+    p.add_argument("--socket", default=None, help="control socket path (default: see docs)")
+    p.add_argument(
+        "--duration-s",
+        type=float,
+        default=None,
+        help="stop after this long (for test runs; default: until SIGTERM)",
+    )
+    p.set_defaults(func=_run)
+
+
+def _run(args: argparse.Namespace) -> int:
+    return run_service(args.config, socket_path=args.socket, duration_s=args.duration_s)
