@@ -29,6 +29,7 @@ COMMANDS: tuple[str, ...] = (
     "acceptance",
     "ctl",
     "serve",
+    "demo",
 )
 
 

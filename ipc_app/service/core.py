@@ -100,7 +100,7 @@ class ServiceCore:
         self.boot_timeout_s = boot_timeout_s
         self.attitude = AttitudeController(cfg, self.period_s)
         self.active = self.attitude.layers["lower"] + self.attitude.layers["upper"]
-        link.set_active_cylinders(self.active)
+        self.bus_load = link.set_active_cylinders(self.active)
         self.stroke = np.array([c.stroke_m for c in cfg.cylinders_by_can_index])
         s = cfg.safety
         self.max_twist_m = units.mm(s.max_twist_mm)

@@ -1,0 +1,346 @@
+"""The end-to-end demo: the HIL simulator and the IPC service on one CAN bus.
+
+Runs Examples 1-3 of the reference machine one after another from a level start: each
+target goes to the service (as ``wara ctl adjust`` would), the planner worker plans it,
+the service's loop drives the simulated rig over the DBC, and the figures are read from
+the service (what the operator sees) and from the simulator's truth.
+
+Two timings:
+- ``realtime`` (the default): the service's :class:`FixedRateLoop` runs in its own thread
+  on the wall clock (jitter and overruns are real), the simulator in another thread,
+  paced by the wall clock, on the in-process ``virtual`` bus;
+- ``lockstep``: simulator and service alternate in one thread on simulated time
+  (deterministic apart from when the planner's answer arrives; fast; for tests).
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+import sys
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import can
+import numpy as np
+
+from config import load_project, units
+from config.schema import ProjectConfig
+from hil_sim.simulator import HilSimulator
+from ipc_app.service.core import ServiceCore
+from ipc_app.service.loop import FixedRateLoop
+from ipc_app.service.modes import Mode
+from ipc_app.service.worker import PlannerWorker
+from plc_bridge.link import IpcLink
+
+EXAMPLES: tuple[tuple[float, float], ...] = ((2.0, 1.0), (-3.0, 2.0), (5.0, -1.0))
+
+#: Goals of issue 6 (tolerances each example must meet).
+ATTITUDE_TOL_DEG = 0.01
+TWIST_TOL_MM = 0.5
+SYNC_TOL_MM = 0.07
+
+#: Standstill after the motion over which the sync error at standstill is taken.
+HOLD_MEASURE_S = 3.0
+
+_channels = itertools.count()
+
+
+@dataclass
+class ExampleResult:
+    target_roll_deg: float
+    target_pitch_deg: float
+    achieved_roll_deg: float = math.nan
+    achieved_pitch_deg: float = math.nan
+    attitude_error_deg: float = math.nan
+    max_twist_mm: float = math.nan
+    sync_error_mm: float = math.nan
+    duration_s: float = math.nan
+    passed: bool = False
+    note: str = ""
+
+
+@dataclass
+class Trace:
+    """Time series for the plots (one sample per control period)."""
+
+    t: list[float] = field(default_factory=list)
+    roll_deg: list[float] = field(default_factory=list)
+    pitch_deg: list[float] = field(default_factory=list)
+    x_mm: list[list[float]] = field(default_factory=list)
+    sync_mm: list[list[float]] = field(default_factory=list)
+    p_mpa: list[list[float]] = field(default_factory=list)
+
+    def add(self, sim: HilSimulator, core: ServiceCore) -> None:
+        tr = sim.truth()
+        self.t.append(tr.t_s)
+        self.roll_deg.append(units.to_deg(tr.workpiece_roll_rad))
+        self.pitch_deg.append(units.to_deg(tr.workpiece_pitch_rad))
+        self.x_mm.append([units.to_mm(v) for v in tr.rod_positions_m[core.active]])
+        self.sync_mm.append([units.to_mm(m.sync_error_m) for m in core.attitude.metrics.values()])
+        self.p_mpa.append([units.to_mpa(v) for v in tr.pressures_pa[core.active, 0]])
+
+
+class Demo:
+    """Simulator + service on one virtual bus; see the module docstring."""
+
+    def __init__(
+        self,
+        cfg: ProjectConfig,
+        config_path: str | None = None,
+        *,
+        mode: str = "realtime",
+        seed: int = 0,
+        progress: Callable[[str], None] | None = None,
+    ) -> None:
+        if mode not in ("realtime", "lockstep"):
+            raise ValueError(f"mode must be 'realtime' or 'lockstep', got {mode!r}")
+        self.cfg = cfg
+        self.mode = mode
+        self.progress = progress or (lambda _s: None)
+        channel = f"wara-demo-{next(_channels)}"
+        self.sim = HilSimulator(cfg, can.Bus(interface="virtual", channel=channel), seed=seed)
+        clock = self.sim.clock if mode == "lockstep" else time.monotonic
+        self.link = IpcLink(cfg, can.Bus(interface="virtual", channel=channel), clock=clock)
+        self.worker = PlannerWorker(config_path)
+        self.worker.start()
+        self.core = ServiceCore(cfg, self.link, self.worker)
+        self.trace = Trace()
+        self.period = cfg.control.period_s
+        self._k = 0
+        self._lock = threading.Lock()
+        self.loop: FixedRateLoop | None = None
+        self._sim_thread: threading.Thread | None = None
+        self._stop = threading.Event()
+
+    # ------------------------------------------------------------------ running
+
+    def start(self) -> None:
+        if self.mode == "lockstep":
+            return
+
+        def step(cycle: int, now: float) -> None:
+            with self._lock:
+                self.core.step(cycle, now)
+                self.trace.add(self.sim, self.core)
+
+        self.loop = FixedRateLoop(step, self.period, realtime=self.cfg.control.realtime)
+
+        def run_sim() -> None:
+            def stop() -> bool:
+                return self._stop.is_set()
+
+            # The plant runs under the lock so the trace reads a consistent state.
+            orig = self.sim.step
+
+            def locked_step(dt: float) -> None:
+                with self._lock:
+                    orig(dt)
+
+            self.sim.step = locked_step  # type: ignore[method-assign]
+            self.sim.run_realtime(should_stop=stop)
+
+        self._sim_thread = threading.Thread(target=run_sim, name="hil-sim", daemon=True)
+        self._sim_thread.start()
+        self.loop.start()
+
+    def advance(self, seconds: float) -> None:
+        """Let ``seconds`` of machine time pass."""
+        if self.mode == "realtime":
+            time.sleep(seconds)
+            if self.loop is not None and self.loop.error is not None:
+                raise RuntimeError(f"service loop stopped: {self.loop.error!r}")
+            return
+        n = max(1, round(seconds / self.period))
+        for _ in range(n):
+            self.sim.step(self.period)
+            self._k += 1
+            self.core.step(self._k, self.sim.t_s)
+            self.trace.add(self.sim, self.core)
+            if self.core.modes.mode == Mode.PLANNING:
+                time.sleep(0.001)  # the planner process works on the wall clock
+
+    def wait_for(self, mode: Mode, timeout_s: float) -> bool:
+        """Advance until the service is in ``mode`` (machine time in lockstep)."""
+        waited = 0.0
+        step = 0.05
+        while waited < timeout_s:
+            if self.core.modes.mode == mode:
+                return True
+            self.advance(step)
+            waited += step
+        return self.core.modes.mode == mode
+
+    def close(self) -> None:
+        self._stop.set()
+        if self.loop is not None:
+            self.loop.stop()
+        if self._sim_thread is not None:
+            self._sim_thread.join(5.0)
+        self.worker.close()
+        self.link.close()
+        self.sim.close()
+
+    # ------------------------------------------------------------------ the examples
+
+    def run_example(self, roll_deg: float, pitch_deg: float) -> ExampleResult:
+        res = ExampleResult(roll_deg, pitch_deg)
+        out = self.core.request_adjust(roll_deg, pitch_deg)
+        if not out.get("ok"):
+            res.note = f"refused: {out.get('error')}"
+            return res
+        if not self.wait_for(Mode.ADJUSTING, 60.0):
+            res.note = f"no plan: mode {self.core.modes.mode} {self.core.modes.fault_reasons}"
+            return res
+        self.progress(f"adjusting to ({roll_deg:+.1f}, {pitch_deg:+.1f}) deg")
+        if not self.wait_for(Mode.HOLDING, 300.0):
+            res.note = f"did not finish: mode {self.core.modes.mode} {self.core.modes.fault_reasons}"
+            return res
+        self.advance(self.core.HOLD_SETTLE_S + HOLD_MEASURE_S)
+        m = self.core.motion
+        truth = self.sim.truth()
+        res.achieved_roll_deg = units.to_deg(truth.workpiece_roll_rad)
+        res.achieved_pitch_deg = units.to_deg(truth.workpiece_pitch_rad)
+        res.attitude_error_deg = max(
+            abs(res.achieved_roll_deg - roll_deg), abs(res.achieved_pitch_deg - pitch_deg)
+        )
+        res.max_twist_mm = units.to_mm(m.max_twist_m)
+        res.sync_error_mm = units.to_mm(m.hold_sync_error_m)
+        res.duration_s = m.duration_s
+        if self.core.modes.mode != Mode.HOLDING:
+            res.note = f"mode {self.core.modes.mode}: {self.core.modes.fault_reasons}"
+        res.passed = (
+            self.core.modes.mode == Mode.HOLDING
+            and res.attitude_error_deg <= ATTITUDE_TOL_DEG
+            and res.max_twist_mm <= TWIST_TOL_MM
+            and res.sync_error_mm <= SYNC_TOL_MM
+        )
+        return res
+
+
+def run_demo(
+    config_path: str | None = None,
+    *,
+    mode: str = "realtime",
+    examples: tuple[tuple[float, float], ...] = EXAMPLES,
+    plot_dir: Path | None = None,
+    progress: Callable[[str], None] | None = None,
+) -> dict[str, Any]:
+    """Run the examples; returns the JSON-ready summary (``passed`` tells the verdict)."""
+    cfg = load_project(config_path)
+    say = progress or (lambda _s: None)
+    demo = Demo(cfg, config_path, mode=mode, progress=say)
+    results: list[ExampleResult] = []
+    try:
+        demo.start()
+        say("starting: waiting for the PLC")
+        if not demo.wait_for(Mode.IDLE, 20.0):
+            raise RuntimeError(f"service did not come up: {demo.core.modes.snapshot()}")
+        for roll, pitch in examples:
+            results.append(demo.run_example(roll, pitch))
+            say(f"example ({roll:+.1f}, {pitch:+.1f}) deg: "
+                f"{'passed' if results[-1].passed else 'FAILED ' + results[-1].note}")
+        stats = demo.loop.stats() if demo.loop is not None else {}
+    finally:
+        demo.close()
+    summary = {
+        "mode": mode,
+        "examples": [asdict(r) for r in results],
+        "loop": {
+            "jitter_p99_ms": stats.get("jitter_p99_ms"),
+            "compute_p99_ms": stats.get("compute_p99_ms"),
+            "overruns": stats.get("overruns"),
+            "cycles": stats.get("cycles"),
+            "period_ms": demo.period * 1e3,
+        },
+        "bus_load_percent": demo.core.bus_load.load_percent,
+        "simulator_realtime_factor": demo.sim.realtime_factor,
+        "tolerances": {
+            "attitude_error_deg": ATTITUDE_TOL_DEG,
+            "max_twist_mm": TWIST_TOL_MM,
+            "sync_error_mm": SYNC_TOL_MM,
+        },
+        "passed": bool(results) and all(r.passed for r in results),
+    }
+    if plot_dir is not None:
+        summary["plots"] = [str(p) for p in plot_trace(demo.trace, plot_dir)]
+    return summary
+
+
+def plot_trace(trace: Trace, out_dir: Path) -> list[Path]:
+    """Attitude, cylinder positions, sync errors and pressures over time (PNG)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    out_dir.mkdir(parents=True, exist_ok=True)
+    t = np.asarray(trace.t)
+    fig, ax = plt.subplots(4, 1, figsize=(11, 12), sharex=True)
+    ax[0].plot(t, trace.roll_deg, label="workpiece roll")
+    ax[0].plot(t, trace.pitch_deg, label="workpiece pitch")
+    ax[0].set_ylabel("deg")
+    ax[0].set_title("Workpiece attitude in the world (simulator truth)")
+    ax[0].legend(loc="best")
+    x = np.asarray(trace.x_mm)
+    names = ["leg 1", "leg 2", "leg 3", "leg 4", "upper 1", "upper 2", "upper 3", "upper 4"]
+    for i in range(x.shape[1] if x.ndim == 2 else 0):
+        ax[1].plot(t, x[:, i], label=names[i], lw=1)
+    ax[1].set_ylabel("rod position, mm")
+    ax[1].set_title("Attitude cylinders (from the retracted end)")
+    ax[1].legend(loc="best", ncol=4, fontsize=8)
+    s = np.asarray(trace.sync_mm)
+    if s.ndim == 2:
+        ax[2].plot(t, s[:, 0], label="lower group")
+        ax[2].plot(t, s[:, 1], label="upper group")
+    ax[2].axhline(SYNC_TOL_MM, color="k", ls="--", lw=0.8, label="standstill goal")
+    ax[2].set_ylabel("mm")
+    ax[2].set_title("Synchronization error (largest in the group, controller view)")
+    ax[2].legend(loc="best")
+    p = np.asarray(trace.p_mpa)
+    for i in range(p.shape[1] if p.ndim == 2 else 0):
+        ax[3].plot(t, p[:, i], label=names[i], lw=1)
+    ax[3].set_ylabel("cap pressure, MPa")
+    ax[3].set_xlabel("time, s")
+    ax[3].set_title("Cap-side pressures")
+    ax[3].legend(loc="best", ncol=4, fontsize=8)
+    fig.tight_layout()
+    path = out_dir / "demo.png"
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+    return [path]
+
+
+def render_table(summary: dict[str, Any]) -> str:
+    head = (
+        f"{'target roll/pitch deg':>22} {'achieved roll/pitch deg':>25} {'error deg':>10} "
+        f"{'max twist mm':>12} {'sync mm':>8} {'duration s':>10}  result"
+    )
+    lines = [head, "-" * len(head)]
+    for r in summary["examples"]:
+        lines.append(
+            f"{r['target_roll_deg']:>+10.3f} {r['target_pitch_deg']:>+10.3f}  "
+            f"{r['achieved_roll_deg']:>+12.4f} {r['achieved_pitch_deg']:>+11.4f} "
+            f"{r['attitude_error_deg']:>10.5f} {r['max_twist_mm']:>12.4f} "
+            f"{r['sync_error_mm']:>8.4f} {r['duration_s']:>10.2f}  "
+            f"{'ok' if r['passed'] else 'FAILED ' + r['note']}"
+        )
+    lp = summary["loop"]
+    jit = lp.get("jitter_p99_ms")
+    lines += [
+        "",
+        f"loop: {lp['period_ms']:.1f} ms period, jitter p99 "
+        f"{'n/a (lockstep)' if jit is None else f'{jit:.3f} ms'}, overruns "
+        f"{lp.get('overruns', 'n/a')}; bus load {summary['bus_load_percent']:.1f} %; "
+        f"simulator {summary['simulator_realtime_factor']:.1f}x real time",
+        "PASSED" if summary["passed"] else "FAILED",
+    ]
+    return "\n".join(lines)
+
+
+def stderr_progress(text: str) -> None:
+    print(f"wara demo: {text}", file=sys.stderr, flush=True)
