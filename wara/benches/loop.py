@@ -18,7 +18,7 @@ from typing import Any
 from config import load_project
 from ipc_app.planner import plan
 from ipc_app.service.logs import configure_logging
-from ipc_app.service.loop import FixedRateLoop, freeze_startup_heap
+from ipc_app.service.loop import FixedRateLoop
 
 
 def run(args: argparse.Namespace) -> dict[str, Any]:
@@ -36,7 +36,6 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         traj.reference(t - t0[0])
 
     loop = FixedRateLoop(step, cfg.control.period_s, realtime=cfg.control.realtime)
-    freeze_startup_heap()
     loop.start()
     time.sleep(seconds)
     loop.stop()
