@@ -242,3 +242,24 @@ def test_realtime_applied_from_loop_and_reported_in_stats() -> None:
     loop.run()
     assert loop.realtime_report.applied == ("mlockall(MCL_CURRENT|MCL_FUTURE)",)
     assert loop.stats()["realtime_refused"][0].startswith("SCHED_FIFO priority 50")
+
+
+def test_wara_bench_loop_prints_one_json_object(capsys: pytest.CaptureFixture[str]) -> None:
+    import json
+    import logging
+
+    import structlog
+
+    from wara.cli import main
+
+    root = logging.getLogger()
+    handlers, level = list(root.handlers), root.level
+    try:
+        assert main(["bench", "loop", "--json", "--quick"]) == 0
+    finally:  # the bench configures process-wide logging, as the service would
+        structlog.reset_defaults()
+        root.handlers[:] = handlers
+        root.setLevel(level)
+    out = json.loads(capsys.readouterr().out)  # logs went to stderr
+    assert out["cycles"] > 0 and out["period_ms"] == 5.0
+    assert {"jitter_p99_ms", "compute_p99_ms", "overruns", "realtime"} <= set(out)

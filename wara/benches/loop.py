@@ -1,6 +1,6 @@
 """``wara bench loop --json``: the fixed-rate loop at the project's rate on this machine.
 
-Runs :class:`ipc_app.service.loop.FixedRateLoop` for 10 s (2 s with ``--quick``) at
+Runs :class:`ipc_app.service.loop.FixedRateLoop` for 10 s (1 s with ``--quick``) at
 ``control.loop_rate_hz`` with the project's ``control.realtime`` settings; each step
 evaluates a planned trajectory's reference (what the service does every cycle besides
 CAN and the controllers). Prints the loop statistics: jitter (wake-up minus deadline),
@@ -27,7 +27,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     p = plan(cfg, -3.0, 2.0)
     traj = p.trajectory
     assert traj is not None
-    seconds = 2.0 if args.quick else 10.0
+    seconds = 1.0 if args.quick else 10.0
     t0 = [0.0]
 
     def step(k: int, t: float) -> None:
