@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import gc
 import threading
-import time
 from collections.abc import Callable
 
 import pytest
@@ -45,6 +44,7 @@ def make(
         if len(calls) >= n_cycles:
             holder[0].stop()
 
+    kw.setdefault("freeze_heap", False)  # the real service freezes; the test process not
     loop = FixedRateLoop(step, period, clock=ft.clock, sleep=ft.sleep, **kw)  # type: ignore[arg-type]
     holder.append(loop)
     return loop, calls
@@ -130,7 +130,7 @@ def test_step_exception_stops_loop_and_is_kept() -> None:
         if k == 3:
             raise RuntimeError("bus gone")
 
-    loop = FixedRateLoop(step, 1.0, clock=ft.clock, sleep=ft.sleep)
+    loop = FixedRateLoop(step, 1.0, clock=ft.clock, sleep=ft.sleep, freeze_heap=False)
     with capture_logs() as logs:
         loop.run()
     assert isinstance(loop.error, RuntimeError)
@@ -177,12 +177,15 @@ def test_real_thread_stops_promptly_on_request() -> None:
         if count[0] >= 5:
             cycles.set()
 
-    loop = FixedRateLoop(step, 0.002, name="test-loop")
-    loop.start()
-    assert cycles.wait(10.0)
-    t0 = time.monotonic()
-    assert loop.stop(timeout_s=5.0)
-    assert time.monotonic() - t0 < 5.0
+    loop = FixedRateLoop(step, 0.002, name="test-loop")  # freezes the heap, as in service
+    try:
+        loop.start()
+        assert cycles.wait(30.0)
+    finally:
+        frozen = gc.get_freeze_count()
+        gc.unfreeze()
+    assert frozen > 0
+    assert loop.stop(timeout_s=10.0)  # True: the thread has ended
     assert not loop.running and loop.error is None
     assert loop.stats()["cycles"] >= 5
 
@@ -239,3 +242,24 @@ def test_realtime_applied_from_loop_and_reported_in_stats() -> None:
     loop.run()
     assert loop.realtime_report.applied == ("mlockall(MCL_CURRENT|MCL_FUTURE)",)
     assert loop.stats()["realtime_refused"][0].startswith("SCHED_FIFO priority 50")
+
+
+def test_wara_bench_loop_prints_one_json_object(capsys: pytest.CaptureFixture[str]) -> None:
+    import json
+    import logging
+
+    import structlog
+
+    from wara.cli import main
+
+    root = logging.getLogger()
+    handlers, level = list(root.handlers), root.level
+    try:
+        assert main(["bench", "loop", "--json", "--quick"]) == 0
+    finally:  # the bench configures process-wide logging, as the service would
+        structlog.reset_defaults()
+        root.handlers[:] = handlers
+        root.setLevel(level)
+    out = json.loads(capsys.readouterr().out)  # logs went to stderr
+    assert out["cycles"] > 0 and out["period_ms"] == 5.0
+    assert {"jitter_p99_ms", "compute_p99_ms", "overruns", "realtime"} <= set(out)

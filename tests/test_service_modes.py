@@ -134,3 +134,13 @@ def test_transitions_and_refusals_are_logged_with_reason() -> None:
     refused = [e for e in logs if e["event"] == "refused"]
     assert refused and refused[0]["event_name"] == "request_adjust"
     assert refused[0]["log_level"] == "warning"
+
+
+def test_on_transition_listener_sees_every_change() -> None:
+    seen: list[tuple[str, str]] = []
+    m = ModeMachine(on_transition=lambda tr: seen.append((tr.event, str(tr.to_mode))))
+    m.boot_complete()
+    m.request_adjust(1.0, 0.0)
+    m.request_adjust(2.0, 0.0)  # refused: no transition, no call
+    m.fault("planner: timeout")
+    assert seen == [("boot_complete", "IDLE"), ("request_adjust", "PLANNING"), ("fault", "FAULT")]

@@ -22,10 +22,11 @@ each as p50/p99/max over the window, plus totals ``cycles``, ``overruns`` (event
 ``on_stats`` receives it from the loop thread every ``stats_every_s`` (keep it cheap:
 log it or put it on a queue).
 
-Garbage collector (decision). After start-up the service calls ``gc.freeze()``
-(:func:`freeze_startup_heap`), which moves every object allocated so far (modules, config,
-numpy, the planner's imports) to a permanent generation the collector never scans again,
-so a collection only walks what was allocated since. Then, ``gc_mode``:
+Garbage collector (decision). Before its first cycle the loop calls ``gc.collect()`` then
+``gc.freeze()`` (:func:`freeze_startup_heap`; ``freeze_heap=False`` to skip), which moves
+every object allocated so far (modules, config, numpy, the planner's imports) to a
+permanent generation the collector never scans again, so a collection only walks what
+was allocated since. Start the loop after everything else is set up. Then, ``gc_mode``:
 
 - ``"freeze"`` (default): automatic collection stays on. A young-generation pass over the
   few objects a cycle allocates costs tens of microseconds; it is safe when the loop is
@@ -245,6 +246,7 @@ class FixedRateLoop:
         overrun_log_every_s: float = 5.0,
         ring_size: int = 4096,
         gc_mode: GcMode = "freeze",
+        freeze_heap: bool = True,
         name: str = "wara-loop",
     ) -> None:
         if not (period_s > 0 and math.isfinite(period_s)):
@@ -262,6 +264,7 @@ class FixedRateLoop:
         self._stats_every_s = stats_every_s
         self._overrun_log_every_s = overrun_log_every_s
         self._gc_mode: GcMode = gc_mode
+        self._freeze_heap = freeze_heap
         self._name = name
         self._jitter = _Ring(ring_size)
         self._period_dev = _Ring(ring_size)
@@ -295,6 +298,8 @@ class FixedRateLoop:
         """The loop itself, in the calling thread, until :meth:`stop` (or a step raises)."""
         if self._realtime is not None:
             self.realtime_report = apply_realtime(self._realtime, self._os_api)
+        if self._freeze_heap:
+            freeze_startup_heap()
         gc_was_enabled = gc.isenabled()
         if self._gc_mode == "slack":
             gc.disable()

@@ -25,7 +25,7 @@ Planner failures: an *infeasible target* is the operator's problem, ``plan_faile
 returns to IDLE with the planner's reasons; a *planner crash or timeout* is an interlock,
 the service calls ``fault("planner: ...")``.
 
-The machine is thread-safe (one short lock): the control channel thread calls the
+The machine is thread-safe (one short re-entrant lock): the control channel thread calls the
 operator requests while the loop thread calls the rest.
 """
 
@@ -100,6 +100,9 @@ class ModeMachine:
     ``active_causes`` is asked by :meth:`reset` for the interlock conditions that are
     still present (e.g. ``["plc heartbeat lost"]``); a reset succeeds only when it
     returns nothing and the e-stop is released. ``clock`` is for the transition times.
+    ``on_transition`` is called with each :class:`Transition` (e.g. to write it to the
+    run record or to systemd's STATUS=); it runs in the caller's thread under the
+    machine's re-entrant lock, so it must be quick and must not block.
     """
 
     def __init__(
@@ -107,11 +110,13 @@ class ModeMachine:
         *,
         active_causes: Callable[[], Sequence[str]] = lambda: (),
         clock: Callable[[], float] = time.monotonic,
+        on_transition: Callable[[Transition], None] | None = None,
         history: int = 100,
     ) -> None:
         self._active_causes = active_causes
         self._clock = clock
-        self._lock = threading.Lock()
+        self._on_transition = on_transition
+        self._lock = threading.RLock()
         self._s = _State(since=clock())
         self._history: deque[Transition] = deque(maxlen=history)
         log.info("mode", mode=str(Mode.BOOT), event_name="start", reason="service start")
@@ -273,6 +278,8 @@ class ModeMachine:
         self._history.append(tr)
         s.mode, s.since, s.last_message = to, now, reason
         log.info("mode", from_mode=str(tr.from_mode), mode=str(to), event_name=event, reason=reason)
+        if self._on_transition is not None:
+            self._on_transition(tr)
         return Outcome(True, to, reason, tr)
 
     def _refuse(self, event: str, message: str) -> Outcome:
