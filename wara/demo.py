@@ -27,10 +27,10 @@ from typing import Any
 
 import can
 import numpy as np
+from hil_sim.simulator import HilSimulator
 
 from config import load_project, units
 from config.schema import ProjectConfig
-from hil_sim.simulator import HilSimulator
 from ipc_app.service.core import ServiceCore
 from ipc_app.service.loop import FixedRateLoop
 from ipc_app.service.modes import Mode
@@ -198,7 +198,9 @@ class Demo:
             return res
         self.progress(f"adjusting to ({roll_deg:+.1f}, {pitch_deg:+.1f}) deg")
         if not self.wait_for(Mode.HOLDING, 300.0):
-            res.note = f"did not finish: mode {self.core.modes.mode} {self.core.modes.fault_reasons}"
+            res.note = (
+                f"did not finish: mode {self.core.modes.mode} {self.core.modes.fault_reasons}"
+            )
             return res
         self.advance(self.core.HOLD_SETTLE_S + HOLD_MEASURE_S)
         m = self.core.motion
@@ -242,8 +244,10 @@ def run_demo(
             raise RuntimeError(f"service did not come up: {demo.core.modes.snapshot()}")
         for roll, pitch in examples:
             results.append(demo.run_example(roll, pitch))
-            say(f"example ({roll:+.1f}, {pitch:+.1f}) deg: "
-                f"{'passed' if results[-1].passed else 'FAILED ' + results[-1].note}")
+            say(
+                f"example ({roll:+.1f}, {pitch:+.1f}) deg: "
+                f"{'passed' if results[-1].passed else 'FAILED ' + results[-1].note}"
+            )
         stats = demo.loop.stats() if demo.loop is not None else {}
     finally:
         demo.close()

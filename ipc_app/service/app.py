@@ -8,6 +8,7 @@ SIGTERM/SIGINT stop it: valves commanded closed, then everything shut down in or
 
 from __future__ import annotations
 
+import os
 import signal
 import threading
 import time
@@ -20,7 +21,9 @@ import structlog
 from config import load_project
 from ipc_app.service.core import ServiceCore
 from ipc_app.service.ctl import CtlHandlers, CtlServer
+from ipc_app.service.logs import configure_logging
 from ipc_app.service.loop import FixedRateLoop
+from ipc_app.service.record import RunRecorder, new_run_dir
 from ipc_app.service.sdnotify import SystemdNotifier
 from ipc_app.service.worker import PlannerWorker
 from plc_bridge.link import IpcLink
@@ -37,14 +40,29 @@ def run_service(
     socket_path: str | Path | None = None,
     duration_s: float | None = None,
     stop_event: threading.Event | None = None,
+    record_root: str | Path | None = None,
+    log_level: str = "INFO",
 ) -> int:
-    """Run until SIGTERM/SIGINT (or ``duration_s``, or ``stop_event``); exit code."""
+    """Run until SIGTERM/SIGINT (or ``duration_s``, or ``stop_event``); exit code.
+
+    Logs are JSON lines on stderr (journald keeps them); the run record goes to
+    ``record_root/<UTC time>/`` (default ``$STATE_DIRECTORY/runs`` under systemd, else
+    ``./wara-data/runs``).
+    """
     cfg = load_project(config_path)
+    logging_handle = configure_logging(log_level)
     stop = stop_event or threading.Event()
+    root = Path(record_root) if record_root else default_record_root()
+    recorder = RunRecorder(
+        new_run_dir(root),
+        ServiceCore.record_columns(cfg),
+        meta={"project": cfg.project.name, "period_s": cfg.control.period_s},
+    )
+    recorder.start()
     link = IpcLink.from_config(cfg)
     worker = PlannerWorker(config_path)
     worker.start()
-    core = ServiceCore(cfg, link, worker)
+    core = ServiceCore(cfg, link, worker, record=recorder)
     notifier = SystemdNotifier.from_env()
 
     def step(cycle: int, now: float) -> None:
@@ -96,5 +114,18 @@ def run_service(
     ctl.stop()
     worker.close()
     link.close()
-    log.info("service_stopped", code=code, cycles=core.cycles)
+    summary = recorder.stop()
+    log.info(
+        "service_stopped",
+        code=code,
+        cycles=core.cycles,
+        record=str(recorder.run_dir),
+        record_summary=summary,
+    )
+    logging_handle.stop()
     return code
+
+
+def default_record_root() -> Path:
+    state = os.environ.get("STATE_DIRECTORY")
+    return Path(state.split(":")[0]) / "runs" if state else Path("wara-data") / "runs"

@@ -28,7 +28,6 @@ E-stop from the PLC takes the machine to ESTOP (valves closed) until released an
 from __future__ import annotations
 
 import threading
-from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any, Protocol
 
@@ -40,12 +39,16 @@ from config.schema import ProjectConfig
 from ipc_app.control.attitude import AttitudeController
 from ipc_app.model.composition import check_attitude
 from ipc_app.model.kinematics import fit_layer
-from ipc_app.service.modes import Mode, ModeMachine
+from ipc_app.service.modes import Mode, ModeMachine, Transition
+from ipc_app.service.record import RunRecorder
 from ipc_app.service.worker import PlanResult
 from plc_bridge.link import Fault, IpcLink, LinkState, TargetRequest
 from plc_bridge.link import Mode as PlcMode
 
 log = structlog.get_logger("wara.service")
+
+#: Numeric mode in the run record (``mode_code`` column).
+_MODE_CODES = {m: i for i, m in enumerate(Mode)}
 
 
 class Planner(Protocol):
@@ -89,7 +92,7 @@ class ServiceCore:
         link: IpcLink,
         planner: Planner,
         *,
-        record: Callable[[dict[str, Any]], None] | None = None,
+        record: RunRecorder | None = None,
         boot_timeout_s: float = 5.0,
     ) -> None:
         self.cfg = cfg
@@ -108,7 +111,9 @@ class ServiceCore:
         self.max_pressure_pa = units.mpa(s.max_pressure_mpa)
         self.end_margin_m = units.mm(s.stroke_end_margin_mm)
         self._present: list[str] = []  # interlock conditions present this cycle
-        self.modes = ModeMachine(active_causes=lambda: list(self._present))
+        self.modes = ModeMachine(
+            active_causes=lambda: list(self._present), on_transition=self._on_transition
+        )
         self._request_id = 0
         self._submitted = False
         self._boot_since: float | None = None
@@ -120,6 +125,29 @@ class ServiceCore:
         self._snapshot: dict[str, Any] = {"mode": str(Mode.BOOT)}
         self.loop_stats: dict[str, Any] = {}
         self.cycles = 0
+
+    @staticmethod
+    def record_columns(cfg: ProjectConfig) -> list[str]:
+        """Columns of the per-cycle run record (after ``t_s``)."""
+        ids = list(cfg.layers.lower.cylinders) + list(cfg.layers.upper.cylinders)
+        return (
+            ["mode_code", "valves_enabled"]
+            + [f"x_{c}_mm" for c in ids]
+            + [f"ref_{c}_mm" for c in ids]
+            + [f"u_{c}" for c in ids]
+            + ["twist_lower_mm", "twist_upper_mm", "sync_lower_mm", "sync_upper_mm"]
+        )
+
+    def _on_transition(self, tr: Transition) -> None:
+        if self.record is not None:
+            self.record.event(
+                self._now,
+                "mode",
+                event=tr.event,
+                from_mode=str(tr.from_mode),
+                to_mode=str(tr.to_mode),
+                reason=tr.reason,
+            )
 
     # ------------------------------------------------------------------ operator side
 
@@ -303,6 +331,8 @@ class ServiceCore:
             self.attitude.engage(x, now, res.trajectory)
             verdict = {"ok": True, "mode": str(Mode.ADJUSTING), "duration_s": res.duration_s}
         log.info("plan", request_id=res.request_id, **verdict)
+        if self.record is not None:
+            self.record.event(now, "plan", request_id=res.request_id, plan=res.plan, **verdict)
         with self._outcome_cv:
             self._outcome = verdict
             self._outcome_cv.notify_all()
@@ -352,14 +382,20 @@ class ServiceCore:
         )
         self._snapshot = snap
         if self.record is not None:
-            self.record(
-                {
-                    "t": now,
-                    "mode": snap.get("mode"),
-                    "x": x[self.active].tolist(),
-                    "ref": self.attitude.references(now)[self.active].tolist()
-                    if self.modes.valves_enabled
-                    else [],
-                    "u": u[self.active].tolist(),
-                }
+            enabled = self.modes.valves_enabled
+            ref = self.attitude.references(now)[self.active] if enabled else x[self.active]
+            met = self.attitude.metrics
+            self.record.sample(
+                now,
+                [
+                    float(_MODE_CODES[self.modes.mode]),
+                    float(enabled),
+                    *(units.to_mm(v) for v in x[self.active]),
+                    *(units.to_mm(v) for v in ref),
+                    *u[self.active],
+                    units.to_mm(met["lower"].twist_m),
+                    units.to_mm(met["upper"].twist_m),
+                    units.to_mm(met["lower"].sync_error_m),
+                    units.to_mm(met["upper"].sync_error_m),
+                ],
             )

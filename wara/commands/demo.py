@@ -18,8 +18,11 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--config", default=None, help="project YAML (default: shipped project)")
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.add_argument("--plot", default=None, metavar="DIR", help="write plots into DIR")
-    p.add_argument("--lockstep", action="store_true",
-                   help="simulated time in one thread (fast, no loop jitter figures)")
+    p.add_argument(
+        "--lockstep",
+        action="store_true",
+        help="simulated time in one thread (fast, no loop jitter figures)",
+    )
     p.set_defaults(func=_run)
 
 

@@ -17,8 +17,20 @@ def register(sub: argparse._SubParsersAction) -> None:
         default=None,
         help="stop after this long (for test runs; default: until SIGTERM)",
     )
+    p.add_argument(
+        "--record-dir",
+        default=None,
+        help="where run records go (default: $STATE_DIRECTORY/runs or ./wara-data/runs)",
+    )
+    p.add_argument("--log-level", default="INFO", choices=["DEBUG", "INFO", "WARNING", "ERROR"])
     p.set_defaults(func=_run)
 
 
 def _run(args: argparse.Namespace) -> int:
-    return run_service(args.config, socket_path=args.socket, duration_s=args.duration_s)
+    return run_service(
+        args.config,
+        socket_path=args.socket,
+        duration_s=args.duration_s,
+        record_root=args.record_dir,
+        log_level=args.log_level,
+    )
