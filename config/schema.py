@@ -370,6 +370,8 @@ class Pid(Strict):
     kp_per_m: NonNegative = 100.0
     ki_per_m_s: NonNegative = 20.0
     kd_s_per_m: NonNegative = 0.0
+    #: corner frequency of the first-order filter on the derivative term
+    derivative_filter_hz: Positive = 20.0
 
 
 class Sync(Strict):

@@ -16,6 +16,9 @@ MPA = 1e6  # Pa per MPa
 KN = 1e3  # N per kN
 L_PER_MIN = 1e-3 / 60.0  # m^3/s per l/min
 LITRE = 1e-3  # m^3 per l
+MS = 1e-3  # s per ms
+UM = 1e-6  # m per um
+KPA = 1e3  # Pa per kPa
 
 
 def mm(value_mm: float) -> float:
@@ -26,6 +29,21 @@ def mm(value_mm: float) -> float:
 def to_mm(value_m: float) -> float:
     """Metres to millimetres."""
     return value_m / MM
+
+
+def ms(value_ms: float) -> float:
+    """Milliseconds to seconds."""
+    return value_ms * MS
+
+
+def um(value_um: float) -> float:
+    """Micrometres to metres."""
+    return value_um * UM
+
+
+def kpa(value_kpa: float) -> float:
+    """Kilopascal to pascal."""
+    return value_kpa * KPA
 
 
 def mpa(value_mpa: float) -> float:

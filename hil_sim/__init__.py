@@ -1,0 +1,1 @@
+"""The stand-in PLC and hydraulic rig (hardware-in-the-loop simulator)."""

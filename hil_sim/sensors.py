@@ -1,0 +1,58 @@
+"""Transducers of the rig: what the PLC reads, with resolution and noise, seeded.
+
+Each transducer draws its noise from its own ``numpy.random.Generator`` in blocks,
+so a run is reproducible from the seed and cheap per sample.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import NDArray
+
+FloatArray = NDArray[np.float64]
+
+_BLOCK = 4096
+
+
+class Transducer:
+    """A bank of ``n`` identical transducers: ``read(true) = quantize(true + noise)``.
+
+    ``resolution`` is the quantization step (0: none), ``noise_rms`` the standard
+    deviation of white Gaussian noise, both in the measured quantity's SI unit.
+    """
+
+    def __init__(self, n: int, resolution: float, noise_rms: float, seed: int) -> None:
+        if resolution < 0 or noise_rms < 0:
+            raise ValueError("resolution and noise_rms must be >= 0")
+        self.n = n
+        self.resolution = float(resolution)
+        self.noise_rms = float(noise_rms)
+        self._rng = np.random.default_rng(seed)
+        self._inv_res = 1.0 / resolution if resolution > 0 else 0.0
+        self._block: FloatArray = np.zeros((0, n))
+        self._next = 0
+
+    def read(self, true_value: FloatArray) -> FloatArray:
+        """The readings of all ``n`` transducers for the true values (N,)."""
+        if self._next >= self._block.shape[0]:
+            self._block = self._rng.standard_normal((_BLOCK, self.n)) * self.noise_rms
+            self._next = 0
+        value = true_value + self._block[self._next]
+        self._next += 1
+        if self.resolution > 0:
+            value = np.round(value * self._inv_res) * self.resolution
+        return value
+
+
+class PositionTransducer(Transducer):
+    """Rod position transducer (magnetostrictive), metres."""
+
+    def __init__(self, n: int, resolution_m: float, noise_rms_m: float, seed: int) -> None:
+        super().__init__(n, resolution_m, noise_rms_m, seed)
+
+
+class PressureTransducer(Transducer):
+    """Chamber pressure transducer, pascal."""
+
+    def __init__(self, n: int, resolution_pa: float, noise_rms_pa: float, seed: int) -> None:
+        super().__init__(n, resolution_pa, noise_rms_pa, seed)

@@ -1,0 +1,1 @@
+"""Simulation studies that close the loop between ipc_app controllers and the hil_sim plant."""
