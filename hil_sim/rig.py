@@ -418,6 +418,14 @@ class Rig:
         self._body_m[k] = mass_kg
         self._body_c[k] = cog_m
 
+    def set_rod_position(self, index: int, x_m: float) -> None:
+        """Put a standalone (non-platform) cylinder's rod at ``x_m``, at rest (test set-ups)."""
+        if self.platform_mask[index]:
+            raise ValueError(f"cylinder {index} is under a platform: move the platform")
+        self.y[_X + index] = x_m
+        self.y[_V + index] = 0.0
+        self._xv[0, index] = x_m
+
     # ----------------------------------------------------------------- run
 
     def advance(self, n_steps: int) -> None:
