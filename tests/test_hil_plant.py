@@ -169,7 +169,7 @@ def test_unsynchronized_cylinders_fight_through_the_oil_and_settle_in_balance(
         c = np.array([0.5, 0.3, 1.0])
         r_u = rot(tr.upper.roll_rad, tr.upper.pitch_rad)
         r_l = rot(tr.lower.roll_rad, tr.lower.pitch_rad)
-        o_u = np.array(project.layers.upper.origin_in_lower_m) + [0, 0, tr.upper.heave_m]
+        o_u = np.array(project.layers.upper.origin_in_lower_m) + np.array([0, 0, tr.upper.heave_m])
         upper.append((2000.0, r_u @ c))
         lower.append((2000.0, r_l @ (o_u + r_u @ c)))
         lo, up = project.layers.lower, project.layers.upper
