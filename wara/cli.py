@@ -26,6 +26,7 @@ COMMANDS: tuple[str, ...] = (
     "can",
     "bench",
     "acceptance",
+    "hil",
 )
 
 

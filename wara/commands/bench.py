@@ -16,6 +16,7 @@ from typing import Any
 BENCHES: dict[str, str] = {
     "planner": "wara.benches.planner:run",
     "can": "wara.benches.can:run",
+    "hil": "wara.benches.hil:run",
 }
 
 
