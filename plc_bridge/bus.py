@@ -7,7 +7,10 @@ python-can bus (python-can's own interchangeable back-ends):
   the ids this side consumes; error frames enabled (python-can's ``state`` does not
   report bus-off on socketcan, the error frames do). The bit rate is set by the OS
   (``ip link set can0 type can bitrate 500000 restart-ms 100``), not here.
-- ``virtual``: in-process, the embedded default and the tests' bus; python-can filters.
+- ``virtual``: in-process, the embedded default and the tests' bus; no filters: it only
+  carries the two nodes' frames, and python-can filters would also swallow the error
+  frames that the HIL simulator puts on it (bus-off, restarted); the link counts
+  anything it does not consume as ``unknown_id``.
 - ``udp_multicast``: cross-process on one host (HIL runs); ``channel`` is the multicast
   group. Its sockets echo a node's own frames back to it: the link drops frames with
   the ids it sends itself and counts them (``own_echo``), so no filter is set here.
@@ -124,7 +127,7 @@ def open_bus(link: CanLink, rx_ids: Iterable[int] = ()) -> can.BusABC:
             "ignore_rx_error_frames": False,
         }
     elif kind == "virtual":
-        kwargs = {"can_filters": filters, "receive_own_messages": False}
+        kwargs = {"receive_own_messages": False}
     elif kind == "udp_multicast":
         _check_multicast(link.channel)
         kwargs = {"port": link.udp_port, "fd": False}

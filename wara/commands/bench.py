@@ -18,6 +18,7 @@ BENCHES: dict[str, str] = {
     "can": "wara.benches.can:run",
     "sim": "wara.benches.sim:run",
     "loop": "wara.benches.loop:run",
+    "hil": "wara.benches.hil:run",
 }
 
 

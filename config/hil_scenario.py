@@ -1,0 +1,279 @@
+"""Schema of HIL scenarios (``wara hil --scenario FILE``, docs/hil.md).
+
+A HIL scenario says how the stand-in rig is simulated (integration step, PLC scan,
+sensors) and what happens when: operator events (E-stop, an HMI target request) and
+injected faults (on the CAN wire, in the sensors, in the hydraulics). It names
+cylinders by their ``id`` and CAN messages by DBC name patterns (``PLC_RodPos_*``);
+both are checked against the project when the simulator is built.
+
+Same rules as the project schema: unknown keys are errors, engineering units in the
+key names, SI through properties, errors that name the file and the key.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated, Literal
+
+from pydantic import Field, model_validator
+
+from config import units
+from config.loader import load_model
+from config.schema import NonNegative, Positive, Strict, Vec3
+
+Fraction = Annotated[float, Field(ge=0, le=1)]
+
+
+class PlantSettings(Strict):
+    """Numerical and rig choices the project YAML does not carry."""
+
+    #: RK4 step of the hydraulics and the platforms (0.1 .. 0.5 ms, model.md section 9)
+    step_ms: Annotated[float, Field(ge=0.1, le=0.5)] = 0.25
+    #: PLC scan: commands read, faults applied, sensors written once per scan
+    plc_cycle_ms: Annotated[float, Field(ge=0.1, le=10)] = 1.0
+    #: moving mass of each attitude cylinder's rod and piston (the load is the platform)
+    rod_mass_kg: Positive = 150.0
+    #: pilot-operated check valves on the attitude cylinders: while the PLC has the
+    #: drives off, the cylinder ports are blocked (no valve flow, no leakage to tank)
+    load_holding_valves: bool = True
+    #: a limit switch closes this close to either end of the stroke
+    limit_switch_mm: Positive = 2.0
+
+    @property
+    def step_s(self) -> float:
+        return units.ms(self.step_ms)
+
+    @property
+    def plc_cycle_s(self) -> float:
+        return units.ms(self.plc_cycle_ms)
+
+    @property
+    def limit_switch_m(self) -> float:
+        return units.mm(self.limit_switch_mm)
+
+    @model_validator(mode="after")
+    def _whole_steps(self) -> PlantSettings:
+        ratio = self.plc_cycle_ms / self.step_ms
+        if abs(ratio - round(ratio)) > 1e-9:
+            raise ValueError(
+                f"plc_cycle_ms ({self.plc_cycle_ms}) must be a whole number of "
+                f"step_ms ({self.step_ms})"
+            )
+        return self
+
+
+class PositionSensors(Strict):
+    resolution_um: NonNegative = 1.0
+    noise_um: NonNegative = 1.0
+    sample_ms: Positive = 1.0
+
+
+class PressureSensors(Strict):
+    resolution_kpa: NonNegative = 5.0
+    noise_kpa: NonNegative = 10.0
+    sample_ms: Positive = 1.0
+
+
+class SensorSettings(Strict):
+    position: PositionSensors = PositionSensors()
+    pressure: PressureSensors = PressureSensors()
+
+
+# --------------------------------------------------------------------------- events
+
+
+class _Timed(Strict):
+    #: simulated time the event starts
+    start_s: NonNegative = 0.0
+    #: simulated time it ends (null: until the end of the run)
+    end_s: NonNegative | None = None
+
+    @model_validator(mode="after")
+    def _order(self) -> _Timed:
+        if self.end_s is not None and self.end_s <= self.start_s:
+            raise ValueError(f"end_s ({self.end_s}) must be after start_s ({self.start_s})")
+        return self
+
+    def active(self, t_s: float) -> bool:
+        return t_s >= self.start_s - 1e-12 and (self.end_s is None or t_s < self.end_s - 1e-12)
+
+
+class EStop(_Timed):
+    """The E-stop circuit opens at ``start_s`` and is released at ``end_s``."""
+
+    kind: Literal["estop"]
+
+
+class HmiTargetEvent(Strict):
+    """The operator sends a target attitude of the workpiece plane from the HMI."""
+
+    kind: Literal["hmi_target"]
+    at_s: NonNegative
+    roll_deg: Annotated[float, Field(ge=-45, le=45)] = 0.0
+    pitch_deg: Annotated[float, Field(ge=-45, le=45)] = 0.0
+    request: Literal["new_target", "cancel"] = "new_target"
+
+
+class PlcSilent(_Timed):
+    """The PLC stops: nothing is sent, nothing is read, the valves drop to centre."""
+
+    kind: Literal["plc_silent"]
+
+
+class IgnoreCommands(_Timed):
+    """The PLC looks healthy on the wire but does not apply the IPC's valve commands."""
+
+    kind: Literal["ignore_commands"]
+
+
+Direction = Literal["plc_to_ipc", "ipc_to_plc", "both"]
+
+
+class _WireFault(_Timed):
+    #: DBC message names or fnmatch patterns; empty: every message of the direction
+    messages: tuple[str, ...] = ()
+    direction: Direction = "plc_to_ipc"
+
+
+class DropFrames(_WireFault):
+    """Each frame is lost with probability ``rate`` (seeded)."""
+
+    kind: Literal["drop"]
+    rate: Fraction
+
+
+class DelayFrames(_WireFault):
+    """Each frame reaches the bus ``delay_ms`` late (order kept)."""
+
+    kind: Literal["delay"]
+    delay_ms: Positive
+
+    @property
+    def delay_s(self) -> float:
+        return units.ms(self.delay_ms)
+
+
+class CorruptCrc(_WireFault):
+    """Each frame's CRC byte is inverted with probability ``rate``."""
+
+    kind: Literal["bad_crc"]
+    rate: Fraction = 1.0
+
+
+class FreezeCounter(_WireFault):
+    """The alive counter stops at its last value (CRC recomputed: only the counter is wrong)."""
+
+    kind: Literal["frozen_counter"]
+
+
+class BusOff(_Timed):
+    """The bus goes off: no frame either way; error frames report bus-off and the restart."""
+
+    kind: Literal["bus_off"]
+
+
+SensorQuantity = Literal["position", "cap_pressure", "rod_pressure"]
+
+
+class SensorFault(_Timed):
+    """One transducer: ``stuck`` at its last reading, ``noisy`` (extra white noise),
+    ``jump`` (an offset), or ``fail`` (sent as SENSOR_FAULT)."""
+
+    kind: Literal["sensor"]
+    cylinder: str
+    quantity: SensorQuantity = "position"
+    mode: Literal["stuck", "noisy", "jump", "fail"]
+    #: extra noise (rms) for ``noisy``: mm for positions, MPa for pressures
+    noise: NonNegative = 0.0
+    #: offset for ``jump``: mm for positions, MPa for pressures
+    offset: float = 0.0
+
+
+class Leakage(_Timed):
+    """A worn piston seal: the cylinder's internal leakage becomes this."""
+
+    kind: Literal["leakage"]
+    cylinder: str
+    internal_leakage_m3_s_pa: Positive
+
+
+class StuckValve(_Timed):
+    """The spool sticks: at ``opening`` (normalized, -1..1), or where it is when it sticks."""
+
+    kind: Literal["stuck_valve"]
+    cylinder: str
+    opening: Annotated[float, Field(ge=-1, le=1)] | None = None
+
+
+class LoadStep(_Timed):
+    """Extra load: a mass set down on a platform (``layer``, ``mass_kg``, ``cog_m`` in
+    the platform frame) or a force against one cylinder (``cylinder``, ``force_kn``,
+    positive opposing extension)."""
+
+    kind: Literal["load_step"]
+    layer: Literal["lower", "upper"] | None = None
+    mass_kg: NonNegative = 0.0
+    cog_m: Vec3 = (0.0, 0.0, 0.0)
+    cylinder: str | None = None
+    force_kn: float = 0.0
+
+    @model_validator(mode="after")
+    def _one_target(self) -> LoadStep:
+        if (self.layer is None) == (self.cylinder is None):
+            raise ValueError("a load step names either a layer (mass_kg, cog_m) or a cylinder")
+        return self
+
+    @property
+    def force_n(self) -> float:
+        return self.force_kn * units.KN
+
+
+Event = Annotated[
+    EStop
+    | HmiTargetEvent
+    | PlcSilent
+    | IgnoreCommands
+    | DropFrames
+    | DelayFrames
+    | CorruptCrc
+    | FreezeCounter
+    | BusOff
+    | SensorFault
+    | Leakage
+    | StuckValve
+    | LoadStep,
+    Field(discriminator="kind"),
+]
+
+#: every ``kind`` an event may have, for the CLI's ``--fault`` help
+EVENT_KINDS: tuple[str, ...] = (
+    "estop",
+    "hmi_target",
+    "plc_silent",
+    "ignore_commands",
+    "drop",
+    "delay",
+    "bad_crc",
+    "frozen_counter",
+    "bus_off",
+    "sensor",
+    "leakage",
+    "stuck_valve",
+    "load_step",
+)
+
+
+class HilScenario(Strict):
+    name: str = "default"
+    description: str = ""
+    #: how long ``wara hil`` runs when no ``--duration`` is given (null: until stopped)
+    duration_s: Positive | None = None
+    seed: int = 0
+    plant: PlantSettings = PlantSettings()
+    sensors: SensorSettings = SensorSettings()
+    events: tuple[Event, ...] = ()
+
+
+def load_hil_scenario(path: str | Path | None = None) -> HilScenario:
+    """Load a HIL scenario YAML; ``None`` means the defaults (no events)."""
+    return HilScenario() if path is None else load_model(HilScenario, path)

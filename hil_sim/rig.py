@@ -1,0 +1,536 @@
+"""The whole hydraulic rig: 19 valve-controlled cylinders, two of their groups under
+rigid platforms (docs/hil.md, model.md sections 1-3, 5, 9).
+
+Model
+-----
+- The eleven single-axis cylinders (sub-frame legs, travel, rotation, central axis,
+  lateral) are standalone: rod plus lumped load mass (``moving_mass_kg``) under a
+  load force, exactly :func:`hil_sim.hydraulics.cylinder_derivative`.
+- The four legs of the standing frame carry the lower platform, the four upper
+  attitude cylinders the upper platform. Each platform has three degrees of freedom
+  relative to the frame below it, ``(heave z, roll, pitch)``; the generalized
+  coordinates are ``q = (z_L, roll_L, pitch_L, z_U, roll_U, pitch_U)``. Rod
+  extensions from mid-stroke follow from the exact layer kinematics
+  ``d_i = z - x_i sin(pitch) + y_i sin(roll) cos(pitch)``; rod speeds are ``J_d q'``.
+- Rods push along their base's z axis; lateral forces are taken by guides at the
+  platform centre (paper assumption 2), which do no work on ``q``.
+- Bodies are point masses at the COGs of the YAML (model.md section 5); each rod is a
+  point mass (``rod_mass_kg``) at its action point, moving with its base along the
+  rod axis. Lagrange: ``M(q) q'' = J_d^T F_rod + Q_g(q)`` with
+  ``M = sum m J^T J`` and ``Q_g = sum m J^T g_b`` (``g_b``: gravity in the tunnel base
+  frame). ``M`` and ``Q_g`` are evaluated once per integration step; the
+  velocity-product (Coriolis) terms are left out: the platforms turn at a few mrad/s.
+- Rod forces come from the chamber pressures (``p_A A_A - p_B A_B``), friction and
+  the end stops, so cylinders that move out of step fight through the oil and the
+  twist shows up as pressure.
+- Load-holding valves (option): while the PLC has the drives off, a cylinder's ports
+  are blocked: no valve flow and no leakage to tank (the paper's "external" leakage
+  is read as leakage on the valve side of the holding valves); internal leakage
+  across the piston stays.
+
+Everything is integrated together with fixed-step RK4 in one numba kernel.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from config import units
+from config.schema import N_CYLINDERS, ProjectConfig
+from hil_sim._jit import jit
+from hil_sim.hydraulics import (
+    CylinderParams,
+    chamber_pressure_derivatives,
+    end_stop_force_n,
+    friction_force_n,
+    orifice_flows,
+    rod_force_n,
+    valve_derivative,
+)
+
+FloatArray = NDArray[np.float64]
+IntArray = NDArray[np.int64]
+
+N = N_CYLINDERS
+#: offsets in the flat state vector
+_SPOOL, _RATE, _PA, _PB, _X, _V = (k * N for k in range(6))
+_Q = 6 * N
+_QD = _Q + 6
+N_STATE = _QD + 6
+
+#: (sign x, sign y) of action points 1..4 (model.md section 2)
+_SIGNS = ((1.0, 1.0), (-1.0, 1.0), (-1.0, -1.0), (1.0, -1.0))
+
+
+# --------------------------------------------------------------------------- kinematics
+
+
+@jit
+def rotation(roll, pitch):
+    """``R(roll, pitch) = Ry(pitch) @ Rx(roll)`` (model.md section 1)."""
+    cr, sr, cp, sp = math.cos(roll), math.sin(roll), math.cos(pitch), math.sin(pitch)
+    r = np.empty((3, 3))
+    r[0, 0], r[0, 1], r[0, 2] = cp, sp * sr, sp * cr
+    r[1, 0], r[1, 1], r[1, 2] = 0.0, cr, -sr
+    r[2, 0], r[2, 1], r[2, 2] = -sp, cp * sr, cp * cr
+    return r
+
+
+@jit
+def _rotation_partials(roll, pitch):
+    cr, sr, cp, sp = math.cos(roll), math.sin(roll), math.cos(pitch), math.sin(pitch)
+    dr = np.zeros((3, 3))
+    dr[0, 1], dr[0, 2] = sp * cr, -sp * sr
+    dr[1, 1], dr[1, 2] = -sr, -cr
+    dr[2, 1], dr[2, 2] = cp * cr, -cp * sr
+    dp = np.zeros((3, 3))
+    dp[0, 0], dp[0, 1], dp[0, 2] = -sp, cp * sr, cp * cr
+    dp[2, 0], dp[2, 1], dp[2, 2] = -cp, -sp * sr, -sp * cr
+    return dr, dp
+
+
+@jit
+def extension_and_jacobian(z, roll, pitch, px, py):
+    """Extension from mid-stroke of the rod at ``(px, py)`` and its row ``dd/d(z, roll, pitch)``."""
+    cr, sr, cp, sp = math.cos(roll), math.sin(roll), math.cos(pitch), math.sin(pitch)
+    d = z - px * sp + py * sr * cp
+    return d, 1.0, py * cr * cp, -px * cp - py * sr * sp
+
+
+@jit
+def _mass_and_gravity(q, body_m, body_c, body_layer, rod_xy, rod_m, origin_u, g_b):
+    """Mass matrix ``M`` (6, 6) and generalized gravity ``Q_g`` (6,) at ``q``."""
+    m_mat = np.zeros((6, 6))
+    q_g = np.zeros(6)
+    r_l = rotation(q[1], q[2])
+    dr_l, dp_l = _rotation_partials(q[1], q[2])
+    r_u = rotation(q[4], q[5])
+    dr_u, dp_u = _rotation_partials(q[4], q[5])
+    jac = np.zeros((3, 6))
+    w = np.zeros(3)
+    n_bodies = body_m.shape[0]
+    for k in range(n_bodies + 8):
+        jac[:, :] = 0.0
+        if k < n_bodies:
+            m = body_m[k]
+            c = body_c[k]
+            if body_layer[k] == 0:
+                jac[2, 0] = 1.0
+                jac[:, 1] = dr_l @ c
+                jac[:, 2] = dp_l @ c
+            else:
+                w[:] = origin_u + r_u @ c
+                w[2] += q[3]
+                jac[2, 0] = 1.0
+                jac[:, 1] = dr_l @ w
+                jac[:, 2] = dp_l @ w
+                jac[:, 3] = r_l[:, 2]
+                jac[:, 4] = r_l @ (dr_u @ c)
+                jac[:, 5] = r_l @ (dp_u @ c)
+        else:
+            j = k - n_bodies
+            m = rod_m
+            layer = j // 4
+            qo = 3 * layer
+            d, j0, j1, j2 = extension_and_jacobian(
+                q[qo], q[qo + 1], q[qo + 2], rod_xy[j, 0], rod_xy[j, 1]
+            )
+            if layer == 0:
+                jac[2, 0], jac[2, 1], jac[2, 2] = j0, j1, j2
+            else:
+                w[0] = origin_u[0] + rod_xy[j, 0]
+                w[1] = origin_u[1] + rod_xy[j, 1]
+                w[2] = origin_u[2] + d
+                jac[2, 0] = 1.0
+                jac[:, 1] = dr_l @ w
+                jac[:, 2] = dp_l @ w
+                for a in range(3):
+                    jac[a, 3] = r_l[a, 2] * j0
+                    jac[a, 4] = r_l[a, 2] * j1
+                    jac[a, 5] = r_l[a, 2] * j2
+        if m == 0.0:
+            continue
+        m_mat += m * (jac.T @ jac)
+        q_g += m * (jac.T @ g_b)
+    return m_mat, q_g
+
+
+# --------------------------------------------------------------------------- dynamics
+
+
+@jit
+def _derivative(y, dy, u, ports, f_ext, p, plat_idx, rod_xy, half_stroke, m_inv, q_g, x_out, f_out):
+    """``dy = f(y)`` for the whole rig; writes rod positions/velocities and rod forces."""
+    q = y[_Q : _Q + 6]
+    qd = y[_QD : _QD + 6]
+    x = x_out[0]
+    v = x_out[1]
+    for i in range(N):
+        x[i] = y[_X + i]
+        v[i] = y[_V + i]
+    jrows = np.empty((8, 3))
+    for j in range(8):
+        qo = 3 * (j // 4)
+        d, j0, j1, j2 = extension_and_jacobian(
+            q[qo], q[qo + 1], q[qo + 2], rod_xy[j, 0], rod_xy[j, 1]
+        )
+        jrows[j, 0], jrows[j, 1], jrows[j, 2] = j0, j1, j2
+        i = plat_idx[j]
+        x[i] = half_stroke[j] + d
+        v[i] = j0 * qd[qo] + j1 * qd[qo + 1] + j2 * qd[qo + 2]
+    for i in range(N):
+        spool = y[_SPOOL + i]
+        rate = y[_RATE + i]
+        p_a = y[_PA + i]
+        p_b = y[_PB + i]
+        d_spool, d_rate = valve_derivative(spool, rate, u[i], p[9, i], p[10, i], p[11, i])
+        q_a, q_b = orifice_flows(spool, p_a, p_b, p[9, i], p[8, i], p[12, i], p[13, i], p[14, i])
+        dp_a, dp_b = chamber_pressure_derivatives(
+            x[i], v[i], p_a, p_b, q_a * ports[i], q_b * ports[i], p[0, i], p[1, i], p[2, i],
+            p[3, i], p[4, i], p[5, i], p[6, i], p[7, i] * ports[i],
+        )  # fmt: skip
+        force = (
+            rod_force_n(p_a, p_b, p[0, i], p[1, i])
+            - friction_force_n(v[i], p[16, i], p[17, i], p[18, i])
+            + end_stop_force_n(x[i], v[i], p[2, i], p[19, i], p[20, i])
+            + f_ext[i]
+        )
+        f_out[i] = force
+        dy[_SPOOL + i] = d_spool
+        dy[_RATE + i] = d_rate
+        dy[_PA + i] = dp_a
+        dy[_PB + i] = dp_b
+        dy[_X + i] = y[_V + i]
+        dy[_V + i] = force / p[15, i]
+    gen = np.empty(6)
+    for a in range(6):
+        gen[a] = q_g[a]
+    for j in range(8):
+        i = plat_idx[j]
+        qo = 3 * (j // 4)
+        for a in range(3):
+            gen[qo + a] += jrows[j, a] * f_out[i]
+        dy[_X + i] = 0.0
+        dy[_V + i] = 0.0
+    for a in range(6):
+        dy[_Q + a] = qd[a]
+    for a in range(6):
+        acc = 0.0
+        for b in range(6):
+            acc += m_inv[a, b] * gen[b]
+        dy[_QD + a] = acc
+
+
+@jit
+def _advance(
+    y, u, ports, f_ext, p, plat_idx, rod_xy, half_stroke, body_m, body_c, body_layer, rod_m,
+    origin_u, g_b, h, n_steps, x_out, f_out,
+):  # fmt: skip
+    """``n_steps`` RK4 steps of ``h`` with commands, port states and forces held.
+
+    ``M`` and ``Q_g`` are evaluated once per call (one PLC scan, about 1 ms): the
+    platforms turn by microradians in that time.
+    """
+    n = y.shape[0]
+    k1 = np.empty(n)
+    k2 = np.empty(n)
+    k3 = np.empty(n)
+    k4 = np.empty(n)
+    tmp = np.empty(n)
+    m_mat, q_g = _mass_and_gravity(
+        y[_Q : _Q + 6], body_m, body_c, body_layer, rod_xy, rod_m, origin_u, g_b
+    )
+    m_inv = np.linalg.inv(m_mat)
+    hh = 0.5 * h
+    h6 = h / 6.0
+    args = (u, ports, f_ext, p, plat_idx, rod_xy, half_stroke, m_inv, q_g, x_out, f_out)
+    for _ in range(n_steps):
+        _derivative(y, k1, *args)
+        for a in range(n):
+            tmp[a] = y[a] + hh * k1[a]
+        _derivative(tmp, k2, *args)
+        for a in range(n):
+            tmp[a] = y[a] + hh * k2[a]
+        _derivative(tmp, k3, *args)
+        for a in range(n):
+            tmp[a] = y[a] + h * k3[a]
+        _derivative(tmp, k4, *args)
+        for a in range(n):
+            y[a] += h6 * (k1[a] + 2.0 * k2[a] + 2.0 * k3[a] + k4[a])
+    # rod positions, speeds and forces at the final state
+    _derivative(y, k1, *args)
+
+
+# --------------------------------------------------------------------------- the rig
+
+
+@dataclass(frozen=True)
+class LayerTruth:
+    """One platform's attitude relative to the frame below it, and its rods."""
+
+    heave_m: float
+    roll_rad: float
+    pitch_rad: float
+    extensions_m: FloatArray  #: (4,) from mid-stroke, cylinders 1..4
+    twist_m: float  #: ``(d1 - d2 + d3 - d4) / 4`` (model.md section 3); 0 for a rigid platform
+    rod_forces_n: FloatArray  #: (4,) hydraulic rod forces ``p_A A_A - p_B A_B``
+    #: ``(F1 - F2 + F3 - F4) / 4``: the force the cylinders fight each other with (the
+    #: component of the rod forces that the platform's weight does not fix)
+    twist_force_n: float
+
+
+class Rig:
+    """The plant: construct from the project, :meth:`advance`, read the truth.
+
+    Arrays are indexed by ``can_index``. Starts standing level at mid-stroke on the
+    tunnel base, valves closed, pressures in static equilibrium with the load.
+    """
+
+    def __init__(
+        self,
+        cfg: ProjectConfig,
+        step_s: float = 0.25e-3,
+        rod_mass_kg: float = 150.0,
+        load_holding_valves: bool = True,
+    ) -> None:
+        if not 0.05e-3 <= step_s <= 1e-3:
+            raise ValueError(f"step_s must be within 0.05 .. 1 ms (0.1-0.5 advised), got {step_s}")
+        if rod_mass_kg <= 0:
+            raise ValueError(f"rod_mass_kg must be positive, got {rod_mass_kg}")
+        self.cfg = cfg
+        self.step_s = float(step_s)
+        self.load_holding_valves = load_holding_valves
+        cyls = cfg.cylinders_by_can_index
+        self.cylinder_ids: tuple[str, ...] = tuple(c.id for c in cyls)
+        self.params = CylinderParams.from_config(
+            cyls, cfg.hydraulics, [cfg.plant_of(c) for c in cyls]
+        )
+        self._p = self.params.matrix()
+        self._p_nominal = self._p.copy()
+        lo, up = cfg.layers.lower, cfg.layers.upper
+        by_id = {c.id: c for c in cyls}
+        self.lower_index = np.array([by_id[c].can_index for c in lo.cylinders], dtype=np.int64)
+        self.upper_index = np.array([by_id[c].can_index for c in up.cylinders], dtype=np.int64)
+        self._plat_idx = np.concatenate([self.lower_index, self.upper_index])
+        self.platform_mask = np.zeros(N, dtype=bool)
+        self.platform_mask[self._plat_idx] = True
+        self._rod_xy = np.array(
+            [(sx * layer.a_m, sy * layer.b_m) for layer in (lo, up) for sx, sy in _SIGNS]
+        )
+        self._half_stroke = np.array([lo.stroke_m / 2] * 4 + [up.stroke_m / 2] * 4)
+        # bodies: the YAML's, plus one load-step slot per layer (mass 0 until a step)
+        masses, cogs, layers = [], [], []
+        for k, layer in enumerate((lo, up)):
+            for b in layer.bodies:
+                masses.append(b.mass_kg)
+                cogs.append(b.cog_m)
+                layers.append(k)
+        self._extra_slot = {"lower": len(masses), "upper": len(masses) + 1}
+        masses += [0.0, 0.0]
+        cogs += [(0.0, 0.0, 0.0), (0.0, 0.0, 0.0)]
+        layers += [0, 1]
+        self._body_m = np.array(masses, dtype=np.float64)
+        self._body_c = np.array(cogs, dtype=np.float64)
+        self._body_layer = np.array(layers, dtype=np.int64)
+        self.rod_mass_kg = float(rod_mass_kg)
+        self._origin_u = np.array(up.origin_in_lower_m, dtype=np.float64)
+        r_base = rotation(cfg.base.roll_rad, cfg.base.pitch_rad)
+        self.g_base = r_base.T @ np.array([0.0, 0.0, -units.G])
+        self.y = np.zeros(N_STATE)
+        self.t_s = 0.0
+        self.command = np.zeros(N)
+        self.ports_open = np.zeros(N) if load_holding_valves else np.ones(N)
+        self.external_force_n = np.zeros(N)
+        self._xv = np.zeros((2, N))
+        self._force = np.zeros(N)
+        self._settle_level()
+
+    # ----------------------------------------------------------------- set-up
+
+    def generalized_gravity(self, q: FloatArray | None = None) -> tuple[FloatArray, FloatArray]:
+        """``(M, Q_g)`` at ``q`` (default: the present state)."""
+        qq = self.y[_Q : _Q + 6].copy() if q is None else np.asarray(q, dtype=np.float64)
+        return _mass_and_gravity(
+            qq,
+            self._body_m,
+            self._body_c,
+            self._body_layer,
+            self._rod_xy,
+            self.rod_mass_kg,
+            self._origin_u,
+            self.g_base,
+        )
+
+    def rod_jacobian(self, q: FloatArray | None = None) -> FloatArray:
+        """``dd/dq`` (8, 6): rows lower 1..4, upper 1..4; block diagonal."""
+        qq = self.y[_Q : _Q + 6] if q is None else q
+        jac = np.zeros((8, 6))
+        for j in range(8):
+            qo = 3 * (j // 4)
+            _d, *row = extension_and_jacobian(
+                qq[qo], qq[qo + 1], qq[qo + 2], self._rod_xy[j, 0], self._rod_xy[j, 1]
+            )
+            jac[j, qo : qo + 3] = row
+        return jac
+
+    def static_rod_forces_n(self, q: FloatArray | None = None) -> FloatArray:
+        """Minimum-norm rod forces (8,) that hold the platforms still at ``q``."""
+        _m, q_g = self.generalized_gravity(q)
+        jac = self.rod_jacobian(q)
+        out = np.zeros(8)
+        for layer in range(2):
+            a = jac[4 * layer : 4 * layer + 4, 3 * layer : 3 * layer + 3]
+            out[4 * layer : 4 * layer + 4] = a @ np.linalg.solve(
+                a.T @ a, -q_g[3 * layer : 3 * layer + 3]
+            )
+        return out
+
+    def _settle_level(self) -> None:
+        """Level at mid-stroke, at rest, valves closed, pressures holding the load.
+
+        Each chamber pair is at the pressure that makes internal leakage vanish
+        (``p_A = p_B = F / (A_A - A_B)``), so with blocked ports nothing moves.
+        """
+        p = self.params
+        self.y[:] = 0.0
+        self.y[_X : _X + N] = p.stroke_m / 2
+        force = np.zeros(N)
+        force[self._plat_idx] = self.static_rod_forces_n(np.zeros(6))
+        pressure = force / (p.area_a_m2 - p.area_b_m2)
+        self.y[_PA : _PA + N] = pressure
+        self.y[_PB : _PB + N] = pressure
+        self._xv[0] = self.y[_X : _X + N]
+        self._force[:] = force
+
+    # ----------------------------------------------------------------- faults
+
+    def set_internal_leakage(self, index: int, value: float | None) -> None:
+        """Internal leakage of cylinder ``index`` (m^3/s/Pa); ``None`` restores the YAML's."""
+        self._p[6, index] = self._p_nominal[6, index] if value is None else value
+
+    def set_platform_load(self, layer: str, mass_kg: float, cog_m: tuple[float, ...]) -> None:
+        """The extra mass set down on a platform (frame of that platform)."""
+        k = self._extra_slot[layer]
+        self._body_m[k] = mass_kg
+        self._body_c[k] = cog_m
+
+    def set_rod_position(self, index: int, x_m: float) -> None:
+        """Put a standalone (non-platform) cylinder's rod at ``x_m``, at rest (test set-ups)."""
+        if self.platform_mask[index]:
+            raise ValueError(f"cylinder {index} is under a platform: move the platform")
+        self.y[_X + index] = x_m
+        self.y[_V + index] = 0.0
+        self._xv[0, index] = x_m
+
+    # ----------------------------------------------------------------- run
+
+    def advance(self, n_steps: int) -> None:
+        """Integrate ``n_steps`` with :attr:`command`, :attr:`ports_open` and
+        :attr:`external_force_n` held."""
+        _advance(
+            self.y,
+            self.command,
+            self.ports_open,
+            self.external_force_n,
+            self._p,
+            self._plat_idx,
+            self._rod_xy,
+            self._half_stroke,
+            self._body_m,
+            self._body_c,
+            self._body_layer,
+            self.rod_mass_kg,
+            self._origin_u,
+            self.g_base,
+            self.step_s,
+            int(n_steps),
+            self._xv,
+            self._force,
+        )
+        self.t_s += n_steps * self.step_s
+
+    # ----------------------------------------------------------------- truth
+
+    @property
+    def q(self) -> FloatArray:
+        """``(z_L, roll_L, pitch_L, z_U, roll_U, pitch_U)`` (m, rad)."""
+        return self.y[_Q : _Q + 6].copy()
+
+    @property
+    def x_view(self) -> FloatArray:
+        """Rod positions (19,), a read-only view of the state (no copy: hot path)."""
+        v = self._xv[0].view()
+        v.flags.writeable = False
+        return v
+
+    @property
+    def pressure_view(self) -> FloatArray:
+        """``(p_A of all 19, p_B of all 19)`` flat (38,), a read-only view (hot path)."""
+        v = self.y[_PA : _PB + N].view()
+        v.flags.writeable = False
+        return v
+
+    @property
+    def rod_positions_m(self) -> FloatArray:
+        """From fully retracted, (19,)."""
+        return self._xv[0].copy()
+
+    @property
+    def rod_velocities_m_s(self) -> FloatArray:
+        return self._xv[1].copy()
+
+    @property
+    def spool_m(self) -> FloatArray:
+        return self.y[_SPOOL : _SPOOL + N].copy()
+
+    @property
+    def pressures_pa(self) -> FloatArray:
+        """(19, 2): cap side, rod side."""
+        return np.stack([self.y[_PA : _PA + N], self.y[_PB : _PB + N]], axis=1)
+
+    @property
+    def hydraulic_forces_n(self) -> FloatArray:
+        """``p_A A_A - p_B A_B`` (19,), positive extending."""
+        p = self.params
+        return np.asarray(
+            rod_force_n(self.y[_PA : _PA + N], self.y[_PB : _PB + N], p.area_a_m2, p.area_b_m2)
+        )
+
+    @property
+    def rod_forces_n(self) -> FloatArray:
+        """Net force each rod puts on its load (hydraulic - friction + end stop + external)."""
+        return self._force.copy()
+
+    def layer(self, name: str) -> LayerTruth:
+        """``"lower"`` or ``"upper"``."""
+        k = {"lower": 0, "upper": 1}[name]
+        q = self.y[_Q + 3 * k : _Q + 3 * k + 3]
+        idx = self.lower_index if k == 0 else self.upper_index
+        d = self._xv[0][idx] - self._half_stroke[4 * k : 4 * k + 4]
+        f = self.hydraulic_forces_n[idx]
+        return LayerTruth(
+            heave_m=float(q[0]),
+            roll_rad=float(q[1]),
+            pitch_rad=float(q[2]),
+            extensions_m=d,
+            twist_m=float((d[0] - d[1] + d[2] - d[3]) / 4.0),
+            rod_forces_n=f,
+            twist_force_n=float((f[0] - f[1] + f[2] - f[3]) / 4.0),
+        )
+
+    def workpiece_attitude_rad(self) -> tuple[float, float]:
+        """Roll and pitch of the upper platform plane in the world (``R_base R_L R_U``)."""
+        q = self.y[_Q : _Q + 6]
+        r = (
+            rotation(self.cfg.base.roll_rad, self.cfg.base.pitch_rad)
+            @ rotation(q[1], q[2])
+            @ rotation(q[4], q[5])
+        )
+        n = r[:, 2]
+        roll = math.asin(-max(-1.0, min(1.0, n[1])))
+        pitch = math.atan2(n[0], n[2])
+        return roll, pitch

@@ -1,0 +1,237 @@
+"""Fault injection on the CAN wire: a python-can bus wrapper between the PLC and the bus.
+
+:class:`FaultyWire` is a ``can.BusABC`` that the simulator hands to ``PlcLink``. It
+passes frames through unchanged until faults are switched on (:meth:`set_faults`);
+then, in simulated time, it
+
+- drops frames with a given probability (seeded), either direction;
+- delays frames by a fixed time (order kept; released by :meth:`release_due`);
+- inverts the CRC byte of frames (the receiver counts ``crc_error``);
+- freezes the alive counter at its last value, CRC recomputed so that only the
+  counter is wrong (the receiver counts ``counter_repeated``);
+- silences the PLC (nothing sent, nothing read);
+- takes the bus off: no frame either way, and error frames on the bus report
+  ``bus-off`` at the start and ``restarted`` at the end (linux/can/error.h), as a
+  socketcan controller does.
+
+Every action is counted in :attr:`counts` (``(kind, message name) -> frames``), so a
+test can compare what the IPC saw with exactly what was done to the wire.
+"""
+
+from __future__ import annotations
+
+import collections
+import fnmatch
+from collections import Counter
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass
+from typing import Any
+
+import can
+import numpy as np
+
+from plc_bridge.bus import CAN_ERR_BUSOFF, CAN_ERR_RESTARTED
+from plc_bridge.catalog import Catalog
+from plc_bridge.e2e import crc8_p01
+
+#: Directions as the scenario names them.
+PLC_TO_IPC = "plc_to_ipc"
+IPC_TO_PLC = "ipc_to_plc"
+
+
+@dataclass(frozen=True)
+class WireFault:
+    """One active fault on the wire.
+
+    ``kind``: ``drop``, ``delay``, ``bad_crc``, ``frozen_counter``, ``plc_silent`` or
+    ``bus_off``; ``frame_ids``: the frames it applies to (empty: all); ``direction``:
+    ``plc_to_ipc``, ``ipc_to_plc`` or ``both``; ``rate`` for drop/bad_crc;
+    ``delay_s`` for delay.
+    """
+
+    kind: str
+    frame_ids: frozenset[int] = frozenset()
+    direction: str = PLC_TO_IPC
+    rate: float = 1.0
+    delay_s: float = 0.0
+    key: int = 0  #: identifies the fault (frozen counters are kept per fault)
+
+    def applies(self, frame_id: int, direction: str) -> bool:
+        if self.direction not in (direction, "both"):
+            return False
+        return not self.frame_ids or frame_id in self.frame_ids
+
+
+def match_messages(catalog: Catalog, patterns: Iterable[str], where: str) -> frozenset[int]:
+    """Frame ids of the DBC messages matching the names/fnmatch patterns (empty: all)."""
+    ids: set[int] = set()
+    names = [m.name for m in catalog.messages]
+    for pat in patterns:
+        hit = [n for n in names if fnmatch.fnmatchcase(n, pat)]
+        if not hit:
+            raise ValueError(
+                f"{where}: no DBC message matches {pat!r}; messages are {', '.join(names)}"
+            )
+        ids.update(catalog.by_name(n).frame_id for n in hit)
+    return frozenset(ids)
+
+
+def _error_frame(cls_bits: int) -> can.Message:
+    return can.Message(
+        arbitration_id=cls_bits, is_error_frame=True, is_extended_id=False, data=bytes(8)
+    )
+
+
+class FaultyWire(can.BusABC):
+    """The PLC's view of the bus, with faults. Never blocks; no thread."""
+
+    def __init__(
+        self,
+        inner: can.BusABC,
+        catalog: Catalog,
+        clock: Callable[[], float],
+        seed: int = 0,
+        **kwargs: Any,
+    ) -> None:
+        super().__init__(channel=getattr(inner, "channel_info", "wire"), **kwargs)
+        self.inner = inner
+        self.catalog = catalog
+        self._clock = clock
+        self._rng = np.random.default_rng(seed)
+        self._faults: tuple[WireFault, ...] = ()
+        self._delayed: collections.deque[tuple[float, can.Message]] = collections.deque()
+        self._frozen: dict[tuple[int, int], int] = {}
+        self._last_counter: dict[int, int] = {}
+        self._bus_off = False
+        self.counts: Counter[tuple[str, str]] = Counter()
+
+    # ----------------------------------------------------------------- control
+
+    @property
+    def faults(self) -> tuple[WireFault, ...]:
+        return self._faults
+
+    def set_faults(self, faults: Iterable[WireFault]) -> None:
+        """The faults in force from now on (the simulator calls this each PLC scan)."""
+        new = tuple(faults)
+        bus_off = any(f.kind == "bus_off" for f in new)
+        if bus_off != self._bus_off:
+            self._bus_off = bus_off
+            self._delayed.clear()
+            self.inner.send(_error_frame(CAN_ERR_BUSOFF if bus_off else CAN_ERR_RESTARTED))
+            self.counts[("bus_off" if bus_off else "restarted", "error_frame")] += 1
+        keys = {f.key for f in new if f.kind == "frozen_counter"}
+        self._frozen = {k: v for k, v in self._frozen.items() if k[0] in keys}
+        self._faults = new
+
+    @property
+    def silent(self) -> bool:
+        return any(f.kind in ("plc_silent", "bus_off") for f in self._faults)
+
+    def _name(self, frame_id: int) -> str:
+        spec = self.catalog.by_id(frame_id)
+        return spec.name if spec is not None else f"0x{frame_id:03X}"
+
+    # ----------------------------------------------------------------- transmit
+
+    def send(self, msg: can.Message, timeout: float | None = None) -> None:
+        fid = msg.arbitration_id
+        name = self._name(fid)
+        if self.silent:
+            kind = "bus_off" if self._bus_off else "plc_silent"
+            self.counts[(kind, name)] += 1
+            return
+        spec = self.catalog.by_id(fid)
+        delay = 0.0
+        for f in self._faults:
+            if not f.applies(fid, PLC_TO_IPC):
+                continue
+            if f.kind == "frozen_counter" and spec is not None:
+                key = (f.key, fid)
+                if key not in self._frozen:
+                    self._frozen[key] = self._last_counter.get(fid, msg.data[1] & 0x0F)
+                data = bytearray(msg.data)
+                data[1] = (data[1] & 0xF0) | self._frozen[key]
+                data[0] = crc8_p01(spec.data_id, bytes(data[1:]))
+                msg = _copy(msg, bytes(data))
+                self.counts[("frozen_counter", name)] += 1
+            elif f.kind == "bad_crc" and self._rng.random() < f.rate:
+                data = bytearray(msg.data)
+                data[0] ^= 0xFF
+                msg = _copy(msg, bytes(data))
+                self.counts[("bad_crc", name)] += 1
+            elif f.kind == "drop" and self._rng.random() < f.rate:
+                self.counts[("drop", name)] += 1
+                return
+            elif f.kind == "delay":
+                delay = max(delay, f.delay_s)
+        if spec is not None and not any(
+            f.kind == "frozen_counter" and f.applies(fid, PLC_TO_IPC) for f in self._faults
+        ):
+            self._last_counter[fid] = msg.data[1] & 0x0F
+        if delay > 0.0 or self._delayed:
+            # order is kept: a frame never overtakes one delayed before it
+            self._delayed.append((self._clock() + delay, msg))
+            if delay > 0.0:
+                self.counts[("delay", name)] += 1
+            self.release_due()
+            return
+        self.inner.send(msg, timeout=timeout)
+
+    def release_due(self, now: float | None = None) -> int:
+        """Put the delayed frames whose time has come on the bus; returns how many."""
+        t = self._clock() if now is None else now
+        n = 0
+        while self._delayed and self._delayed[0][0] <= t + 1e-12:
+            _, msg = self._delayed.popleft()
+            self.inner.send(msg, timeout=0.0)
+            n += 1
+        return n
+
+    # ----------------------------------------------------------------- receive
+
+    def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
+        while True:
+            msg = self.inner.recv(0.0)
+            if msg is None:
+                return None, False
+            if msg.is_error_frame:
+                return msg, False
+            name = self._name(msg.arbitration_id)
+            if self.silent:
+                self.counts[("bus_off" if self._bus_off else "plc_silent", name)] += 1
+                continue
+            fid = msg.arbitration_id
+            dropped = False
+            for f in self._faults:
+                if not f.applies(fid, IPC_TO_PLC):
+                    continue
+                if f.kind == "drop" and self._rng.random() < f.rate:
+                    self.counts[("drop_rx", name)] += 1
+                    dropped = True
+                    break
+                if f.kind == "bad_crc" and self._rng.random() < f.rate:
+                    data = bytearray(msg.data)
+                    data[0] ^= 0xFF
+                    msg = _copy(msg, bytes(data))
+                    self.counts[("bad_crc_rx", name)] += 1
+            if not dropped:
+                return msg, False
+
+    def shutdown(self) -> None:
+        super().shutdown()
+        self.inner.shutdown()
+
+    def total(self, kind: str) -> int:
+        """Frames affected by faults of ``kind`` so far, all messages."""
+        return sum(n for (k, _), n in self.counts.items() if k == kind)
+
+
+def _copy(msg: can.Message, data: bytes) -> can.Message:
+    return can.Message(
+        arbitration_id=msg.arbitration_id,
+        data=data,
+        is_extended_id=msg.is_extended_id,
+        timestamp=msg.timestamp,
+        check=False,
+    )

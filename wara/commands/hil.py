@@ -1,0 +1,125 @@
+"""``wara hil``: the stand-in PLC and rig on the configured CAN bus (docs/hil.md).
+
+Examples::
+
+    wara hil --config project.yaml                   # real time, bus from can.*
+    wara hil --scenario config/scenarios/hil_faults_example.yaml --duration 30
+    wara hil --fault "drop:rate=0.2,messages=[PLC_RodPos_*],start_s=5,end_s=10"
+    wara hil --lockstep --duration 5                 # virtual time, as fast as it goes
+
+Real time (default) is for a controller in another process (``can.interface:
+udp_multicast`` or ``socketcan`` vcan0); lockstep runs in virtual time, deterministic
+from the seed (in-process controllers use :class:`hil_sim.simulator.HilSimulator`).
+A status line shows simulated time, realtime factor, PLC state and the faults active.
+"""
+
+from __future__ import annotations
+
+import argparse
+import re
+import sys
+import time
+from typing import Any
+
+import yaml
+
+from config import load_project
+from config.hil_scenario import EVENT_KINDS, HilScenario, load_hil_scenario
+from config.loader import validate_data
+from hil_sim.simulator import HilSimulator
+from wara.cli import UsageError
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("hil", help="HIL simulator: the PLC and the rig over CAN")
+    p.add_argument("--config", default=None, help="project YAML (default: shipped project)")
+    p.add_argument("--scenario", default=None, help="HIL scenario YAML (events, faults, plant)")
+    mode = p.add_mutually_exclusive_group()
+    mode.add_argument("--realtime", action="store_true", help="pace by the wall clock (default)")
+    mode.add_argument("--lockstep", action="store_true", help="virtual time, as fast as possible")
+    p.add_argument("--duration", type=float, default=None, help="simulated seconds to run")
+    p.add_argument("--seed", type=int, default=None, help="overrides the scenario's seed")
+    p.add_argument(
+        "--fault",
+        action="append",
+        default=[],
+        metavar="KIND[:KEY=VALUE,...]",
+        help=f"add an event as in the scenario's events list; kinds: {', '.join(EVENT_KINDS)}",
+    )
+    p.add_argument(
+        "--status-interval", type=float, default=1.0, help="seconds between status lines"
+    )
+    p.add_argument("--quiet", action="store_true", help="no status line")
+    p.set_defaults(func=_run)
+
+
+def parse_fault(spec: str) -> dict[str, Any]:
+    """``"drop:rate=0.2,messages=[PLC_Status],start_s=1"`` -> an event mapping."""
+    kind, _, rest = spec.partition(":")
+    event: dict[str, Any] = {"kind": kind.strip()}
+    for item in re.split(r",(?![^\[]*\])", rest) if rest.strip() else []:
+        key, eq, value = item.partition("=")
+        if not eq:
+            raise UsageError(f"--fault {spec!r}: expected KEY=VALUE, got {item!r}")
+        event[key.strip()] = yaml.safe_load(value)
+    return event
+
+
+def scenario_with_faults(base: HilScenario, faults: list[str]) -> HilScenario:
+    if not faults:
+        return base
+    data = base.model_dump(mode="json")
+    data["events"] = [*data["events"], *(parse_fault(f) for f in faults)]
+    return validate_data(HilScenario, data, "--fault")
+
+
+def _run(args: argparse.Namespace) -> int:
+    cfg = load_project(args.config)
+    scenario = scenario_with_faults(load_hil_scenario(args.scenario), args.fault)
+    duration = args.duration if args.duration is not None else scenario.duration_s
+    if args.lockstep and duration is None:
+        raise UsageError("--lockstep needs --duration (or duration_s in the scenario)")
+    try:
+        sim = HilSimulator(cfg, None, scenario, seed=args.seed)
+    except ValueError as exc:
+        raise UsageError(str(exc)) from None
+    tty = sys.stderr.isatty()
+
+    def show(s: HilSimulator) -> None:
+        if not args.quiet:
+            end = "\r" if tty else "\n"
+            print(s.status_line(), end=end, file=sys.stderr, flush=True)
+
+    print(
+        f"wara hil: {cfg.project.name} on can {cfg.can.interface}:{cfg.can.channel}, "
+        f"{'lockstep' if args.lockstep else 'real time'}, scenario {scenario.name!r}, "
+        f"seed {sim.seed}",
+        file=sys.stderr,
+    )
+    t0 = time.monotonic()
+    try:
+        if args.lockstep:
+            assert duration is not None
+            chunk = max(1, round(args.status_interval / sim.cycle_s))
+            n = round(duration / sim.cycle_s)
+            done = 0
+            while done < n:
+                k = min(chunk, n - done)
+                sim.step(k * sim.cycle_s)
+                done += k
+                show(sim)
+        else:
+            sim.run_realtime(duration, on_status=show, status_interval_s=args.status_interval)
+    except KeyboardInterrupt:
+        pass
+    finally:
+        sim.close()
+    if tty and not args.quiet:
+        print(file=sys.stderr)
+    wall = time.monotonic() - t0
+    print(
+        f"wara hil: simulated {sim.t_s:.3f} s in {wall:.3f} s wall "
+        f"(compute realtime factor {sim.realtime_factor:.2f}x)",
+        file=sys.stderr,
+    )
+    return 0
