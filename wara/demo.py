@@ -131,18 +131,20 @@ class Demo:
         self.loop = FixedRateLoop(step, self.period, realtime=self.cfg.control.realtime)
 
         def run_sim() -> None:
-            def stop() -> bool:
-                return self._stop.is_set()
-
-            # The plant runs under the lock so the trace reads a consistent state.
-            orig = self.sim.step
-
-            def locked_step(dt: float) -> None:
+            # The plant advances one control period at a time, paced by the wall clock,
+            # under the lock so the trace reads a consistent state.
+            start = time.monotonic()
+            k = 0
+            while not self._stop.is_set():
+                k += 1
+                due = start + k * self.period
+                delay = due - time.monotonic()
+                if delay > 0:
+                    time.sleep(delay)
+                elif delay < -0.1:  # far behind (machine busy): re-anchor, never skip time
+                    start = time.monotonic() - k * self.period
                 with self._lock:
-                    orig(dt)
-
-            self.sim.step = locked_step  # type: ignore[method-assign]
-            self.sim.run_realtime(should_stop=stop)
+                    self.sim.step(self.period)
 
         self._sim_thread = threading.Thread(target=run_sim, name="hil-sim", daemon=True)
         self._sim_thread.start()
