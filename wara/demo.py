@@ -27,10 +27,10 @@ from typing import Any
 
 import can
 import numpy as np
-from hil_sim.simulator import HilSimulator
 
 from config import load_project, units
 from config.schema import ProjectConfig
+from hil_sim.simulator import HilSimulator
 from ipc_app.service.core import ServiceCore
 from ipc_app.service.loop import FixedRateLoop
 from ipc_app.service.modes import Mode
