@@ -433,6 +433,9 @@ class CanLink(Strict):
 class Safety(Strict):
     max_twist_mm: Positive = 1.5
     max_sync_error_mm: Positive = 2.0
+    #: Largest |reference - measurement| of an attitude cylinder while moving (catches a
+    #: group that stops as a whole: commands ignored, all valves stuck).
+    max_tracking_error_mm: Positive = 10.0
     max_pressure_mpa: Positive = 24.0
     stroke_end_margin_mm: NonNegative = 5.0
     sensor_timeout_ms: Positive = 50.0

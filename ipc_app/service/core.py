@@ -17,6 +17,8 @@ latched until ``reset``, the reason logged and shown by ``wara ctl status``):
 ``plc fault``       the PLC reports a fault code (other than e-stop)
 ``twist``           a layer's measured twist above ``safety.max_twist_mm`` (moving)
 ``sync error``      a group's synchronization error above ``safety.max_sync_error_mm``
+``tracking error``  an active rod further than ``safety.max_tracking_error_mm`` from
+                    its reference (moving: commands ignored, valves stuck)
 ``stroke end``      an active rod within ``stroke_end_margin_mm`` of an end, or its
                     limit switch (moving)
 ``planner``         the planner process crashed or timed out
@@ -108,6 +110,7 @@ class ServiceCore:
         s = cfg.safety
         self.max_twist_m = units.mm(s.max_twist_mm)
         self.max_sync_m = units.mm(s.max_sync_error_mm)
+        self.max_tracking_m = units.mm(s.max_tracking_error_mm)
         self.max_pressure_pa = units.mpa(s.max_pressure_mpa)
         self.end_margin_m = units.mm(s.stroke_end_margin_mm)
         self._present: list[str] = []  # interlock conditions present this cycle
@@ -278,6 +281,11 @@ class ServiceCore:
                     f"twist: {name} layer {units.to_mm(m.twist_m):.2f} mm above the limit "
                     f"{units.to_mm(self.max_twist_m):.2f} mm"
                 )
+            if m.tracking_error_m > self.max_tracking_m:
+                self.modes.fault(
+                    f"tracking error: {name} group {units.to_mm(m.tracking_error_m):.2f} mm "
+                    f"above the limit {units.to_mm(self.max_tracking_m):.2f} mm"
+                )
             if m.sync_error_m > self.max_sync_m:
                 self.modes.fault(
                     f"sync error: {name} group {units.to_mm(m.sync_error_m):.2f} mm above the "
@@ -363,6 +371,21 @@ class ServiceCore:
         )
         return units.to_deg(chk.roll), units.to_deg(chk.pitch)
 
+    def _motion_dict(self, x: np.ndarray) -> dict[str, Any]:
+        m = self.motion
+        out: dict[str, Any] = {
+            "target_deg": list(m.target_deg),
+            "duration_s": m.duration_s,
+            "max_twist_mm": units.to_mm(m.max_twist_m),
+            "max_sync_error_mm": units.to_mm(m.max_sync_error_m),
+            "hold_sync_error_mm": units.to_mm(m.hold_sync_error_m),
+            "hold_samples": m.hold_samples,
+        }
+        if np.all(np.isfinite(x[self.active])):
+            roll, pitch = self.achieved_attitude_deg(x)
+            out["achieved_deg"] = [roll, pitch]
+        return out
+
     def _publish(self, now: float, x: np.ndarray, u: np.ndarray, lstate: LinkState) -> None:
         snap = self.modes.snapshot()
         snap.update(
@@ -378,6 +401,8 @@ class ServiceCore:
                 k: units.to_mm(m.sync_error_m) for k, m in self.attitude.metrics.items()
             },
             twist_mm={k: units.to_mm(m.twist_m) for k, m in self.attitude.metrics.items()},
+            motion=self._motion_dict(x),
+            link_health={"state": lstate.name},
             loop=self.loop_stats,
         )
         self._snapshot = snap
