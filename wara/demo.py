@@ -30,8 +30,10 @@ import numpy as np
 
 from config import load_project, units
 from config.schema import ProjectConfig
+from config.hil_scenario import HilScenario
 from hil_sim.simulator import HilSimulator
 from ipc_app.service.core import ServiceCore
+from ipc_app.service.record import RunRecorder
 from ipc_app.service.loop import FixedRateLoop
 from ipc_app.service.modes import Mode
 from ipc_app.service.worker import PlannerWorker
@@ -96,19 +98,27 @@ class Demo:
         mode: str = "realtime",
         seed: int = 0,
         progress: Callable[[str], None] | None = None,
+        scenario: HilScenario | None = None,
+        record: RunRecorder | None = None,
+        planner: PlannerWorker | None = None,
     ) -> None:
+        """``planner``: a running worker to share (tests); else one is started and owned."""
         if mode not in ("realtime", "lockstep"):
             raise ValueError(f"mode must be 'realtime' or 'lockstep', got {mode!r}")
         self.cfg = cfg
         self.mode = mode
         self.progress = progress or (lambda _s: None)
         channel = f"wara-demo-{next(_channels)}"
-        self.sim = HilSimulator(cfg, can.Bus(interface="virtual", channel=channel), seed=seed)
+        self.sim = HilSimulator(
+            cfg, can.Bus(interface="virtual", channel=channel), scenario=scenario, seed=seed
+        )
         clock = self.sim.clock if mode == "lockstep" else time.monotonic
         self.link = IpcLink(cfg, can.Bus(interface="virtual", channel=channel), clock=clock)
-        self.worker = PlannerWorker(config_path)
-        self.worker.start()
-        self.core = ServiceCore(cfg, self.link, self.worker)
+        self._own_worker = planner is None
+        self.worker = planner if planner is not None else PlannerWorker(config_path)
+        if self._own_worker:
+            self.worker.start()
+        self.core = ServiceCore(cfg, self.link, self.worker, record=record)
         self.trace = Trace()
         self.period = cfg.control.period_s
         self._k = 0
@@ -183,7 +193,8 @@ class Demo:
             self.loop.stop()
         if self._sim_thread is not None:
             self._sim_thread.join(5.0)
-        self.worker.close()
+        if self._own_worker:
+            self.worker.close()
         self.link.close()
         self.sim.close()
 

@@ -1,0 +1,325 @@
+"""End to end on the virtual bus: the HIL simulator (rig + PLC) and the IPC service core
+in lockstep, with the real planner worker process and a real run record.
+
+Each interlock and each simulator fault leads to the specified safe state within a
+stated number of control cycles (5 ms each), the valves are commanded closed from then
+on, and the run record holds every cycle and the transition.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+import yaml
+
+from config import ProjectConfig, default_project_path, load_project
+from config.hil_scenario import HilScenario
+from config.loader import validate_data
+from ipc_app.service.modes import Mode
+from ipc_app.service.record import RunRecorder, read_run
+from ipc_app.service.worker import PlannerWorker
+from tests.service_helpers import CRASH_ROLL_DEG
+from wara.demo import ATTITUDE_TOL_DEG, SYNC_TOL_MM, TWIST_TOL_MM, Demo
+
+FAULT_AT_S = 3.0  # simulated time of the fault: Example 1 (2, 1) deg is moving then
+
+
+@pytest.fixture(scope="module")
+def planner() -> Iterator[PlannerWorker]:
+    w = PlannerWorker(None, timeout_s=30.0)
+    w.start()
+    yield w
+    w.close()
+
+
+def _scenario(*events: dict[str, Any]) -> HilScenario:
+    return validate_data(HilScenario, {"events": list(events)}, "test scenario")
+
+
+def _project(tmp_path: Path, **safety: Any) -> ProjectConfig:
+    if not safety:
+        return load_project()
+    data = yaml.safe_load(default_project_path().read_text())
+    data["safety"].update(safety)
+    path = tmp_path / "project.yaml"
+    path.write_text(yaml.safe_dump(data))
+    return load_project(path)
+
+
+class Run:
+    """One lockstep run: boot, adjust to Example 1, then watch."""
+
+    def __init__(
+        self, cfg: ProjectConfig, planner: PlannerWorker, tmp_path: Path, scenario: HilScenario
+    ) -> None:
+        from ipc_app.service.core import ServiceCore
+
+        self.record = RunRecorder(tmp_path / "run", ServiceCore.record_columns(cfg))
+        self.record.start()
+        self.demo = Demo(
+            cfg, mode="lockstep", scenario=scenario, record=self.record, planner=planner
+        )
+        self.cycles = 0
+        self.sent_after_fault: list[np.ndarray] = []
+
+    def step(self) -> None:
+        d = self.demo
+        d.advance(d.period)
+        self.cycles += 1
+
+    def until(self, pred: Any, max_s: float) -> int | None:
+        n = round(max_s / self.demo.period)
+        for k in range(n):
+            if pred():
+                return k
+            self.step()
+        return None
+
+    def start_motion(self) -> None:
+        d = self.demo
+        assert self.until(lambda: d.core.modes.mode == Mode.IDLE, 5.0) is not None
+        assert d.core.request_adjust(2.0, 1.0)["ok"]
+        assert self.until(lambda: d.core.modes.mode == Mode.ADJUSTING, 30.0) is not None
+        assert d.sim.t_s < FAULT_AT_S, "motion must start before the fault"
+        assert self.until(lambda: d.sim.t_s >= FAULT_AT_S, FAULT_AT_S) is not None
+
+    def close(self) -> dict[str, Any]:
+        self.demo.close()
+        return self.record.stop()
+
+
+def _safe_state(run: Run, expected: Mode, reason: str, max_cycles: int) -> None:
+    core = run.demo.core
+    k = run.until(lambda: core.modes.mode == expected, max_cycles * core.period_s + 1e-9)
+    assert k is not None, (core.modes.mode, core.modes.fault_reasons)
+    assert k <= max_cycles
+    if reason:
+        wanted = reason.split("|")  # any of these interlocks is the specified reaction
+        assert any(w in r for r in core.modes.fault_reasons for w in wanted), (
+            core.modes.fault_reasons
+        )
+    # From then on the IPC commands every valve closed, and the PLC applies nothing.
+    for _ in range(20):
+        run.step()
+        assert not core.modes.valves_enabled
+    assert np.all(run.demo.sim.truth().applied_command == 0.0)
+
+
+CASES = [
+    # (fault event, safe mode, reason in the fault list, max cycles after the fault)
+    ({"kind": "plc_silent", "start_s": FAULT_AT_S}, Mode.FAULT, "plc heartbeat", 22),
+    ({"kind": "bus_off", "start_s": FAULT_AT_S}, Mode.FAULT, "plc heartbeat", 22),
+    (
+        {"kind": "drop", "start_s": FAULT_AT_S, "rate": 1.0, "messages": ["PLC_RodPos_*"]},
+        Mode.FAULT,
+        "sensor",
+        10,
+    ),
+    (
+        {"kind": "bad_crc", "start_s": FAULT_AT_S, "messages": ["PLC_RodPos_*"]},
+        Mode.FAULT,
+        "sensor",
+        10,
+    ),
+    (
+        {"kind": "frozen_counter", "start_s": FAULT_AT_S, "messages": ["PLC_RodPos_*"]},
+        Mode.FAULT,
+        "sensor",
+        10,
+    ),
+    (
+        {"kind": "delay", "start_s": FAULT_AT_S, "delay_ms": 200, "messages": ["PLC_RodPos_*"]},
+        Mode.FAULT,
+        "sensor",
+        10,
+    ),
+    (
+        {"kind": "sensor", "start_s": FAULT_AT_S, "cylinder": "upper_2", "mode": "fail"},
+        Mode.FAULT,
+        "sensor",
+        5,
+    ),
+    (
+        {
+            "kind": "sensor",
+            "start_s": FAULT_AT_S,
+            "cylinder": "upper_3",
+            "mode": "jump",
+            "offset": 5.0,
+        },
+        Mode.FAULT,
+        "sync error",
+        5,
+    ),
+    (
+        {"kind": "sensor", "start_s": FAULT_AT_S, "cylinder": "upper_2", "mode": "stuck"},
+        Mode.FAULT,
+        "",
+        400,
+    ),
+    (
+        {"kind": "stuck_valve", "start_s": FAULT_AT_S, "cylinder": "upper_1", "opening": 0.0},
+        Mode.FAULT,
+        "",
+        400,
+    ),
+    (
+        {"kind": "ignore_commands", "start_s": FAULT_AT_S},
+        Mode.FAULT,
+        "tracking error|sync error",
+        400,
+    ),
+    ({"kind": "estop", "start_s": FAULT_AT_S}, Mode.ESTOP, "", 8),
+]
+
+
+@pytest.mark.parametrize(
+    ("event", "mode", "reason", "max_cycles"),
+    CASES,
+    ids=[f"{c[0]['kind']}-{c[0].get('mode', '')}" for c in CASES],
+)
+def test_fault_leads_to_safe_state(
+    planner: PlannerWorker,
+    tmp_path: Path,
+    event: dict[str, Any],
+    mode: Mode,
+    reason: str,
+    max_cycles: int,
+) -> None:
+    run = Run(load_project(), planner, tmp_path, _scenario(event))
+    try:
+        run.start_motion()
+        _safe_state(run, mode, reason, max_cycles)
+    finally:
+        summary = run.close()
+    _record_is_complete(tmp_path / "run", run.cycles, summary, mode)
+
+
+def _record_is_complete(path: Path, cycles: int, summary: dict[str, Any], mode: Mode) -> None:
+    data = read_run(path)
+    assert summary.get("rows_dropped", 0) == 0
+    assert len(data.t_s) >= cycles  # every stepped cycle, plus the boot cycles
+    assert np.all(np.diff(data.t_s) > 0)
+    kinds = [(e.get("kind"), e.get("to_mode")) for e in data.events]
+    assert ("mode", str(mode)) in kinds, kinds
+    assert json.dumps(data.events)  # JSON-ready
+
+
+@pytest.mark.parametrize(
+    ("safety", "reason"),
+    [
+        ({"max_pressure_mpa": 7.0}, "pressure"),
+        ({"max_twist_mm": 0.5, "max_sync_error_mm": 50.0}, "twist"),
+    ],
+)
+def test_limit_interlocks(
+    planner: PlannerWorker, tmp_path: Path, safety: dict[str, float], reason: str
+) -> None:
+    cfg = _project(tmp_path, **safety)
+    # The twist case: one position sensor jumps 4 mm, i.e. 1 mm of measured twist.
+    events = (
+        [
+            {
+                "kind": "sensor",
+                "start_s": FAULT_AT_S,
+                "cylinder": "upper_3",
+                "mode": "jump",
+                "offset": 4.0,
+            }
+        ]
+        if reason == "twist"
+        else []
+    )
+    run = Run(cfg, planner, tmp_path, _scenario(*events))
+    try:
+        d = run.demo
+        assert run.until(lambda: d.core.modes.mode == Mode.IDLE, 5.0) is not None
+        assert d.core.request_adjust(2.0, 1.0)["ok"]
+        k = run.until(lambda: d.core.modes.mode == Mode.FAULT, 12.0)
+        assert k is not None, d.core.modes.snapshot()
+        assert any(r.startswith(reason) for r in d.core.modes.fault_reasons)
+    finally:
+        run.close()
+
+
+def test_planner_crash_is_a_fault(tmp_path: Path) -> None:
+    crash = PlannerWorker(None, timeout_s=10.0, plan_fn="tests.service_helpers:misbehaving_plan")
+    crash.start()
+    run = Run(load_project(), crash, tmp_path, _scenario())
+    try:
+        d = run.demo
+        assert run.until(lambda: d.core.modes.mode == Mode.IDLE, 5.0) is not None
+        assert d.core.request_adjust(CRASH_ROLL_DEG, 1.0)["ok"]  # the planner process dies
+        assert run.until(lambda: d.core.modes.mode == Mode.FAULT, 60.0) is not None
+        assert any(r.startswith("planner") for r in d.core.modes.fault_reasons)
+    finally:
+        run.close()
+        crash.close()
+
+
+def test_infeasible_target_is_refused_with_reasons(planner: PlannerWorker, tmp_path: Path) -> None:
+    run = Run(load_project(), planner, tmp_path, _scenario())
+    try:
+        d = run.demo
+        assert run.until(lambda: d.core.modes.mode == Mode.IDLE, 5.0) is not None
+        assert d.core.request_adjust(30.0, 2.0)["ok"]
+        assert run.until(lambda: d.core.modes.mode != Mode.PLANNING, 30.0) is not None
+        assert d.core.modes.mode == Mode.IDLE
+        assert "stroke" in d.core.modes.snapshot()["message"]
+    finally:
+        run.close()
+
+
+@pytest.mark.parametrize(
+    "event",
+    [
+        {
+            "kind": "leakage",
+            "start_s": 1.0,
+            "cylinder": "upper_4",
+            "internal_leakage_m3_s_pa": 5.0e-11,
+        },
+        {
+            "kind": "load_step",
+            "start_s": FAULT_AT_S,
+            "layer": "upper",
+            "mass_kg": 2000,
+            "cog_m": [0.5, 0.3, 1.0],
+        },
+        # Non-critical frames: the link is DEGRADED, the motion goes on. (Random drops of
+        # the 200 Hz position frames make a reading stale after two in a row: a fault.)
+        {"kind": "drop", "start_s": 1.0, "rate": 0.2, "messages": ["PLC_Pressure_*"]},
+    ],
+    ids=["raised-leakage", "load-step", "drop-20-percent-pressures"],
+)
+def test_disturbances_are_ridden_through(
+    planner: PlannerWorker, tmp_path: Path, event: dict[str, Any]
+) -> None:
+    run = Run(load_project(), planner, tmp_path, _scenario(event))
+    try:
+        d = run.demo
+        assert run.until(lambda: d.core.modes.mode == Mode.IDLE, 5.0) is not None
+        res = d.run_example(2.0, 1.0)
+        assert res.passed, res
+    finally:
+        run.close()
+
+
+def test_examples_reach_their_targets(planner: PlannerWorker, tmp_path: Path) -> None:
+    run = Run(load_project(), planner, tmp_path, _scenario())
+    try:
+        d = run.demo
+        assert run.until(lambda: d.core.modes.mode == Mode.IDLE, 5.0) is not None
+        for roll, pitch in ((2.0, 1.0), (-3.0, 2.0), (5.0, -1.0)):
+            res = d.run_example(roll, pitch)
+            assert res.passed, res
+            assert res.attitude_error_deg <= ATTITUDE_TOL_DEG
+            assert res.max_twist_mm <= TWIST_TOL_MM
+            assert res.sync_error_mm <= SYNC_TOL_MM
+    finally:
+        run.close()
