@@ -29,13 +29,13 @@ import can
 import numpy as np
 
 from config import load_project, units
-from config.schema import ProjectConfig
 from config.hil_scenario import HilScenario
+from config.schema import ProjectConfig
 from hil_sim.simulator import HilSimulator
 from ipc_app.service.core import ServiceCore
-from ipc_app.service.record import RunRecorder
 from ipc_app.service.loop import FixedRateLoop
 from ipc_app.service.modes import Mode
+from ipc_app.service.record import RunRecorder
 from ipc_app.service.worker import PlannerWorker
 from plc_bridge.link import IpcLink
 
