@@ -323,3 +323,21 @@ def test_examples_reach_their_targets(planner: PlannerWorker, tmp_path: Path) ->
             assert res.sync_error_mm <= SYNC_TOL_MM
     finally:
         run.close()
+
+
+def test_hmi_target_from_the_plc_is_planned_executed_and_acknowledged(
+    planner: PlannerWorker, tmp_path: Path
+) -> None:
+    event = {"kind": "hmi_target", "at_s": 1.0, "roll_deg": -3.0, "pitch_deg": 2.0}
+    run = Run(load_project(), planner, tmp_path, _scenario(event))
+    try:
+        d = run.demo
+        assert run.until(lambda: d.core.modes.mode == Mode.ADJUSTING, 30.0) is not None
+        assert d.core.modes.target_deg == pytest.approx((-3.0, 2.0))
+        assert run.until(lambda: d.core.modes.mode == Mode.HOLDING, 60.0) is not None
+        run.until(lambda: d.sim.hmi_ack is not None and d.sim.hmi_ack[1].name == "COMPLETED", 1.0)
+        assert d.sim.hmi_ack is not None and d.sim.hmi_ack[1].name == "COMPLETED"
+        roll = np.degrees(d.sim.truth().workpiece_roll_rad)
+        assert roll == pytest.approx(-3.0, abs=ATTITUDE_TOL_DEG)
+    finally:
+        run.close()

@@ -72,7 +72,15 @@ def run_service(
 
     def on_stats(stats: dict[str, Any]) -> None:
         core.loop_stats = stats
-        log.info("loop_stats", **stats)
+        snap = core.snapshot()
+        log.info(
+            "loop_stats",
+            **stats,
+            mode=snap.get("mode"),
+            link=snap.get("link"),
+            sync_error_mm=snap.get("sync_error_mm"),
+            twist_mm=snap.get("twist_mm"),
+        )
 
     loop = FixedRateLoop(
         step, cfg.control.period_s, realtime=cfg.control.realtime, on_stats=on_stats

@@ -44,7 +44,7 @@ from ipc_app.model.kinematics import fit_layer
 from ipc_app.service.modes import Mode, ModeMachine, Transition
 from ipc_app.service.record import RunRecorder
 from ipc_app.service.worker import PlanResult
-from plc_bridge.link import Fault, IpcLink, LinkState, TargetRequest
+from plc_bridge.link import Fault, IpcLink, LinkState, TargetAck, TargetRequest
 from plc_bridge.link import Mode as PlcMode
 
 log = structlog.get_logger("wara.service")
@@ -118,6 +118,7 @@ class ServiceCore:
             active_causes=lambda: list(self._present), on_transition=self._on_transition
         )
         self._request_id = 0
+        self._hmi_seq = 0  # sequence number of the HMI request being served (0: none)
         self._submitted = False
         self._boot_since: float | None = None
         self._now = 0.0
@@ -217,15 +218,21 @@ class ServiceCore:
         hmi = link.new_hmi_request(now)
         if hmi is not None:
             if hmi.request == TargetRequest.NEW_TARGET:
-                self.request_adjust(units.to_deg(hmi.roll_rad), units.to_deg(hmi.pitch_rad))
+                out = self.request_adjust(units.to_deg(hmi.roll_rad), units.to_deg(hmi.pitch_rad))
+                self._hmi_seq = hmi.seq
+                if not out.get("ok"):
+                    self._hmi_ack(TargetAck.REJECTED)
             elif hmi.request == TargetRequest.CANCEL:
                 self.modes.stop("HMI cancel")
+                self._hmi_ack(TargetAck.NONE, hmi.seq)
 
         self._planning(x, pos.all_valid(self.active), now)
 
         mode = self.modes.mode
         if mode == Mode.ADJUSTING and self.attitude.motion_done(now):
             self.modes.motion_done()
+            if self._hmi_seq:
+                self._hmi_ack(TargetAck.COMPLETED)
             self.attitude.hold(self.attitude.final_references())
             self.motion.duration_s = now - self.motion.started_s
         u = np.zeros(len(self.cfg.cylinders))
@@ -273,6 +280,10 @@ class ServiceCore:
                     f"{units.to_mpa(self.max_pressure_pa):.2f} MPa"
                 )
         return out
+
+    def _hmi_ack(self, status: TargetAck, seq: int | None = None) -> None:
+        """Answer the HMI request in the control word (the PLC shows it to the operator)."""
+        self.link.set_control(ack_seq=self._hmi_seq if seq is None else seq, ack_status=status)
 
     def _motion_checks(self, x: np.ndarray) -> None:
         for name, m in self.attitude.metrics.items():
@@ -322,6 +333,8 @@ class ServiceCore:
         self._submitted = False
         if self.modes.mode != Mode.PLANNING:
             return  # stopped or faulted meanwhile: the plan is dropped
+        if self._hmi_seq:
+            self._hmi_ack(TargetAck.ACCEPTED if res.ok and res.feasible else TargetAck.REJECTED)
         if not res.ok:
             self.modes.fault(f"planner: {res.error}")
             verdict: dict[str, Any] = {"ok": False, "code": "planner", "error": res.error}
