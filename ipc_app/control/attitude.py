@@ -69,6 +69,8 @@ class AttitudeController:
         self.metrics: dict[str, LayerMetrics] = {
             k: LayerMetrics(0.0, 0.0, 0.0) for k in ("lower", "upper")
         }
+        #: The references of the last :meth:`update` (all 19 cylinders), or None.
+        self.last_references: FloatArray | None = None
 
     # ------------------------------------------------------------------ engage
 
@@ -95,7 +97,7 @@ class AttitudeController:
         """Rod-position references (m from the retracted end) of all 19 cylinders."""
         ref = self.hold_ref.copy()
         if self.trajectory is not None:
-            d_lower, d_upper, _, _ = self.trajectory.reference(t_now - self.t_start)
+            d_lower, d_upper = self.trajectory.positions(t_now - self.t_start)
             lo, up = self.layers["lower"], self.layers["upper"]
             ref[lo] = self.half_stroke[lo] + d_lower
             ref[up] = self.half_stroke[up] + d_upper
@@ -112,6 +114,7 @@ class AttitudeController:
     def update(self, t_now: float, x_rod_m: FloatArray) -> FloatArray:
         """Valve commands (19 values in [-1, 1]) for this cycle."""
         ref = self.references(t_now)
+        self.last_references = ref
         u = np.zeros(self.n)
         for name, idx in self.layers.items():
             group = self.groups[name]
