@@ -20,7 +20,6 @@ from ipc_app.control.ladrc import LADRC
 from ipc_app.control.pid import PID
 from ipc_app.control.plant_gain import cylinder_b0
 from ipc_app.control.sync import Controller, SyncGroup
-from ipc_app.model.kinematics import twist
 from ipc_app.planner.trajectory import Trajectory
 
 FloatArray = NDArray[np.float64]
@@ -63,6 +62,9 @@ class AttitudeController:
                         PID.from_config(ctl.pid, period_s, rate_limit=ctl.ladrc.rate_limit_per_s)
                     )
             self.groups[name] = SyncGroup(members, ctl.sync.scheme, ctl.sync.coupling_lambda)
+        if any(len(idx) != 4 for idx in self.layers.values()):
+            raise ValueError("each layer needs exactly 4 attitude cylinders")
+        self._half_lists = {k: self.half_stroke[idx].tolist() for k, idx in self.layers.items()}
         self.trajectory: Trajectory | None = None
         self.t_start = 0.0
         self.hold_ref = np.zeros(n)
@@ -116,14 +118,18 @@ class AttitudeController:
         ref = self.references(t_now)
         self.last_references = ref
         u = np.zeros(self.n)
+        # Four values per layer: plain floats (numpy's per-call overhead dominates here);
+        # the same IEEE operations in the same order as kinematics.twist, so bit-identical.
         for name, idx in self.layers.items():
             group = self.groups[name]
-            y = x_rod_m[idx]
-            u[idx] = group.update(ref[idx].tolist(), y)
-            ext = y - self.half_stroke[idx]
+            y = x_rod_m[idx].tolist()
+            r = ref[idx].tolist()
+            u[idx] = group.update(r, y)
+            h = self._half_lists[name]
+            e0, e1, e2, e3 = (y[0] - h[0], y[1] - h[1], y[2] - h[2], y[3] - h[3])
             self.metrics[name] = LayerMetrics(
-                sync_error_m=float(np.max(np.abs(group.last_sync_error))),
-                twist_m=float(abs(twist(ext))),
-                tracking_error_m=float(np.max(np.abs(ref[idx] - y))),
+                sync_error_m=max(abs(v) for v in group.last_sync_error),
+                twist_m=abs((e0 - e1 + e2 - e3) / 4.0),
+                tracking_error_m=max(abs(ri - yi) for ri, yi in zip(r, y, strict=True)),
             )
         return u

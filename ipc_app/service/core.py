@@ -128,6 +128,8 @@ class ServiceCore:
         self.max_tracking_m = units.mm(s.max_tracking_error_mm)
         self.max_pressure_pa = units.mpa(s.max_pressure_mpa)
         self.end_margin_m = units.mm(s.stroke_end_margin_mm)
+        self._active_arr = np.array(self.active, dtype=np.intp)
+        self._stroke_hi = self.stroke[self._active_arr] - self.end_margin_m
         self._present: list[str] = []  # interlock conditions present this cycle
         self.modes = ModeMachine(
             active_causes=lambda: list(self._present), on_transition=self._on_transition
@@ -306,9 +308,9 @@ class ServiceCore:
             out.append(f"plc fault: {name}")
         if p_valid.any():
             pv = np.where(p_valid, p, 0.0)
-            i = int(np.argmax(pv.max(axis=1)))
-            peak = float(pv[i].max())
-            if peak > self.max_pressure_pa:
+            if float(pv.max()) > self.max_pressure_pa:  # rare: then find whose it is
+                i = int(np.argmax(pv.max(axis=1)))
+                peak = float(pv[i].max())
                 cid = self._by_index[i].id
                 out.append(
                     f"pressure: {cid} {units.to_mpa(peak):.2f} MPa above the limit "
@@ -334,10 +336,11 @@ class ServiceCore:
                     f"limit {units.to_mm(self.max_sync_m):.2f} mm"
                 )
         idx = self.active
-        near = (x[idx] < self.end_margin_m) | (x[idx] > self.stroke[idx] - self.end_margin_m)
+        xa = x[self._active_arr]
+        near = (xa < self.end_margin_m) | (xa > self._stroke_hi)
         limits = self.link.limit_switches(self._now)
         if limits is not None:
-            near |= limits.retracted[idx] | limits.extended[idx]
+            near |= limits.retracted[self._active_arr] | limits.extended[self._active_arr]
         if near.any():
             cid = self._by_index[idx[int(np.argmax(near))]].id
             self.modes.fault(f"stroke end: {cid} at {units.to_mm(float(x[idx][near][0])):.1f} mm")
