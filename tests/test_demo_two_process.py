@@ -96,4 +96,3 @@ def test_two_process_options_are_checked() -> None:
     assert main(["demo", "--settle-s", "3"]) == 2  # only with --two-process
     assert main(["demo", "--two-process", "--settle-s", "0.5"]) == 2
     assert main(["demo", "--two-process", "--examples", "4"]) == 2
-    assert main(["demo", "--two-process", "--sim-nice", "-5"]) == 2

@@ -77,10 +77,6 @@ UNSHARE = ("unshare", "--user", "--map-root-user", "--net")
 COMPUTE_P99_GOAL_FRACTION = 0.20
 #: Real-time run the loop goal is judged on (seconds of loop cycles after start-up).
 MIN_RUN_S = 60.0
-#: Niceness of the simulator process: the service's loop goes first when both want the
-#: CPU (on the machine the PLC is other hardware and the loop may run SCHED_FIFO, which
-#: an unprivileged namespace cannot have). ``--sim-nice 0`` runs them as equals.
-SIM_NICE = 10
 #: Default time each target is held before its figures are read.
 DEFAULT_SETTLE_S = ServiceCore.HOLD_SETTLE_S + HOLD_MEASURE_S
 
@@ -152,7 +148,6 @@ def run_two_process(
     settle_s: float,
     examples: int,
     min_run_s: float,
-    sim_nice: int = SIM_NICE,
 ) -> int:
     """``wara demo --two-process``: make the namespace and re-run inside it; exit code.
 
@@ -181,8 +176,6 @@ def run_two_process(
             str(examples),
             "--min-run-s",
             repr(min_run_s),
-            "--sim-nice",
-            str(sim_nice),
         ]
         if json_out:
             inner.append("--json")
@@ -203,7 +196,7 @@ def _quote(arg: str) -> str:
 class _Child:
     """One child process with its stderr in a log file."""
 
-    def __init__(self, name: str, argv: Sequence[str], log_path: Path, nice: int = 0) -> None:
+    def __init__(self, name: str, argv: Sequence[str], log_path: Path) -> None:
         self.name = name
         self.log_path = log_path
         self._log: IO[bytes] = open(log_path, "wb")  # noqa: SIM115 (closed in stop())
@@ -214,7 +207,6 @@ class _Child:
             stderr=subprocess.STDOUT,
             env=_env(),
             cwd=REPO,
-            preexec_fn=(lambda: os.nice(nice)) if nice else None,
         )
 
     def check_alive(self) -> None:
@@ -421,7 +413,6 @@ def run_inside_netns(
     settle_s: float = DEFAULT_SETTLE_S,
     examples: Sequence[tuple[float, float]] = EXAMPLES,
     min_run_s: float = MIN_RUN_S,
-    sim_nice: int = SIM_NICE,
     progress: Progress | None = None,
 ) -> dict[str, Any]:
     """Simulator + service as two processes; the JSON-ready summary (``passed``)."""
@@ -439,7 +430,6 @@ def run_inside_netns(
         "simulator",
         [*wara, "hil", "--realtime", "--config", config_path, "--status-interval", "5"],
         workdir / "hil.log",
-        nice=sim_nice,
     )
     svc_child: _Child | None = None
     codes: dict[str, int] = {}
@@ -523,7 +513,6 @@ def run_inside_netns(
     return {
         "mode": "two-process",
         "bus": f"udp_multicast {cfg.can.channel}:{cfg.can.udp_port} (private netns)",
-        "simulator_nice": sim_nice,
         "examples": [asdict(r) for r in results],
         "loop": loop,
         "loop_goal": {
@@ -561,7 +550,7 @@ def render_table(summary: dict[str, Any]) -> str:
         "",
         f"bus: {summary['bus']}; bus load {summary['bus_load_percent']:.1f} %; simulator "
         + ("n/a" if rtf is None else f"{rtf:.1f}x")
-        + f" real time (compute), simulator at nice {summary['simulator_nice']}",
+        + " real time (compute)",
         f"loop: {lp['period_ms']:.1f} ms period, {lp['measured_s']:.1f} s measured after "
         f"start-up ({lp['measured_cycles']} cycles, {lp['reports']} reports); worst p99 of "
         f"the reports: compute {ms(lp['compute_p99_ms'])} "

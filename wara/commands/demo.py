@@ -42,14 +42,6 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="--two-process: seconds each target is held before its figures are read "
         "(default 4; the standstill sync error is taken after the first 1 s)",
     )
-    p.add_argument(
-        "--sim-nice",
-        type=int,
-        default=None,
-        metavar="N",
-        help="--two-process: niceness of the simulator process (default 10: the service's "
-        "loop goes first; 0 runs both as equals)",
-    )
     # Hidden: for tests and the re-execution inside the namespace.
     p.add_argument("--examples", type=int, default=None, help=argparse.SUPPRESS)
     p.add_argument("--min-run-s", type=float, default=None, help=argparse.SUPPRESS)
@@ -60,7 +52,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 def _run(args: argparse.Namespace) -> int:
     if args.two_process:
         return _run_two_process(args)
-    for opt in ("settle_s", "examples", "min_run_s", "inside_netns", "sim_nice"):
+    for opt in ("settle_s", "examples", "min_run_s", "inside_netns"):
         if getattr(args, opt) is not None:
             raise UsageError(f"--{opt.replace('_', '-')} goes with --two-process")
     from wara.demo import render_table, run_demo, stderr_progress
@@ -94,9 +86,6 @@ def _run_two_process(args: argparse.Namespace) -> int:
     if not 1 <= n <= len(EXAMPLES):
         raise UsageError(f"--examples must be 1..{len(EXAMPLES)}")
     min_run = d2.MIN_RUN_S if args.min_run_s is None else args.min_run_s
-    nice = d2.SIM_NICE if args.sim_nice is None else args.sim_nice
-    if not 0 <= nice <= 19:
-        raise UsageError("--sim-nice must be 0..19 (only lowering the simulator's priority)")
     if args.inside_netns is None:
         try:
             return d2.run_two_process(
@@ -105,7 +94,6 @@ def _run_two_process(args: argparse.Namespace) -> int:
                 settle_s=settle,
                 examples=n,
                 min_run_s=min_run,
-                sim_nice=nice,
             )
         except d2.NetnsUnavailable as exc:
             print(
@@ -120,7 +108,6 @@ def _run_two_process(args: argparse.Namespace) -> int:
             settle_s=settle,
             examples=EXAMPLES[:n],
             min_run_s=min_run,
-            sim_nice=nice,
             progress=stderr_progress,
         )
     except (d2.TwoProcessError, CtlError) as exc:
