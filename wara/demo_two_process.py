@@ -148,6 +148,7 @@ def run_two_process(
     settle_s: float,
     examples: int,
     min_run_s: float,
+    keep_dir: Path | None = None,
 ) -> int:
     """``wara demo --two-process``: make the namespace and re-run inside it; exit code.
 
@@ -157,8 +158,12 @@ def run_two_process(
     problem = netns_problem()
     if problem is not None:
         raise NetnsUnavailable(problem)
-    with tempfile.TemporaryDirectory(prefix="wara-demo2-") as tmp:
-        work = Path(tmp)
+    with contextlib.ExitStack() as stack:
+        if keep_dir is None:
+            work = Path(stack.enter_context(tempfile.TemporaryDirectory(prefix="wara-demo2-")))
+        else:  # keep the YAML, both logs and the run record (for a look afterwards)
+            work = keep_dir.resolve()
+            work.mkdir(parents=True, exist_ok=True)
         multicast_config(config_path, work / "project.yaml")
         inner = [
             sys.executable,
@@ -359,6 +364,17 @@ def _judge(st: dict[str, Any], res: ExampleResult) -> ExampleResult:
         res.note = "no standstill samples (settle time too short)"
     elif achieved is None:
         res.note = "no valid rod positions"
+    else:
+        over = [
+            f"{name} {value:.4g} > {tol:g}"
+            for name, value, tol in (
+                ("attitude error deg", res.attitude_error_deg, ATTITUDE_TOL_DEG),
+                ("max twist mm", res.max_twist_mm, TWIST_TOL_MM),
+                ("sync error mm", res.sync_error_mm, SYNC_TOL_MM),
+            )
+            if not value <= tol
+        ]
+        res.note = "; ".join(over)
     res.passed = (
         mode == "HOLDING"
         and bool(m.get("hold_samples"))

@@ -46,13 +46,14 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--examples", type=int, default=None, help=argparse.SUPPRESS)
     p.add_argument("--min-run-s", type=float, default=None, help=argparse.SUPPRESS)
     p.add_argument("--inside-netns", default=None, metavar="DIR", help=argparse.SUPPRESS)
+    p.add_argument("--keep-dir", default=None, metavar="DIR", help=argparse.SUPPRESS)
     p.set_defaults(func=_run)
 
 
 def _run(args: argparse.Namespace) -> int:
     if args.two_process:
         return _run_two_process(args)
-    for opt in ("settle_s", "examples", "min_run_s", "inside_netns"):
+    for opt in ("settle_s", "examples", "min_run_s", "inside_netns", "keep_dir"):
         if getattr(args, opt) is not None:
             raise UsageError(f"--{opt.replace('_', '-')} goes with --two-process")
     from wara.demo import render_table, run_demo, stderr_progress
@@ -94,6 +95,7 @@ def _run_two_process(args: argparse.Namespace) -> int:
                 settle_s=settle,
                 examples=n,
                 min_run_s=min_run,
+                keep_dir=Path(args.keep_dir) if args.keep_dir else None,
             )
         except d2.NetnsUnavailable as exc:
             print(
