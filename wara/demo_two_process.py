@@ -23,10 +23,11 @@ Figures and decisions (documented in docs/service.md, "Two processes over udp_mu
   are the in-process demo's (:mod:`wara.demo`).
 - the loop: the service publishes :meth:`FixedRateLoop.stats` every 5 s (p50/p99/max
   over the last 4096 cycles = 20.5 s at 200 Hz; ``overruns`` counts from the loop's
-  start). Start-up is the time up to the first stats report after the service is IDLE:
-  that report is the *baseline*. The goal counts ``overruns - baseline overruns`` (the
-  total since the loop started is reported too, nothing is dropped), and the measured
-  window must span ``min_run_s`` of cycles after the baseline. ``compute_p99_ms`` and
+  start). Start-up is the time up to the stats report in force once the service is IDLE
+  (the first one if none was published yet): that report is the *baseline*. The goal
+  counts ``overruns - baseline overruns`` (the total since the loop started is reported
+  too, nothing is dropped), and the measured window must span ``min_run_s`` of cycles
+  after the baseline. ``compute_p99_ms`` and
   ``jitter_p99_ms`` are the *worst* of all reports after the baseline (the windows
   overlap, so every cycle of the run is in at least one), not just the last one.
 """
