@@ -44,3 +44,28 @@ def test_follows_example_1_synchronized(project: ProjectConfig) -> None:
     ref = ac.final_references()
     assert np.max(np.abs(bank.x_m - ref[idx])) < 0.5e-3  # at the plan within 0.5 mm
     assert worst_sync < 1e-3  # synchronized within 1 mm during the whole motion
+
+
+def test_layer_metrics_match_the_numpy_definitions(project: ProjectConfig) -> None:
+    """update() computes the metrics on plain floats; they equal the array formulas exactly."""
+    from ipc_app.model.kinematics import twist
+
+    p = plan(project, -3.0, 2.0)
+    assert p.trajectory is not None
+    ac = AttitudeController(project, project.control.period_s)
+    rng = np.random.default_rng(7)
+    x = ac.half_stroke + rng.normal(0.0, 1e-3, ac.n)
+    ac.engage(x, 0.0, p.trajectory)
+    for k in range(50):
+        t = 0.05 * k
+        x = ac.half_stroke + rng.normal(0.0, 2e-3, ac.n)
+        ac.update(t, x)
+        ref = ac.references(t)
+        assert ac.last_references is not None
+        assert np.array_equal(ac.last_references, ref)
+        for name, idx in ac.layers.items():
+            m = ac.metrics[name]
+            group = ac.groups[name]
+            assert m.sync_error_m == float(np.max(np.abs(group.last_sync_error)))
+            assert m.twist_m == float(abs(twist(x[idx] - ac.half_stroke[idx])))
+            assert m.tracking_error_m == float(np.max(np.abs(ref[idx] - x[idx])))

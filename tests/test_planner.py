@@ -109,6 +109,11 @@ def test_trajectory_constraints_hold_at_every_sample(project: ProjectConfig) -> 
     for k in (0, -1):
         _, _, vl, vu = tr.reference(float(tr.t[k]))
         assert np.max(np.abs(np.concatenate([vl, vu]))) < 1e-9
+    # positions() is reference() without the velocities, bit for bit (the loop uses it).
+    for t in (-1.0, 0.0, 0.37, float(tr.t[len(tr.t) // 3]), tr.duration_s, tr.duration_s + 1):
+        dl, du, _, _ = tr.reference(t)
+        pl, pu = tr.positions(t)
+        assert np.array_equal(dl, pl) and np.array_equal(du, pu)
     # Every sample satisfies the statics constraints.
     pr = PlanningProblem(project, p.target_roll_rad, p.target_pitch_rad, "sum_pressure")
     for k in range(0, tr.t.size, 10):

@@ -124,3 +124,33 @@ def test_silent_plc_faults_within_stated_cycles(
     _run(core, rig, clock, 0.5)
     assert core.modes.reset().accepted
     assert core.modes.mode == Mode.IDLE
+
+
+def test_pressure_and_stroke_end_checks_name_the_cylinder(
+    project: ProjectConfig, worker: PlannerWorker
+) -> None:
+    from plc_bridge.link import LinkState
+
+    core, _, _ = _setup(project, worker)
+    status = PlcStatus(pump_running=True, drives_enabled=True)
+    n = len(project.cylinders)
+    p = np.full((n, 2), 10e6)
+    valid = np.ones((n, 2), dtype=bool)
+    assert core._conditions(True, status, LinkState.OK, p, valid) == []
+    i = core.active[5]
+    p[i, 1] = core.max_pressure_pa + 1e6
+    p[core.active[0], 0] = np.nan  # an invalid reading is never the peak
+    valid[core.active[0], 0] = False
+    (msg,) = core._conditions(True, status, LinkState.OK, p, valid)
+    assert msg.startswith(f"pressure: {project.cylinders_by_can_index[i].id} ")
+
+    faults: list[str] = []
+    core.modes.fault = faults.append  # type: ignore[method-assign,assignment]
+    x = core.stroke / 2
+    core._motion_checks(x)
+    assert faults == []
+    j = core.active[6]
+    x = x.copy()
+    x[j] = core.stroke[j] - core.end_margin_m / 2
+    core._motion_checks(x)
+    assert faults == [f"stroke end: {project.cylinders_by_can_index[j].id} at {x[j] * 1e3:.1f} mm"]

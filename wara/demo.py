@@ -333,6 +333,22 @@ def plot_trace(trace: Trace, out_dir: Path) -> list[Path]:
 
 
 def render_table(summary: dict[str, Any]) -> str:
+    lines = example_rows(summary)
+    lp = summary["loop"]
+    jit = lp.get("jitter_p99_ms")
+    lines += [
+        "",
+        f"loop: {lp['period_ms']:.1f} ms period, jitter p99 "
+        f"{'n/a (lockstep)' if jit is None else f'{jit:.3f} ms'}, overruns "
+        f"{lp.get('overruns', 'n/a')}; bus load {summary['bus_load_percent']:.1f} %; "
+        f"simulator {summary['simulator_realtime_factor']:.1f}x real time",
+        "PASSED" if summary["passed"] else "FAILED",
+    ]
+    return "\n".join(lines)
+
+
+def example_rows(summary: dict[str, Any]) -> list[str]:
+    """The table's header and one row per example (shared with the two-process form)."""
     head = (
         f"{'target roll/pitch deg':>22} {'achieved roll/pitch deg':>25} {'error deg':>10} "
         f"{'max twist mm':>12} {'sync mm':>8} {'duration s':>10}  result"
@@ -346,17 +362,7 @@ def render_table(summary: dict[str, Any]) -> str:
             f"{r['sync_error_mm']:>8.4f} {r['duration_s']:>10.2f}  "
             f"{'ok' if r['passed'] else 'FAILED ' + r['note']}"
         )
-    lp = summary["loop"]
-    jit = lp.get("jitter_p99_ms")
-    lines += [
-        "",
-        f"loop: {lp['period_ms']:.1f} ms period, jitter p99 "
-        f"{'n/a (lockstep)' if jit is None else f'{jit:.3f} ms'}, overruns "
-        f"{lp.get('overruns', 'n/a')}; bus load {summary['bus_load_percent']:.1f} %; "
-        f"simulator {summary['simulator_realtime_factor']:.1f}x real time",
-        "PASSED" if summary["passed"] else "FAILED",
-    ]
-    return "\n".join(lines)
+    return lines
 
 
 def stderr_progress(text: str) -> None:

@@ -20,7 +20,6 @@ from ipc_app.control.ladrc import LADRC
 from ipc_app.control.pid import PID
 from ipc_app.control.plant_gain import cylinder_b0
 from ipc_app.control.sync import Controller, SyncGroup
-from ipc_app.model.kinematics import twist
 from ipc_app.planner.trajectory import Trajectory
 
 FloatArray = NDArray[np.float64]
@@ -63,12 +62,17 @@ class AttitudeController:
                         PID.from_config(ctl.pid, period_s, rate_limit=ctl.ladrc.rate_limit_per_s)
                     )
             self.groups[name] = SyncGroup(members, ctl.sync.scheme, ctl.sync.coupling_lambda)
+        if any(len(idx) != 4 for idx in self.layers.values()):
+            raise ValueError("each layer needs exactly 4 attitude cylinders")
+        self._half_lists = {k: self.half_stroke[idx].tolist() for k, idx in self.layers.items()}
         self.trajectory: Trajectory | None = None
         self.t_start = 0.0
         self.hold_ref = np.zeros(n)
         self.metrics: dict[str, LayerMetrics] = {
             k: LayerMetrics(0.0, 0.0, 0.0) for k in ("lower", "upper")
         }
+        #: The references of the last :meth:`update` (all 19 cylinders), or None.
+        self.last_references: FloatArray | None = None
 
     # ------------------------------------------------------------------ engage
 
@@ -95,7 +99,7 @@ class AttitudeController:
         """Rod-position references (m from the retracted end) of all 19 cylinders."""
         ref = self.hold_ref.copy()
         if self.trajectory is not None:
-            d_lower, d_upper, _, _ = self.trajectory.reference(t_now - self.t_start)
+            d_lower, d_upper = self.trajectory.positions(t_now - self.t_start)
             lo, up = self.layers["lower"], self.layers["upper"]
             ref[lo] = self.half_stroke[lo] + d_lower
             ref[up] = self.half_stroke[up] + d_upper
@@ -112,15 +116,20 @@ class AttitudeController:
     def update(self, t_now: float, x_rod_m: FloatArray) -> FloatArray:
         """Valve commands (19 values in [-1, 1]) for this cycle."""
         ref = self.references(t_now)
+        self.last_references = ref
         u = np.zeros(self.n)
+        # Four values per layer: plain floats (numpy's per-call overhead dominates here);
+        # the same IEEE operations in the same order as kinematics.twist, so bit-identical.
         for name, idx in self.layers.items():
             group = self.groups[name]
-            y = x_rod_m[idx]
-            u[idx] = group.update(ref[idx].tolist(), y)
-            ext = y - self.half_stroke[idx]
+            y = x_rod_m[idx].tolist()
+            r = ref[idx].tolist()
+            u[idx] = group.update(r, y)
+            h = self._half_lists[name]
+            e0, e1, e2, e3 = (y[0] - h[0], y[1] - h[1], y[2] - h[2], y[3] - h[3])
             self.metrics[name] = LayerMetrics(
-                sync_error_m=float(np.max(np.abs(group.last_sync_error))),
-                twist_m=float(abs(twist(ext))),
-                tracking_error_m=float(np.max(np.abs(ref[idx] - y))),
+                sync_error_m=max(abs(v) for v in group.last_sync_error),
+                twist_m=abs((e0 - e1 + e2 - e3) / 4.0),
+                tracking_error_m=max(abs(ri - yi) for ri, yi in zip(r, y, strict=True)),
             )
         return u

@@ -102,13 +102,7 @@ class Trajectory:
         control loop's reference generator. Before 0 and after the end the trajectory
         holds its end points.
         """
-        if self.duration_s <= 0:
-            tau = np.asarray(1.0)
-            rate = 0.0
-        else:
-            tau = np.asarray(t / self.duration_s)
-            rate = 1.0 / self.duration_s
-        s, ds, _ = time_scaling(self.profile, tau)
+        s, ds, rate = self._scaling(t)
         eps = 1e-7
         _, _, dl = self.lower.at(s)
         _, _, du = self.upper.at(s)
@@ -116,6 +110,22 @@ class Trajectory:
         _, _, du2 = self.upper.at(s + eps)
         sdot = float(ds) * rate
         return dl, du, (dl2 - dl) / eps * sdot, (du2 - du) / eps * sdot
+
+    def positions(self, t: float) -> tuple[Array, Array]:
+        """``(d_lower, d_upper)`` of :meth:`reference` without the velocities (half the work;
+        what the control loop needs every cycle)."""
+        s, _, _ = self._scaling(t)
+        return self.lower.at(s)[2], self.upper.at(s)[2]
+
+    def _scaling(self, t: float) -> tuple[Array, Array, float]:
+        if self.duration_s <= 0:
+            tau = np.asarray(1.0)
+            rate = 0.0
+        else:
+            tau = np.asarray(t / self.duration_s)
+            rate = 1.0 / self.duration_s
+        s, ds, _ = time_scaling(self.profile, tau)
+        return s, ds, rate
 
 
 def layer_path(a: float, b: float, start: Array, roll1: float, pitch1: float) -> LayerPath:

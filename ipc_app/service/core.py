@@ -30,7 +30,7 @@ E-stop from the PLC takes the machine to ESTOP (valves closed) until released an
 from __future__ import annotations
 
 import threading
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any, Protocol
 
 import numpy as np
@@ -82,6 +82,19 @@ class MotionStats:
     plan: dict[str, Any] | None = None
 
 
+@dataclass(frozen=True)
+class _Published:
+    """One cycle's figures for :meth:`ServiceCore.snapshot` (built in the caller's thread)."""
+
+    modes: dict[str, Any]
+    now: float
+    x: np.ndarray
+    link: LinkState
+    metrics: dict[str, Any]
+    motion: MotionStats
+    loop: dict[str, Any]
+
+
 class ServiceCore:
     """One IPC service: modes, interlocks, planner hand-off and the attitude loops."""
 
@@ -106,13 +119,17 @@ class ServiceCore:
         self.attitude = AttitudeController(cfg, self.period_s)
         self.active = self.attitude.layers["lower"] + self.attitude.layers["upper"]
         self.bus_load = link.set_active_cylinders(self.active)
-        self.stroke = np.array([c.stroke_m for c in cfg.cylinders_by_can_index])
+        self._by_index = cfg.cylinders_by_can_index  # a property that sorts: once here
+        self._active_ids = [(i, self._by_index[i].id) for i in self.active]
+        self.stroke = np.array([c.stroke_m for c in self._by_index])
         s = cfg.safety
         self.max_twist_m = units.mm(s.max_twist_mm)
         self.max_sync_m = units.mm(s.max_sync_error_mm)
         self.max_tracking_m = units.mm(s.max_tracking_error_mm)
         self.max_pressure_pa = units.mpa(s.max_pressure_mpa)
         self.end_margin_m = units.mm(s.stroke_end_margin_mm)
+        self._active_arr = np.array(self.active, dtype=np.intp)
+        self._stroke_hi = self.stroke[self._active_arr] - self.end_margin_m
         self._present: list[str] = []  # interlock conditions present this cycle
         self.modes = ModeMachine(
             active_causes=lambda: list(self._present), on_transition=self._on_transition
@@ -126,7 +143,9 @@ class ServiceCore:
         self.last_motion: MotionStats | None = None
         self._outcome_cv = threading.Condition()
         self._outcome: dict[str, Any] | None = None
-        self._snapshot: dict[str, Any] = {"mode": str(Mode.BOOT)}
+        # What the last cycle published; the status dict is built from it on request,
+        # in the caller's thread (see snapshot()), not every cycle in the loop.
+        self._published: _Published | None = None
         self.loop_stats: dict[str, Any] = {}
         self.cycles = 0
 
@@ -174,8 +193,30 @@ class ServiceCore:
         return result
 
     def snapshot(self) -> dict[str, Any]:
-        """The last cycle's status (safe to call from any thread)."""
-        return dict(self._snapshot)
+        """The last cycle's status (safe to call from any thread).
+
+        Built here from what :meth:`step` published (one reference, replaced whole each
+        cycle), so the loop does not pay for the status dict and the achieved attitude.
+        """
+        pub = self._published
+        if pub is None:
+            return {"mode": str(Mode.BOOT)}
+        snap = dict(pub.modes)
+        x = pub.x
+        snap.update(
+            time_s=pub.now,
+            link=str(pub.link.name),
+            positions_mm={
+                cid: (units.to_mm(float(x[i])) if np.isfinite(x[i]) else None)
+                for i, cid in self._active_ids
+            },
+            sync_error_mm={k: units.to_mm(m.sync_error_m) for k, m in pub.metrics.items()},
+            twist_mm={k: units.to_mm(m.twist_m) for k, m in pub.metrics.items()},
+            motion=self._motion_dict(pub.motion, x),
+            link_health={"state": pub.link.name},
+            loop=pub.loop,
+        )
+        return snap
 
     # ------------------------------------------------------------------ the step
 
@@ -189,13 +230,14 @@ class ServiceCore:
         status = link.status(now)
         lstate = link.state(now)
         x = pos.value
+        valid = pos.all_valid(self.active)
         mode = self.modes.mode
 
         # E-stop first: it needs nothing else to be valid.
         if status is not None:
             self.modes.estop(status.estop)
 
-        present = self._conditions(pos.all_valid(self.active), status, lstate, prs.value, prs.valid)
+        present = self._conditions(valid, status, lstate, prs.value, prs.valid)
         self._present = present
         if mode == Mode.BOOT:
             if self._boot_since is None:
@@ -212,7 +254,7 @@ class ServiceCore:
                     self.modes.fault(cause)
 
         moving = self.modes.valves_enabled
-        if moving and pos.all_valid(self.active):
+        if moving and valid:
             self._motion_checks(x)
 
         hmi = link.new_hmi_request(now)
@@ -226,7 +268,7 @@ class ServiceCore:
                 self.modes.stop("HMI cancel")
                 self._hmi_ack(TargetAck.NONE, hmi.seq)
 
-        self._planning(x, pos.all_valid(self.active), now)
+        self._planning(x, valid, now)
 
         mode = self.modes.mode
         if mode == Mode.ADJUSTING and self.attitude.motion_done(now):
@@ -236,15 +278,17 @@ class ServiceCore:
             self.attitude.hold(self.attitude.final_references())
             self.motion.duration_s = now - self.motion.started_s
         u = np.zeros(len(self.cfg.cylinders))
-        if self.modes.valves_enabled and pos.all_valid(self.active):
+        ref: np.ndarray | None = None
+        if self.modes.valves_enabled and valid:
             u = self.attitude.update(now, x)
+            ref = self.attitude.last_references  # this cycle's, for the run record
             self._motion_figures(now)
         link.set_control(
             mode=PlcMode.ATTITUDE_ADJUST if self.modes.valves_enabled else PlcMode.IDLE,
             enable=self.modes.valves_enabled,
         )
         link.send_valve_commands(u, now)
-        self._publish(now, x, u, lstate)
+        self._publish(now, x, u, lstate, ref)
 
     # ------------------------------------------------------------------ pieces
 
@@ -271,10 +315,10 @@ class ServiceCore:
             out.append(f"plc fault: {name}")
         if p_valid.any():
             pv = np.where(p_valid, p, 0.0)
-            i = int(np.argmax(pv.max(axis=1)))
-            peak = float(pv[i].max())
-            if peak > self.max_pressure_pa:
-                cid = self.cfg.cylinders_by_can_index[i].id
+            if float(pv.max()) > self.max_pressure_pa:  # rare: then find whose it is
+                i = int(np.argmax(pv.max(axis=1)))
+                peak = float(pv[i].max())
+                cid = self._by_index[i].id
                 out.append(
                     f"pressure: {cid} {units.to_mpa(peak):.2f} MPa above the limit "
                     f"{units.to_mpa(self.max_pressure_pa):.2f} MPa"
@@ -303,12 +347,13 @@ class ServiceCore:
                     f"limit {units.to_mm(self.max_sync_m):.2f} mm"
                 )
         idx = self.active
-        near = (x[idx] < self.end_margin_m) | (x[idx] > self.stroke[idx] - self.end_margin_m)
+        xa = x[self._active_arr]
+        near = (xa < self.end_margin_m) | (xa > self._stroke_hi)
         limits = self.link.limit_switches(self._now)
         if limits is not None:
-            near |= limits.retracted[idx] | limits.extended[idx]
+            near |= limits.retracted[self._active_arr] | limits.extended[self._active_arr]
         if near.any():
-            cid = self.cfg.cylinders_by_can_index[idx[int(np.argmax(near))]].id
+            cid = self._by_index[idx[int(np.argmax(near))]].id
             self.modes.fault(f"stroke end: {cid} at {units.to_mm(float(x[idx][near][0])):.1f} mm")
 
     def _planning(self, x: np.ndarray, valid: bool, now: float) -> None:
@@ -384,8 +429,7 @@ class ServiceCore:
         )
         return units.to_deg(chk.roll), units.to_deg(chk.pitch)
 
-    def _motion_dict(self, x: np.ndarray) -> dict[str, Any]:
-        m = self.motion
+    def _motion_dict(self, m: MotionStats, x: np.ndarray) -> dict[str, Any]:
         out: dict[str, Any] = {
             "target_deg": list(m.target_deg),
             "duration_s": m.duration_s,
@@ -399,29 +443,32 @@ class ServiceCore:
             out["achieved_deg"] = [roll, pitch]
         return out
 
-    def _publish(self, now: float, x: np.ndarray, u: np.ndarray, lstate: LinkState) -> None:
-        snap = self.modes.snapshot()
-        snap.update(
-            time_s=now,
-            link=str(lstate.name),
-            positions_mm={
-                self.cfg.cylinders_by_can_index[i].id: (
-                    units.to_mm(float(x[i])) if np.isfinite(x[i]) else None
-                )
-                for i in self.active
-            },
-            sync_error_mm={
-                k: units.to_mm(m.sync_error_m) for k, m in self.attitude.metrics.items()
-            },
-            twist_mm={k: units.to_mm(m.twist_m) for k, m in self.attitude.metrics.items()},
-            motion=self._motion_dict(x),
-            link_health={"state": lstate.name},
+    def _publish(
+        self,
+        now: float,
+        x: np.ndarray,
+        u: np.ndarray,
+        lstate: LinkState,
+        ref_now: np.ndarray | None = None,
+    ) -> None:
+        enabled = self.modes.valves_enabled
+        # Copies of what the loop goes on mutating; x is a new array every cycle.
+        self._published = _Published(
+            modes=self.modes.snapshot(),
+            now=now,
+            x=x,
+            link=lstate,
+            metrics=dict(self.attitude.metrics),
+            motion=replace(self.motion),
             loop=self.loop_stats,
         )
-        self._snapshot = snap
         if self.record is not None:
-            enabled = self.modes.valves_enabled
-            ref = self.attitude.references(now)[self.active] if enabled else x[self.active]
+            if not enabled:
+                ref = x[self.active]
+            elif ref_now is not None:
+                ref = ref_now[self.active]
+            else:
+                ref = self.attitude.references(now)[self.active]
             met = self.attitude.metrics
             self.record.sample(
                 now,

@@ -17,7 +17,9 @@ from __future__ import annotations
 
 import argparse
 import re
+import signal
 import sys
+import threading
 import time
 from typing import Any
 
@@ -73,6 +75,10 @@ def scenario_with_faults(base: HilScenario, faults: list[str]) -> HilScenario:
     return validate_data(HilScenario, data, "--fault")
 
 
+def _interrupt(_signum: int, _frame: object) -> None:
+    raise KeyboardInterrupt
+
+
 def _run(args: argparse.Namespace) -> int:
     cfg = load_project(args.config)
     scenario = scenario_with_faults(load_hil_scenario(args.scenario), args.fault)
@@ -97,6 +103,9 @@ def _run(args: argparse.Namespace) -> int:
         file=sys.stderr,
     )
     t0 = time.monotonic()
+    if threading.current_thread() is threading.main_thread():
+        # SIGTERM (systemd, `wara demo --two-process`) stops like Ctrl-C: bus closed, summary.
+        signal.signal(signal.SIGTERM, _interrupt)
     try:
         if args.lockstep:
             assert duration is not None
