@@ -33,7 +33,7 @@ from config.hil_scenario import HilScenario
 from config.schema import ProjectConfig
 from hil_sim.simulator import HilSimulator
 from ipc_app.service.core import ServiceCore
-from ipc_app.service.loop import FixedRateLoop
+from ipc_app.service.loop import FixedRateLoop, freeze_startup_heap
 from ipc_app.service.modes import Mode
 from ipc_app.service.record import RunRecorder
 from ipc_app.service.worker import PlannerWorker
@@ -132,13 +132,24 @@ class Demo:
     def start(self) -> None:
         if self.mode == "lockstep":
             return
+        # The first step compiles the plant (numba; tens of seconds on a fresh machine):
+        # do it before the service's wall-clock start-up window begins.
+        self.progress("preparing the simulator")
+        self.sim.step(self.period)
+        self.sim.truth()  # its helpers compile on first use too
+        # Collect and freeze the start-up heap now: done in the loop thread (the
+        # service's default) it holds the GIL for up to a few hundred ms, which here
+        # would also stop the simulated PLC and rightly trip the heartbeat interlock.
+        freeze_startup_heap()
 
         def step(cycle: int, now: float) -> None:
             with self._lock:
                 self.core.step(cycle, now)
                 self.trace.add(self.sim, self.core)
 
-        self.loop = FixedRateLoop(step, self.period, realtime=self.cfg.control.realtime)
+        self.loop = FixedRateLoop(
+            step, self.period, realtime=self.cfg.control.realtime, freeze_heap=False
+        )
 
         def run_sim() -> None:
             # The plant advances one control period at a time, paced by the wall clock,

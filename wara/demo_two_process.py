@@ -269,6 +269,21 @@ class _Service:
             time.sleep(poll_s)
 
 
+#: How long the simulator may take to start (first numba compile on a fresh machine).
+SIM_START_TIMEOUT_S = 240.0
+
+
+def _wait_running(sim: _Child, timeout_s: float) -> None:
+    """Until the simulator's first status line (``t=...``) is in its log."""
+    end = time.monotonic() + timeout_s
+    while time.monotonic() < end:
+        sim.check_alive()
+        if b"t=" in sim.log_path.read_bytes():
+            return
+        time.sleep(0.2)
+    raise TwoProcessError(f"the simulator did not start within {timeout_s:g} s")
+
+
 def _wait_socket(child: _Child, path: Path, timeout_s: float) -> None:
     end = time.monotonic() + timeout_s
     while time.monotonic() < end:
@@ -451,8 +466,11 @@ def run_inside_netns(
     svc_child: _Child | None = None
     codes: dict[str, int] = {}
     try:
-        time.sleep(0.5)
-        sim.check_alive()
+        # The simulator compiles its plant on first use (numba; tens of seconds on a fresh
+        # machine): start the service only once the simulated PLC is on the wire, or the
+        # service's start-up window would rightly end in a FAULT.
+        say("waiting for the simulator to run")
+        _wait_running(sim, SIM_START_TIMEOUT_S)
         svc_child = _Child(
             "service",
             [

@@ -114,6 +114,8 @@ def _run_two_process(args: argparse.Namespace) -> int:
         )
     except (d2.TwoProcessError, CtlError) as exc:
         print(f"wara demo: two-process run failed: {exc}", file=sys.stderr)
+        if args.json:  # the verdict stays machine-readable
+            print(json.dumps({"mode": "two-process", "passed": False, "error": str(exc)}))
         return EXIT_FAILED
     print(json.dumps(summary, indent=2) if args.json else d2.render_table(summary))
     return EXIT_OK if summary["passed"] else EXIT_FAILED
