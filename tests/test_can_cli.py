@@ -51,7 +51,8 @@ def test_busload_over_budget_exits_1(
 @pytest.fixture
 def plc_sending(tmp_path: Path, project: ProjectConfig) -> Iterator[Path]:
     """A project YAML on a private virtual channel, and a PLC side sending on it."""
-    channel = f"cli-{uuid.uuid4().hex}"
+    # Trailing digits on purpose: log formats derive a (16-bit) channel number from them.
+    channel = f"cli-{uuid.uuid4().hex}-7654321"
     cfg_path = _write_config(tmp_path, project, channel=channel)
     stop = threading.Event()
     cfg = project.model_copy(update={"can": project.can.model_copy(update={"channel": channel})})

@@ -177,6 +177,11 @@ def _record(args: argparse.Namespace) -> int:
     try:
         with can.Logger(str(path)) as logger:
             for msg in _frames(bus, args.count, args.duration):
+                # Log formats number their channels (BLF: 16-bit, 1-based) and python-can
+                # derives the number from the name's trailing digits, so a bus channel
+                # such as "vcan0" or a multicast group would be written wrongly or not
+                # at all: the log has one channel, 1.
+                msg.channel = 1
                 logger.on_message_received(msg)
                 n += 1
     finally:
