@@ -274,11 +274,13 @@ SIM_START_TIMEOUT_S = 240.0
 
 
 def _wait_running(sim: _Child, timeout_s: float) -> None:
-    """Until the simulator's first status line (``t=...``) is in its log."""
+    """Until the simulator's second status line (``t=...``) is in its log: the first comes
+    after its first PLC scan, later first-use compiles can still stall it; the second
+    comes after a status interval of steady running."""
     end = time.monotonic() + timeout_s
     while time.monotonic() < end:
         sim.check_alive()
-        if b"t=" in sim.log_path.read_bytes():
+        if sim.log_path.read_bytes().count(b"t=") >= 2:
             return
         time.sleep(0.2)
     raise TwoProcessError(f"the simulator did not start within {timeout_s:g} s")
@@ -460,7 +462,7 @@ def run_inside_netns(
     say(f"simulator and service on udp_multicast {cfg.can.channel}:{cfg.can.udp_port}")
     sim = _Child(
         "simulator",
-        [*wara, "hil", "--realtime", "--config", config_path, "--status-interval", "5"],
+        [*wara, "hil", "--realtime", "--config", config_path, "--status-interval", "2"],
         workdir / "hil.log",
     )
     svc_child: _Child | None = None
