@@ -341,3 +341,51 @@ def test_hmi_target_from_the_plc_is_planned_executed_and_acknowledged(
         assert roll == pytest.approx(-3.0, abs=ATTITUDE_TOL_DEG)
     finally:
         run.close()
+
+
+def test_reset_clears_the_plcs_own_fault(planner: PlannerWorker, tmp_path: Path) -> None:
+    """Commands lost on the way to the PLC while moving: the PLC latches IPC_TIMEOUT and
+    closes the valves; the service faults on it. ``reset`` pulses fault_reset to the PLC
+    and returns to IDLE once the PLC has cleared it."""
+    event = {
+        "kind": "drop",
+        "start_s": FAULT_AT_S,
+        "end_s": FAULT_AT_S + 0.5,
+        "rate": 1.0,
+        "direction": "ipc_to_plc",
+        "messages": ["IPC_*"],
+    }
+    run = Run(load_project(), planner, tmp_path, _scenario(event))
+    try:
+        run.start_motion()
+        d = run.demo
+        assert run.until(lambda: d.core.modes.mode == Mode.FAULT, 2.0) is not None
+        run.until(lambda: any("IPC_TIMEOUT" in r for r in d.core.modes.fault_reasons), 1.0)
+        assert any("IPC_TIMEOUT" in r for r in d.core.modes.fault_reasons)
+        run.until(lambda: d.sim.t_s > FAULT_AT_S + 1.0, 2.0)  # the wire is healthy again
+        # Without fault_reset the PLC keeps its fault, so a plain reset is refused.
+        assert not d.core.modes.reset().accepted
+        assert d.core.request_reset()["ok"]
+        assert run.until(lambda: d.core.modes.mode == Mode.IDLE, 2.0) is not None
+        assert d.sim.truth().status.fault == 0
+    finally:
+        run.close()
+
+
+def test_estop_released_then_reset_returns_to_idle(planner: PlannerWorker, tmp_path: Path) -> None:
+    event = {"kind": "estop", "start_s": FAULT_AT_S, "end_s": FAULT_AT_S + 0.5}
+    run = Run(load_project(), planner, tmp_path, _scenario(event))
+    try:
+        run.start_motion()
+        d = run.demo
+        assert run.until(lambda: d.core.modes.mode == Mode.ESTOP, 0.1) is not None
+        # Still pressed: the reset is refused.
+        refused = d.core.request_reset()
+        run.until(lambda: False, 0.1)
+        assert d.core.modes.mode == Mode.ESTOP, refused
+        run.until(lambda: d.sim.t_s > FAULT_AT_S + 1.0, 2.0)  # released
+        assert d.core.request_reset()["ok"]
+        assert run.until(lambda: d.core.modes.mode == Mode.IDLE, 2.0) is not None
+        assert not d.core.modes.valves_enabled
+    finally:
+        run.close()

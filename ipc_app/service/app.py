@@ -89,7 +89,7 @@ def run_service(
         adjust=lambda r, p: core.request_adjust(r, p, wait_s=ADJUST_WAIT_S),
         status=core.snapshot,
         stop=lambda: core.modes.stop("operator stop (wara ctl)").to_dict(),
-        reset=lambda: core.modes.reset().to_dict(),
+        reset=lambda: core.request_reset(wait_s=ADJUST_WAIT_S),
     )
     ctl = CtlServer(handlers, socket_path)
     if threading.current_thread() is threading.main_thread():

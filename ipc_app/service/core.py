@@ -136,6 +136,9 @@ class ServiceCore:
         )
         self._request_id = 0
         self._hmi_seq = 0  # sequence number of the HMI request being served (0: none)
+        self._reset_requested = False
+        self._reset_until: float | None = None
+        self._reset_outcome: dict[str, Any] | None = None
         self._submitted = False
         self._boot_since: float | None = None
         self._now = 0.0
@@ -173,6 +176,41 @@ class ServiceCore:
             )
 
     # ------------------------------------------------------------------ operator side
+
+    #: How long ``fault_reset`` is held in the control word for the PLC to clear a fault.
+    RESET_PULSE_S = 0.5
+
+    def request_reset(self, wait_s: float = 0.0) -> dict[str, Any]:
+        """Reset after a FAULT or E-STOP: the PLC is asked to clear its own latched fault
+        (``fault_reset`` in the control word for :attr:`RESET_PULSE_S`), then the modes
+        are reset once no cause is present. With ``wait_s`` > 0 wait for the outcome."""
+        if self.modes.mode not in (Mode.FAULT, Mode.ESTOP):
+            return self.modes.reset().to_dict()  # refused, with its message
+        with self._outcome_cv:
+            self._reset_outcome = None
+            self._reset_requested = True
+            if wait_s <= 0:
+                return {"ok": True, "mode": str(self.modes.mode), "note": "resetting"}
+            self._outcome_cv.wait_for(lambda: self._reset_outcome is not None, timeout=wait_s)
+            out = self._reset_outcome
+        return out if out is not None else self.modes.reset().to_dict()
+
+    def _reset_step(self, now: float) -> None:
+        """Drive a requested reset (loop thread)."""
+        if self._reset_requested and self._reset_until is None:
+            self._reset_requested = False
+            self._reset_until = now + self.RESET_PULSE_S
+            self.link.set_control(fault_reset=True)
+        if self._reset_until is None:
+            return
+        plc_fault = any(c.startswith("plc fault") for c in self._present)
+        if not plc_fault or now >= self._reset_until:
+            self.link.set_control(fault_reset=False)
+            self._reset_until = None
+            out = self.modes.reset().to_dict()
+            with self._outcome_cv:
+                self._reset_outcome = out
+                self._outcome_cv.notify_all()
 
     def request_adjust(
         self, roll_deg: float, pitch_deg: float, wait_s: float = 0.0
@@ -253,6 +291,7 @@ class ServiceCore:
                 if cause not in latched:
                     self.modes.fault(cause)
 
+        self._reset_step(now)
         moving = self.modes.valves_enabled
         if moving and valid:
             self._motion_checks(x)
