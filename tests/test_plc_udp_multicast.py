@@ -10,28 +10,20 @@ from __future__ import annotations
 
 import json
 import os
-import shutil
 import subprocess
 import sys
 from pathlib import Path
 
 import pytest
 
+from wara.demo_two_process import NETNS_SETUP, UNSHARE, netns_problem
+
 REPO = Path(__file__).resolve().parents[1]
-NETNS_SETUP = "ip link set lo up && ip link set lo multicast on && ip route add 239.0.0.0/8 dev lo"
 
 
 def _in_private_netns(command: str, timeout: float) -> subprocess.CompletedProcess[str]:
     return subprocess.run(
-        [
-            "unshare",
-            "--user",
-            "--map-root-user",
-            "--net",
-            "sh",
-            "-c",
-            f"{NETNS_SETUP} && {command}",
-        ],
+        [*UNSHARE, "sh", "-c", f"{NETNS_SETUP} && {command}"],
         capture_output=True,
         text=True,
         timeout=timeout,
@@ -41,24 +33,9 @@ def _in_private_netns(command: str, timeout: float) -> subprocess.CompletedProce
     )
 
 
-def _namespace_problem() -> str | None:
-    for tool in ("unshare", "ip"):
-        if shutil.which(tool) is None:
-            return f"{tool} not found"
-    try:
-        probe = _in_private_netns("true", timeout=10)
-    except (OSError, subprocess.TimeoutExpired) as exc:
-        return f"cannot run unshare: {exc}"
-    if probe.returncode != 0:
-        return (
-            f"cannot make a private network namespace: {probe.stderr.strip() or probe.returncode}"
-        )
-    return None
-
-
 @pytest.fixture(scope="module")
 def netns() -> None:
-    problem = _namespace_problem()
+    problem = netns_problem()
     if problem is not None:
         pytest.skip(f"udp_multicast cross-process test needs a private netns: {problem}")
 
