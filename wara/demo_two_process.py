@@ -559,6 +559,7 @@ def run_inside_netns(
             "passed": loop_ok,
         },
         "final_mode": final.get("mode"),
+        "final_fault_reasons": list(final.get("fault_reasons") or []),
         "exit_codes": codes,
         "bus_load_percent": bus_load(cfg, active).load_percent,
         "simulator_realtime_factor": _sim_realtime_factor(sim.log_path.read_text(errors="replace")),
