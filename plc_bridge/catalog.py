@@ -17,6 +17,7 @@ from typing import Any
 
 import cantools
 
+from config import units
 from plc_bridge.errors import CatalogError
 
 #: The DBC shipped with the package.
@@ -202,8 +203,8 @@ def _spec_of(msg: Any, path: Path) -> MessageSpec:
         dlc=msg.length,
         sender=msg.senders[0],
         data_id=int(data_id),
-        cycle_s=float(cycle_ms) / 1000.0,
-        fast_cycle_s=None if fast_ms is None else float(fast_ms) / 1000.0,
+        cycle_s=units.ms(float(cycle_ms)),
+        fast_cycle_s=None if fast_ms is None else units.ms(float(fast_ms)),
         loop_rate=_is_yes(_attr(msg, "WaraLoopRate")),
         signals=tuple(signals),
         comment=msg.comment or "",

@@ -244,12 +244,12 @@ class _Side:
         cycle = spec.cycle_in_force_s(is_active(spec, active), self._loop_period_s)
         if spec.name == self.HEARTBEAT:
             ms = getattr(self.cfg.safety, self.HEARTBEAT_TIMEOUT_KEY)
-            if ms / 1000.0 < 1.5 * cycle:
+            if units.ms(ms) < 1.5 * cycle:
                 raise ConfigError(
                     f"safety.{self.HEARTBEAT_TIMEOUT_KEY}: {ms} ms is shorter than 1.5 cycles "
                     f"of {spec.name} ({cycle * 1000:.0f} ms); use at least {1.5 * cycle * 1000:.0f}"
                 )
-            return ms / 1000.0
+            return units.ms(ms)
         return self.cfg.can.stale_cycles * cycle
 
     def _apply_active(self, active: frozenset[int], now: float) -> None:

@@ -9,7 +9,6 @@
 
 from __future__ import annotations
 
-import math
 import time
 from dataclasses import dataclass, field
 from typing import Any, Literal
@@ -69,8 +68,8 @@ class Plan:
     def to_dict(self) -> dict[str, Any]:
         def layer(lp: LayerPlan) -> dict[str, Any]:
             return {
-                "roll_deg": math.degrees(lp.roll_rad),
-                "pitch_deg": math.degrees(lp.pitch_rad),
+                "roll_deg": units.to_deg(lp.roll_rad),
+                "pitch_deg": units.to_deg(lp.pitch_rad),
                 "displacement_m": list(lp.displacement_m),
                 "force_kn": [f / 1e3 for f in lp.force_n],
                 "cylinders": list(lp.cylinders),
@@ -95,12 +94,12 @@ class Plan:
             "objective_value": self.objective_value,
             "objective_unit": OBJECTIVE_UNITS[self.objective],
             "target": {
-                "roll_deg": math.degrees(self.target_roll_rad),
-                "pitch_deg": math.degrees(self.target_pitch_rad),
+                "roll_deg": units.to_deg(self.target_roll_rad),
+                "pitch_deg": units.to_deg(self.target_pitch_rad),
             },
             "achieved": {
-                "roll_deg": math.degrees(self.achieved_roll_rad),
-                "pitch_deg": math.degrees(self.achieved_pitch_rad),
+                "roll_deg": units.to_deg(self.achieved_roll_rad),
+                "pitch_deg": units.to_deg(self.achieved_pitch_rad),
             },
             "upper": layer(self.upper),
             "lower": layer(self.lower),
@@ -111,7 +110,7 @@ class Plan:
             "sum_pressure_mpa": units.to_mpa(self.sum_pressure_pa),
             "peak_pressure_mpa": units.to_mpa(self.peak_pressure_pa),
             "attitude_error_rad": self.attitude_error_rad,
-            "yaw_residual_deg": math.degrees(self.yaw_residual_rad),
+            "yaw_residual_deg": units.to_deg(self.yaw_residual_rad),
             "trajectory_duration_s": self.trajectory_duration_s,
             "trajectory": traj,
             "solve_time_s": self.solve_time_s,

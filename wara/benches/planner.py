@@ -17,7 +17,7 @@ from typing import Any
 
 import numpy as np
 
-from config import load_project
+from config import load_project, units
 from ipc_app.planner.exact import solve_exact
 from ipc_app.planner.ldw_pso import solve_ldw_pso
 from ipc_app.planner.problem import OBJECTIVES, PlanningProblem
@@ -55,7 +55,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
                 file=sys.stderr,
                 flush=True,
             )
-            pr = PlanningProblem(cfg, np.radians(roll), np.radians(pitch), obj)
+            pr = PlanningProblem(cfg, units.deg(roll), units.deg(pitch), obj)
             t0 = time.perf_counter()
             ex = solve_exact(pr, cfg.planner.exact)
             t_exact.append(time.perf_counter() - t0)
