@@ -360,10 +360,12 @@ class Planner(Strict):
 
 class Ladrc(Strict):
     order: Literal[1, 2] = 1
-    wc_rad_s: Positive = 20.0
-    wo_rad_s: Positive = 80.0
+    wc_rad_s: Positive = 6.0
+    wo_rad_s: Positive = 12.0
     discretization: Literal["euler", "zoh"] = "zoh"
     rate_limit_per_s: Positive = 20.0
+    #: feed the trajectory's rod speeds forward (docs/control.md); off: model.md's plain law
+    reference_feedforward: bool = True
 
 
 class Pid(Strict):

@@ -113,6 +113,24 @@ def test_first_order_ladrc_follows_the_exponential() -> None:
     assert worst < 1e-5  # 0.1 % of the step
 
 
+@pytest.mark.parametrize("order", [1, 2])
+def test_reference_feedforward_removes_the_ramp_lag(order: int) -> None:
+    """A ramp ``r = v t``: the plain law lags by ``v / kp`` (first order) or
+    ``kd v / kp`` (second order); with ``r'`` fed forward the error goes to zero."""
+    dt, wc, b0, v = 1e-3, 6.0, 0.05, 0.01  # 10 mm/s
+    lags = {}
+    for ff in (False, True):
+        plant = ChainPlant(order, b0)
+        ctrl = LADRC(order, b0=b0, wc=wc, wo=4 * wc, dt=dt, u_min=-1e3, u_max=1e3)
+        for k in range(4000):  # 4 s: far past the transients
+            r = v * k * dt
+            plant.step(ctrl.update(r, plant.y, v if ff else 0.0), dt)
+        lags[ff] = v * 3999 * dt - plant.y
+    expected = v / wc if order == 1 else 2 * wc * v / wc**2
+    assert lags[False] == pytest.approx(expected, rel=0.05)
+    assert abs(lags[True]) < 0.01 * lags[False]
+
+
 def test_bumpless_start_and_rate_limit() -> None:
     dt = 1e-3
     ctrl = LADRC(1, b0=0.05, wc=12.0, wo=25.0, dt=dt, rate_limit=20.0)

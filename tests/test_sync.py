@@ -100,6 +100,23 @@ def test_group_without_coupling_is_independent_controllers() -> None:
         np.testing.assert_allclose(got, expected)
 
 
+def test_group_hands_the_reference_rates_to_its_controllers() -> None:
+    """The rates go to each member as feed-forward; the coupling term stays feedback."""
+    dt = 1e-3
+    group = SyncGroup([LADRC(1, 0.05, 6.0, 12.0, dt) for _ in range(2)], coupling_lambda=1.0)
+    alone = [LADRC(1, 0.05, 6.0, 12.0, dt) for _ in range(2)]
+    for k in range(50):
+        y = [0.001 * k, 0.0015 * k]
+        refs, rates = [0.002 * k, 0.002 * k], [2.0, 2.0]
+        got = group.update(refs, y, rates)
+        eps = sync_errors([r - yi for r, yi in zip(refs, y, strict=True)])
+        rows = zip(alone, refs, eps, y, rates, strict=True)
+        expected = [c.update(r + e, yi, v) for c, r, e, yi, v in rows]
+        np.testing.assert_allclose(got, expected)
+    with pytest.raises(ValueError, match="2 reference rates"):
+        group.update([0.0, 0.0], [0.0, 0.0], [1.0])
+
+
 def test_group_checks_its_inputs() -> None:
     dt = 1e-3
     with pytest.raises(ValueError, match="at least 2"):

@@ -61,6 +61,8 @@ class ExampleResult:
     attitude_error_deg: float = math.nan
     max_twist_mm: float = math.nan
     sync_error_mm: float = math.nan
+    #: largest sync error of either group during the motion (controller view)
+    max_sync_error_mm: float = math.nan
     duration_s: float = math.nan
     passed: bool = False
     note: str = ""
@@ -236,6 +238,7 @@ class Demo:
         )
         res.max_twist_mm = units.to_mm(m.max_twist_m)
         res.sync_error_mm = units.to_mm(m.hold_sync_error_m)
+        res.max_sync_error_mm = units.to_mm(m.max_sync_error_m)
         res.duration_s = m.duration_s
         if self.core.modes.mode != Mode.HOLDING:
             res.note = f"mode {self.core.modes.mode}: {self.core.modes.fault_reasons}"
@@ -362,7 +365,7 @@ def example_rows(summary: dict[str, Any]) -> list[str]:
     """The table's header and one row per example (shared with the two-process form)."""
     head = (
         f"{'target roll/pitch deg':>22} {'achieved roll/pitch deg':>25} {'error deg':>10} "
-        f"{'max twist mm':>12} {'sync mm':>8} {'duration s':>10}  result"
+        f"{'max twist mm':>12} {'sync at rest mm':>15} {'sync moving mm':>14} {'duration s':>10}  result"
     )
     lines = [head, "-" * len(head)]
     for r in summary["examples"]:
@@ -370,7 +373,8 @@ def example_rows(summary: dict[str, Any]) -> list[str]:
             f"{r['target_roll_deg']:>+10.3f} {r['target_pitch_deg']:>+10.3f}  "
             f"{r['achieved_roll_deg']:>+12.4f} {r['achieved_pitch_deg']:>+11.4f} "
             f"{r['attitude_error_deg']:>10.5f} {r['max_twist_mm']:>12.4f} "
-            f"{r['sync_error_mm']:>8.4f} {r['duration_s']:>10.2f}  "
+            f"{r['sync_error_mm']:>15.4f} {r.get('max_sync_error_mm', math.nan):>14.4f} "
+            f"{r['duration_s']:>10.2f}  "
             f"{'ok' if r['passed'] else 'FAILED ' + r['note']}"
         )
     return lines

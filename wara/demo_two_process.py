@@ -374,6 +374,7 @@ def _judge(st: dict[str, Any], res: ExampleResult) -> ExampleResult:
         )
     res.max_twist_mm = float(m.get("max_twist_mm", math.nan))
     res.sync_error_mm = float(m.get("hold_sync_error_mm", math.nan))
+    res.max_sync_error_mm = float(m.get("max_sync_error_mm", math.nan))
     res.duration_s = float(m.get("duration_s", math.nan))
     mode = st.get("mode")
     if mode != "HOLDING":

@@ -5,6 +5,9 @@ wire carries rod positions from the retracted end, so ``x_ref = stroke / 2 + d(t
 Each layer is one :class:`SyncGroup` (dual-error feedback, model.md section 10) of
 LADRC (or PID) controllers; every other cylinder's valve stays closed (command 0).
 
+With ``control.ladrc.reference_feedforward`` the trajectory's rod speeds go to the
+controllers as feed-forward (docs/control.md); the synchronization term stays feedback.
+
 Work per cycle is bounded: one trajectory sample and 8 controller updates.
 """
 
@@ -65,6 +68,8 @@ class AttitudeController:
         if any(len(idx) != 4 for idx in self.layers.values()):
             raise ValueError("each layer needs exactly 4 attitude cylinders")
         self._half_lists = {k: self.half_stroke[idx].tolist() for k, idx in self.layers.items()}
+        #: hand the trajectory's rod speeds to the controllers as feed-forward
+        self.feedforward = ctl.controller == "ladrc" and ctl.ladrc.reference_feedforward
         self.trajectory: Trajectory | None = None
         self.t_start = 0.0
         self.hold_ref = np.zeros(n)
@@ -105,6 +110,20 @@ class AttitudeController:
             ref[up] = self.half_stroke[up] + d_upper
         return ref
 
+    def references_and_rates(self, t_now: float) -> tuple[FloatArray, FloatArray | None]:
+        """:meth:`references` and the rod speeds of the trajectory (None when holding)."""
+        if self.trajectory is None:
+            return self.hold_ref.copy(), None
+        d_lower, d_upper, v_lower, v_upper = self.trajectory.reference(t_now - self.t_start)
+        lo, up = self.layers["lower"], self.layers["upper"]
+        ref = self.hold_ref.copy()
+        ref[lo] = self.half_stroke[lo] + d_lower
+        ref[up] = self.half_stroke[up] + d_upper
+        rates = np.zeros(self.n)
+        rates[lo] = v_lower
+        rates[up] = v_upper
+        return ref, rates
+
     def final_references(self) -> FloatArray:
         """End point of the present trajectory (or the hold references)."""
         if self.trajectory is None:
@@ -115,7 +134,10 @@ class AttitudeController:
 
     def update(self, t_now: float, x_rod_m: FloatArray) -> FloatArray:
         """Valve commands (19 values in [-1, 1]) for this cycle."""
-        ref = self.references(t_now)
+        if self.feedforward:
+            ref, rates = self.references_and_rates(t_now)
+        else:
+            ref, rates = self.references(t_now), None
         self.last_references = ref
         u = np.zeros(self.n)
         # Four values per layer: plain floats (numpy's per-call overhead dominates here);
@@ -124,7 +146,7 @@ class AttitudeController:
             group = self.groups[name]
             y = x_rod_m[idx].tolist()
             r = ref[idx].tolist()
-            u[idx] = group.update(r, y)
+            u[idx] = group.update(r, y, None if rates is None else rates[idx].tolist())
             h = self._half_lists[name]
             e0, e1, e2, e3 = (y[0] - h[0], y[1] - h[1], y[2] - h[2], y[3] - h[3])
             self.metrics[name] = LayerMetrics(

@@ -17,6 +17,16 @@ Discretization (model.md section 10):
   predicted; observer poles at ``exp(-wo T)``. The gains are placed with Ackermann's
   formula and equal Herbst's closed forms (tests/test_ladrc.py checks them).
 
+Reference feed-forward (a decision; model.md is silent): ``update`` takes the
+reference's rate ``r'`` where the reference generator knows it (the planner's
+trajectory does). With it, the control law is Gao's tracking form
+``u = (kp (r - z1) + r' - z2) / b0`` (n = 1) and
+``u = (kp (r - z1) + kd (r' - z2) - z3) / b0`` (n = 2, no ``r''`` term): the
+feedback only has to correct what the model misses, so a ramp is followed without
+the ``r' / kp`` lag of the plain law, and ``wc`` can be chosen for robustness (delay,
+the oil-column mode) rather than for tracking. ``r' = 0`` (the default) is the plain
+law of model.md.
+
 The command is rate limited, then saturated, and the observer is always fed the
 command actually applied, which is what keeps it (and the loop) free of windup.
 Start is bumpless: :meth:`LADRC.reset` sets ``z = [y, 0, ..., -b0 u_hold]`` so the
@@ -171,8 +181,11 @@ class LADRC:
         self._u = u
         self._started = True
 
-    def update(self, reference: float, measurement: float) -> float:
-        """One sample: read ``measurement``, return the command for this period."""
+    def update(self, reference: float, measurement: float, reference_rate: float = 0.0) -> float:
+        """One sample: read ``measurement``, return the command for this period.
+
+        ``reference_rate``: ``d reference / dt`` (feed-forward; 0: the plain law).
+        """
         if not self._started:
             self.reset(measurement)
         zp = self._zp
@@ -183,10 +196,10 @@ class LADRC:
         now, later = (innovation, 0.0) if self._current else (0.0, innovation)
         if self.order == 1:
             z = [zp[0] + g[0] * now, zp[1] + g[1] * now]
-            u0 = (self.kp * (reference - z[0]) - z[1]) / self.b0
+            u0 = (self.kp * (reference - z[0]) + reference_rate - z[1]) / self.b0
         else:
             z = [zp[0] + g[0] * now, zp[1] + g[1] * now, zp[2] + g[2] * now]
-            u0 = (self.kp * (reference - z[0]) - self.kd * z[1] - z[2]) / self.b0
+            u0 = (self.kp * (reference - z[0]) + self.kd * (reference_rate - z[1]) - z[2]) / self.b0
         last = self._u
         if u0 > last + self._du_max:
             u0 = last + self._du_max

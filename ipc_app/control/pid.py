@@ -94,7 +94,9 @@ class PID:
         self._u = u
         self._started = True
 
-    def update(self, reference: float, measurement: float) -> float:
+    def update(self, reference: float, measurement: float, reference_rate: float = 0.0) -> float:
+        """One sample. ``reference_rate`` is accepted for the common interface and not
+        used: the PID is the paper's feedback-only baseline."""
         if not self._started:
             self.reset(measurement)
         y = float(measurement)

@@ -31,7 +31,9 @@ SyncScheme = Literal["mean_deviation", "cross_coupled"]
 class Controller(Protocol):
     """What a group member offers (LADRC and PID do)."""
 
-    def update(self, reference: float, measurement: float) -> float: ...
+    def update(
+        self, reference: float, measurement: float, reference_rate: float = 0.0
+    ) -> float: ...
 
     def reset(self, measurement: float, command: float = 0.0) -> None: ...
 
@@ -93,9 +95,16 @@ class SyncGroup:
             ctrl.reset(float(y), u)
 
     def update(
-        self, references: Sequence[float], measurements: Sequence[float] | NDArray[np.float64]
+        self,
+        references: Sequence[float],
+        measurements: Sequence[float] | NDArray[np.float64],
+        reference_rates: Sequence[float] | None = None,
     ) -> NDArray[np.float64]:
-        """Commands for the group from each cylinder's reference and measurement."""
+        """Commands for the group from each cylinder's reference and measurement.
+
+        ``reference_rates``: each reference's rate, handed to the controllers as
+        feed-forward (None: none). The synchronization term is feedback only.
+        """
         if isinstance(measurements, np.ndarray):
             ys = measurements.tolist()
         else:
@@ -110,6 +119,15 @@ class SyncGroup:
         self.last_sync_error = eps
         lam = self.coupling_lambda
         ctrls = self.controllers
+        if reference_rates is None:
+            return np.array(
+                [ctrls[i].update(references[i] + lam * eps[i], ys[i]) for i in range(len(ys))]
+            )
+        if len(reference_rates) != len(ys):
+            raise ValueError(f"expected {len(ys)} reference rates, got {len(reference_rates)}")
         return np.array(
-            [ctrls[i].update(references[i] + lam * eps[i], ys[i]) for i in range(len(ys))]
+            [
+                ctrls[i].update(references[i] + lam * eps[i], ys[i], reference_rates[i])
+                for i in range(len(ys))
+            ]
         )

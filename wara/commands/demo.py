@@ -56,14 +56,21 @@ def _run(args: argparse.Namespace) -> int:
     for opt in ("settle_s", "examples", "min_run_s", "inside_netns", "keep_dir"):
         if getattr(args, opt) is not None:
             raise UsageError(f"--{opt.replace('_', '-')} goes with --two-process")
+    from ipc_app.service.logs import configure_logging
     from wara.demo import render_table, run_demo, stderr_progress
 
-    summary = run_demo(
-        args.config,
-        mode="lockstep" if args.lockstep else "realtime",
-        plot_dir=Path(args.plot) if args.plot else None,
-        progress=stderr_progress,
-    )
+    # The service's log goes to stderr as JSON lines (warnings and faults only; the
+    # progress lines tell the rest), never into the table or the JSON on stdout.
+    logs = configure_logging("WARNING")
+    try:
+        summary = run_demo(
+            args.config,
+            mode="lockstep" if args.lockstep else "realtime",
+            plot_dir=Path(args.plot) if args.plot else None,
+            progress=stderr_progress,
+        )
+    finally:
+        logs.stop()
     print(json.dumps(summary, indent=2) if args.json else render_table(summary))
     return EXIT_OK if summary["passed"] else EXIT_FAILED
 

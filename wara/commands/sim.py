@@ -1,4 +1,5 @@
-"""``wara sim dual-cylinder``: the paper's dual-cylinder synchronization study.
+"""``wara sim dual-cylinder``: the paper's dual-cylinder synchronization study;
+``wara sim delay-margin``: how much extra sensor delay the attitude hold tolerates.
 
 Examples::
 
@@ -7,8 +8,12 @@ Examples::
     wara sim dual-cylinder --controller ladrc --duration-s 30
     wara sim dual-cylinder --plot study.png        # positions, sync error, commands, pressures
 
-Exit code 0 when the scenario's goals hold (LADRC sync error within the paper's
-0.07 mm after the transient; PID worse by the scenario's ratio), 1 when not.
+    wara sim delay-margin                          # shipped project, 0-50 ms of delay
+    wara sim delay-margin --config my.yaml --delays-ms 0,10,20 --json
+
+Exit code 0 when the goals hold (dual-cylinder: LADRC sync error within the paper's
+0.07 mm after the transient, PID worse by the scenario's ratio; delay-margin: the hold
+stable up to ``--required-ms``), 1 when not.
 """
 
 from __future__ import annotations
@@ -21,6 +26,7 @@ from typing import Any
 
 from config.scenario import load_scenario
 from wara.cli import EXIT_FAILED, EXIT_OK, UsageError
+from wara.studies.delay_margin import DEFAULT_DELAYS_MS, REQUIRED_MS
 from wara.studies.dual_cylinder import CONTROLLERS, ControllerKind, StudyRun, evaluate, run_study
 
 
@@ -47,6 +53,77 @@ def register(sub: argparse._SubParsersAction) -> None:
     d.add_argument("--json", action="store_true", help="print the figures as JSON")
     d.add_argument("--quiet", action="store_true", help="no progress indicator on stderr")
     d.set_defaults(func=_dual_cylinder)
+    m = studies.add_parser(
+        "delay-margin",
+        help="extra sensor delay the attitude hold tolerates (lockstep HIL, one run per delay)",
+        description="Lockstep simulator and service: one target, then a hold, once per "
+        "delay, with every rod-position frame held back by that delay on the wire. "
+        "Reports whether the hold stays stable (docs/control.md, 'Delay margin').",
+    )
+    m.add_argument("--config", default=None, help="project YAML (default: shipped project)")
+    m.add_argument(
+        "--delays-ms",
+        default=",".join(f"{d:g}" for d in DEFAULT_DELAYS_MS),
+        help="comma-separated extra delays, ms (default: %(default)s)",
+    )
+    m.add_argument("--target", default="2,1", help="roll,pitch in deg (default: Example 1)")
+    m.add_argument("--hold-s", type=float, default=20.0, help="hold after the motion, s")
+    m.add_argument(
+        "--required-ms",
+        type=float,
+        default=REQUIRED_MS,
+        help="exit 0 only if the hold is stable up to this delay (default: %(default)g)",
+    )
+    m.add_argument("--json", action="store_true", help="print the figures as JSON")
+    m.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
+    m.set_defaults(func=_delay_margin)
+
+
+def _floats(text: str, what: str, count: int | None = None) -> list[float]:
+    try:
+        values = [float(v) for v in text.split(",") if v.strip()]
+    except ValueError:
+        raise UsageError(f"{what}: {text!r} is not a comma-separated list of numbers") from None
+    if not values or (count is not None and len(values) != count):
+        need = f"{count} numbers" if count else "at least one number"
+        raise UsageError(f"{what}: {text!r} needs {need}")
+    return values
+
+
+def _delay_margin(args: argparse.Namespace) -> int:
+    from config import load_project
+    from ipc_app.service.logs import configure_logging
+    from wara.studies.delay_margin import render, run_study
+
+    delays = _floats(args.delays_ms, "--delays-ms")
+    if any(not (0 <= d <= 1000) for d in delays):
+        raise UsageError(f"--delays-ms: each delay must be within 0-1000 ms, got {delays}")
+    roll, pitch = _floats(args.target, "--target", 2)
+    if not args.hold_s > 0:
+        raise UsageError(f"--hold-s must be > 0, got {args.hold_s}")
+    cfg = load_project(args.config)
+
+    def say(text: str) -> None:
+        if not args.quiet:
+            print(f"wara sim delay-margin: {text}", file=sys.stderr, flush=True)
+
+    # the service's own log: warnings and faults only (JSON lines on stderr), so the
+    # progress lines stay readable
+    logs = configure_logging("WARNING")
+    try:
+        report = run_study(
+            cfg,
+            args.config,
+            delays_ms=delays,
+            target=(roll, pitch),
+            hold_s=args.hold_s,
+            required_ms=args.required_ms,
+            progress=say,
+        )
+    finally:
+        logs.stop()
+    print(json.dumps(report, indent=2) if args.json else render(report))
+    return EXIT_OK if report["passed"] else EXIT_FAILED
 
 
 class _Progress:

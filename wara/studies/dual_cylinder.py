@@ -154,6 +154,9 @@ def run_study(
     measured = np.empty((n_ticks, n))
     commands = np.empty((n_ticks, n))
     refs = ref.tolist()
+    # feed-forward of the reference's rate (known ahead here), when the LADRC asks for it
+    ff = controller == "ladrc" and scenario.control.ladrc.reference_feedforward
+    rates = np.gradient(ref, dt).tolist() if ff else None
     steps_per_tick = round(dt / scenario.plant_step_s)
     report_every = max(n_ticks // 100, 1)
     state = bank.state
@@ -163,7 +166,7 @@ def run_study(
     start = time.perf_counter()
     for k in range(n_ticks):
         y = read(state[2])
-        u = update([refs[k]] * n, y)
+        u = update([refs[k]] * n, y, None if rates is None else [rates[k]] * n)
         states[k] = state
         measured[k] = y
         commands[k] = u

@@ -1,0 +1,183 @@
+"""Delay margin of the attitude loop: how much extra sensor delay the hold tolerates.
+
+The lockstep demo (simulator and service in one thread, virtual bus) closes the loop
+with the least delay the system can have: positions sampled at the PLC scan, read by
+the service in the next control period. On the machine (socketcan, the PLC's scan and
+frame cycle unsynchronized with the IPC's loop) and across two processes
+(``wara demo --two-process``) the positions are up to a period or two older, and the
+age varies. A tuning that is stable only without that delay rocks the loaded lower
+platform in its roll mode until the sync-error interlock stops the machine (what issue 6
+saw across two processes with the former LADRC tuning).
+
+This study runs the lockstep demo once per delay, with the simulator's wire holding
+every ``PLC_RodPos_*`` frame back by that delay (``delay`` fault of the HIL scenario):
+one target (Example 1 by default), then a hold of ``hold_s``; the hold is *stable* when
+the service is still HOLDING at the end and the largest sync error of either layer over
+the last half of the hold is within the standstill goal (0.07 mm).
+
+    wara sim delay-margin                       # shipped project, 0-50 ms
+    wara sim delay-margin --config my.yaml --delays-ms 0,5,10 --json
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Sequence
+from dataclasses import asdict, dataclass, field
+from typing import Any
+
+import numpy as np
+
+from config.hil_scenario import HilScenario
+from config.loader import validate_data
+from config.schema import ProjectConfig
+from ipc_app.service.modes import Mode
+from ipc_app.service.worker import PlannerWorker
+from wara.demo import SYNC_TOL_MM, Demo
+
+#: extra position delays tested by default (ms)
+DEFAULT_DELAYS_MS: tuple[float, ...] = (0.0, 10.0, 20.0, 30.0, 40.0, 50.0)
+#: the hold must be stable up to this extra delay (twice what two processes add: a
+#: position frame up to one 5 ms period old plus the loop's phase against the PLC scan)
+REQUIRED_MS = 20.0
+
+
+@dataclass
+class DelayRun:
+    delay_ms: float
+    reached_target: bool = False
+    attitude_error_deg: float = math.nan
+    max_twist_mm: float = math.nan
+    hold_sync_error_mm: dict[str, float] = field(default_factory=dict)
+    mode: str = ""
+    faults: list[str] = field(default_factory=list)
+    stable: bool = False
+
+
+def run_one(
+    cfg: ProjectConfig,
+    planner: PlannerWorker,
+    delay_ms: float,
+    *,
+    target: tuple[float, float] = (2.0, 1.0),
+    hold_s: float = 20.0,
+) -> DelayRun:
+    """One lockstep run with every position frame ``delay_ms`` late (0: none)."""
+    events: list[dict[str, Any]] = []
+    if delay_ms > 0:
+        events.append(
+            {"kind": "delay", "start_s": 0.0, "delay_ms": delay_ms, "messages": ["PLC_RodPos_*"]}
+        )
+    scenario = validate_data(HilScenario, {"events": events}, "delay-margin scenario")
+    demo = Demo(cfg, mode="lockstep", scenario=scenario, planner=planner)
+    out = DelayRun(delay_ms)
+    try:
+        if not demo.wait_for(Mode.IDLE, 20.0):
+            raise RuntimeError(f"service did not come up: {demo.core.modes.snapshot()}")
+        res = demo.run_example(*target)
+        out.reached_target = not res.note
+        out.attitude_error_deg = res.attitude_error_deg
+        out.max_twist_mm = res.max_twist_mm
+        start = len(demo.trace.t)
+        held = 0.0
+        while out.reached_target and held < hold_s and demo.core.modes.mode == Mode.HOLDING:
+            step = min(1.0, hold_s - held)  # one second at a time: stop at a fault
+            demo.advance(step)
+            held += step
+        sync = np.asarray(demo.trace.sync_mm[start:])
+        if len(sync):
+            last_half = sync[len(sync) // 2 :]
+            out.hold_sync_error_mm = {
+                "lower": float(last_half[:, 0].max()),
+                "upper": float(last_half[:, 1].max()),
+            }
+        out.mode = demo.core.modes.mode.name
+        out.faults = list(demo.core.modes.fault_reasons)
+    finally:
+        demo.close()
+    out.stable = (
+        out.reached_target
+        and out.mode == Mode.HOLDING.name
+        and bool(out.hold_sync_error_mm)
+        and max(out.hold_sync_error_mm.values()) <= SYNC_TOL_MM
+    )
+    return out
+
+
+def run_study(
+    cfg: ProjectConfig,
+    config_path: str | None = None,
+    *,
+    delays_ms: Sequence[float] = DEFAULT_DELAYS_MS,
+    target: tuple[float, float] = (2.0, 1.0),
+    hold_s: float = 20.0,
+    required_ms: float = REQUIRED_MS,
+    progress: Callable[[str], None] | None = None,
+) -> dict[str, Any]:
+    """Every delay in turn; the JSON-ready report (``passed``: stable up to ``required_ms``)."""
+    say = progress or (lambda _s: None)
+    planner = PlannerWorker(config_path, timeout_s=60.0)
+    planner.start()
+    runs: list[DelayRun] = []
+    try:
+        for d in sorted(delays_ms):
+            say(f"{d:g} ms of extra position delay: target {target}, hold {hold_s:g} s")
+            runs.append(run_one(cfg, planner, d, target=target, hold_s=hold_s))
+            r = runs[-1]
+            say(f"{d:g} ms: {'stable' if r.stable else 'NOT stable'} ({r.mode})")
+    finally:
+        planner.close()
+    margin = None
+    for r in runs:  # the largest delay with every smaller tested delay stable too
+        if not r.stable:
+            break
+        margin = r.delay_ms
+    tested_required = [r for r in runs if r.delay_ms <= required_ms]
+    ladrc = cfg.control.ladrc
+    return {
+        "controller": cfg.control.controller,
+        "ladrc": ladrc.model_dump(),
+        "coupling_lambda": cfg.control.sync.coupling_lambda,
+        "target_deg": list(target),
+        "hold_s": hold_s,
+        "sync_tolerance_mm": SYNC_TOL_MM,
+        "runs": [asdict(r) for r in runs],
+        "delay_margin_ms": margin,
+        "required_ms": required_ms,
+        "passed": bool(tested_required)
+        and any(r.delay_ms >= required_ms for r in runs)
+        and all(r.stable for r in tested_required),
+    }
+
+
+def render(report: dict[str, Any]) -> str:
+    lines = [
+        f"{'delay ms':>8} {'target':>7} {'att. err deg':>12} {'max twist mm':>12} "
+        f"{'hold sync lower/upper mm':>25}  mode / verdict",
+    ]
+    lines.append("-" * len(lines[0]))
+    for r in report["runs"]:
+        hs = r["hold_sync_error_mm"]
+        sync = f"{hs['lower']:.4f} / {hs['upper']:.4f}" if hs else "n/a"
+        if r["stable"]:
+            verdict = "stable"
+        elif r["faults"]:
+            verdict = "NOT stable: " + "; ".join(r["faults"])
+        elif not r["reached_target"]:
+            verdict = "NOT stable: target not reached"
+        else:
+            verdict = f"NOT stable: hold sync error above {report['sync_tolerance_mm']} mm"
+        lines.append(
+            f"{r['delay_ms']:>8g} {'yes' if r['reached_target'] else 'no':>7} "
+            f"{r['attitude_error_deg']:>12.5f} {r['max_twist_mm']:>12.4f} {sync:>25}  "
+            f"{r['mode']} / {verdict}"
+        )
+    margin = report["delay_margin_ms"]
+    lines += [
+        "",
+        f"delay margin: {'none' if margin is None else f'{margin:g} ms'} "
+        f"(largest tested delay with the hold stable at it and every smaller one); "
+        f"required {report['required_ms']:g} ms",
+        "PASSED" if report["passed"] else "FAILED",
+    ]
+    return "\n".join(lines)
