@@ -238,8 +238,11 @@ class HilSimulator:
 
         Behind schedule, scans run back to back to catch up; more than 0.1 s behind,
         the schedule is reset and counted in ``overruns`` (the plant never skips time).
+        Each scan sees only the frames that had arrived by its due time
+        (:meth:`FaultyWire.set_arrival_horizon`), so catching up does not starve it.
         """
         start = time.monotonic()
+        to_epoch = time.time() - start
         t_start = self.t_s
         next_status = start
         overruns = 0
@@ -254,11 +257,13 @@ class HilSimulator:
             elif now - due > 0.1:
                 overruns += 1
                 start = now - k * self.cycle_s
+            self.wire.set_arrival_horizon(start + to_epoch + k * self.cycle_s)
             self.step(self.cycle_s)
             k += 1
             if on_status is not None and time.monotonic() >= next_status:
                 on_status(self)
                 next_status += status_interval_s
+        self.wire.set_arrival_horizon(None)
         wall = time.monotonic() - start
         return {
             "simulated_s": self.t_s - t_start,

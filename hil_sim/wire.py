@@ -14,6 +14,15 @@ then, in simulated time, it
   ``bus-off`` at the start and ``restarted`` at the end (linux/can/error.h), as a
   socketcan controller does.
 
+In real time the PLC's scans are paced by the wall clock, and a simulator process that
+was held up (a busy machine) runs the missed scans back to back. So that those scans see
+the bus as an on-time PLC would have, :meth:`set_arrival_horizon` hides received frames
+that arrived (``msg.timestamp``, epoch seconds: the receive time on socketcan, the
+kernel's on ``udp_multicast``, the send time on ``virtual``) after the wall time the
+scan stands for; a later scan gets them, in order. Without it a late simulator would
+read every frame of the stall in one scan and then see none while its clock catches up:
+a false command timeout.
+
 Every action is counted in :attr:`counts` (``(kind, message name) -> frames``), so a
 test can compare what the IPC saw with exactly what was done to the wire.
 """
@@ -33,6 +42,9 @@ import numpy as np
 from plc_bridge.bus import CAN_ERR_BUSOFF, CAN_ERR_RESTARTED
 from plc_bridge.catalog import Catalog
 from plc_bridge.e2e import crc8_p01
+
+#: A frame stamped later than the arrival horizon by more than this is on another clock.
+_MAX_EARLY_S = 1.0
 
 #: Directions as the scenario names them.
 PLC_TO_IPC = "plc_to_ipc"
@@ -103,6 +115,8 @@ class FaultyWire(can.BusABC):
         self._frozen: dict[tuple[int, int], int] = {}
         self._last_counter: dict[int, int] = {}
         self._bus_off = False
+        self._horizon: float | None = None
+        self._early: can.Message | None = None  # received, arrived after the horizon
         self.counts: Counter[tuple[str, str]] = Counter()
 
     # ----------------------------------------------------------------- control
@@ -131,6 +145,10 @@ class FaultyWire(can.BusABC):
     def _name(self, frame_id: int) -> str:
         spec = self.catalog.by_id(frame_id)
         return spec.name if spec is not None else f"0x{frame_id:03X}"
+
+    def set_arrival_horizon(self, epoch_s: float | None) -> None:
+        """Receive only frames that arrived by ``epoch_s`` (None: all that are there)."""
+        self._horizon = epoch_s
 
     # ----------------------------------------------------------------- transmit
 
@@ -192,8 +210,17 @@ class FaultyWire(can.BusABC):
 
     def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
         while True:
-            msg = self.inner.recv(0.0)
+            msg = self._early
             if msg is None:
+                msg = self.inner.recv(0.0)
+            else:
+                self._early = None
+            if msg is None:
+                return None, False
+            h = self._horizon
+            # a timestamp far from the horizon is another clock's: never hold it back
+            if h is not None and h < msg.timestamp < h + _MAX_EARLY_S:
+                self._early = msg
                 return None, False
             if msg.is_error_frame:
                 return msg, False

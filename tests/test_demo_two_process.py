@@ -59,21 +59,14 @@ def test_example_1_through_two_processes(netns: None) -> None:
     (ex,) = out["examples"]
     assert (ex["target_roll_deg"], ex["target_pitch_deg"]) == (2.0, 1.0)
     # Reached through the other process, judged from the service's sensors after a
-    # short hold. The standstill sync goal (<= SYNC_TOL_MM) is asserted in-process
-    # (test_e2e.py). Across two processes the hold is the open point of issue 6
-    # (docs/service.md, "Two processes over udp_multicast"): the lower platform's roll
-    # mode (~9.5 Hz) can grow into the sync-error interlock with the transport's latency.
-    # That one fault is tolerated here and named; any other fault fails the test.
+    # short hold, and still holding: the hold must stay stable with the transport's
+    # extra, varying latency (the former tuning rocked the lower platform into the
+    # sync-error interlock here; docs/control.md, "Delay margin").
+    assert out["final_mode"] == "HOLDING", (out["final_fault_reasons"], proc.stderr[-2000:])
     assert ex["attitude_error_deg"] <= ATTITUDE_TOL_DEG, (ex, proc.stderr[-2000:])
     assert ex["max_twist_mm"] <= TWIST_TOL_MM
+    assert ex["sync_error_mm"] <= SYNC_TOL_MM, ex
     assert ex["duration_s"] > 1.0
-    if out["final_mode"] != "HOLDING":
-        assert out["final_mode"] == "FAULT", out
-        assert all(r.startswith("sync error: lower group") for r in out["final_fault_reasons"]), (
-            out["final_fault_reasons"]
-        )
-    else:
-        assert ex["sync_error_mm"] <= 10 * SYNC_TOL_MM, ex
     # Both processes stopped cleanly on SIGTERM.
     assert out["exit_codes"] == {"service": 0, "simulator": 0}
     loop = out["loop"]

@@ -365,7 +365,8 @@ def example_rows(summary: dict[str, Any]) -> list[str]:
     """The table's header and one row per example (shared with the two-process form)."""
     head = (
         f"{'target roll/pitch deg':>22} {'achieved roll/pitch deg':>25} {'error deg':>10} "
-        f"{'max twist mm':>12} {'sync at rest mm':>15} {'sync moving mm':>14} {'duration s':>10}  result"
+        f"{'max twist mm':>12} {'sync at rest mm':>15} {'sync moving mm':>14} "
+        f"{'duration s':>10}  result"
     )
     lines = [head, "-" * len(head)]
     for r in summary["examples"]:
