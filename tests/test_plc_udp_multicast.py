@@ -16,6 +16,7 @@ from pathlib import Path
 
 import pytest
 
+from plc_bridge.bus import DATAGRAM_RCVBUF_BYTES
 from wara.demo_two_process import NETNS_SETUP, UNSHARE, netns_problem
 
 REPO = Path(__file__).resolve().parents[1]
@@ -52,3 +53,6 @@ def test_ipc_and_plc_processes_talk_over_udp_multicast(netns: None) -> None:
     assert result["status_mode"] == "ATTITUDE_ADJUST"
     # The multicast socket echoes our own frames: dropped and counted, never decoded.
     assert result["own_echo"] > 0 and result["unknown_id"] == 0 and result["crc_error"] == 0
+    # A receive buffer for seconds of traffic, not the default's 0.1 s (bus.py).
+    rmem_max = int(Path("/proc/sys/net/core/rmem_max").read_text())
+    assert result["rcvbuf_bytes"] >= min(DATAGRAM_RCVBUF_BYTES, rmem_max), result

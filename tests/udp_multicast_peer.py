@@ -10,10 +10,13 @@ of cylinder 18, so one run checks both directions.
 from __future__ import annotations
 
 import json
+import os
+import socket
 import subprocess
 import sys
 import time
 
+import can
 import numpy as np
 
 from config import ProjectConfig, load_project
@@ -41,6 +44,11 @@ def run_plc(seconds: float) -> None:
         plc.set_positions_m(x)
         time.sleep(0.001)
     plc.close()
+
+
+def rcvbuf_bytes(bus: can.BusABC) -> int:
+    with socket.socket(fileno=os.dup(bus.fileno())) as sock:
+        return int(sock.getsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF))
 
 
 def run_ipc(seconds: float) -> int:
@@ -76,6 +84,7 @@ def run_ipc(seconds: float) -> int:
                     "unknown_id": h["rx"].get("unknown_id", 0),
                     "accepted": h["rx"].get("accepted", 0),
                     "crc_error": h["rx"].get("crc_error", 0),
+                    "rcvbuf_bytes": rcvbuf_bytes(ipc.bus),
                 }
             )
         )
