@@ -499,6 +499,10 @@ class IpcLink(_Side):
         self._pos_rows = _rows(cat, "PLC_RodPos_")
         self._press_rows = _rows(cat, "PLC_Pressure_")
         self._last_hmi_seq: int | None = None
+        # The decoded values (a new tuple per accepted frame) and the word built from
+        # them: status() and hmi_target() run every cycle, a frame comes every 2-10.
+        self._status_of: tuple[object, PlcStatus | None] = (None, None)
+        self._hmi_of: tuple[object, HmiTarget | None] = (None, None)
         super().__init__(cfg, bus, **kwargs)
         self._pos = [(self._rx_by_name[n], s) for n, s in self._pos_rows]
         self._press = [(self._rx_by_name[n], s) for n, s in self._press_rows]
@@ -680,9 +684,11 @@ class IpcLink(_Side):
         v = self._status_rec.latest(self._clock() if now is None else now)
         if v is None:
             return None
+        if v is self._status_of[0]:  # the same frame as last call: the same (frozen) word
+            return self._status_of[1]
         d = dict(zip(self._status_rec.codec.signal_names, v, strict=True))
         code = int(d["FaultCode"])
-        return PlcStatus(
+        st = PlcStatus(
             mode=Mode(int(d["ModeActual"])),
             estop=bool(d["EStop"]),
             pump_running=bool(d["PumpRunning"]),
@@ -691,19 +697,25 @@ class IpcLink(_Side):
             fault=Fault(code) if code in Fault._value2member_map_ else code,
             supply_pressure_pa=units.mpa(d["SupplyPressure"]),
         )
+        self._status_of = (v, st)
+        return st
 
     def hmi_target(self, now: float | None = None) -> HmiTarget | None:
         """The operator's current target request, or None when stale."""
         v = self._hmi_rec.latest(self._clock() if now is None else now)
         if v is None:
             return None
+        if v is self._hmi_of[0]:  # the same frame as last call: the same (frozen) target
+            return self._hmi_of[1]
         d = dict(zip(self._hmi_rec.codec.signal_names, v, strict=True))
-        return HmiTarget(
+        t = HmiTarget(
             roll_rad=units.deg(d["TargetRoll"]),
             pitch_rad=units.deg(d["TargetPitch"]),
             request=TargetRequest(int(d["TargetRequest"])),
             seq=int(d["TargetSeq"]),
         )
+        self._hmi_of = (v, t)
+        return t
 
     def new_hmi_request(self, now: float | None = None) -> HmiTarget | None:
         """A fresh HMI request whose ``seq`` has not been returned before, else None."""

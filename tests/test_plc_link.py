@@ -439,3 +439,34 @@ def test_readings_match_the_reference_definition_bit_for_bit(project: ProjectCon
             np.testing.assert_array_equal(reading.valid, ~np.isnan(ref_val))
     x = ipc.positions_m(clock.t)
     assert x.valid.any() and not x.valid.all()  # the cases above were all exercised
+
+
+def test_status_and_hmi_target_follow_each_new_frame(project: ProjectConfig) -> None:
+    """The words are rebuilt only for a new frame; a changed frame is never missed."""
+    clock = Clock()
+    bus, plc_bus = QueueBus(), QueueBus()
+    ipc = IpcLink(project, bus, clock=clock)
+    plc = PlcLink(project, plc_bus, clock=clock)
+    seen = []
+    for k in range(300):  # PLC_Status every 20 ms, PLC_HmiTarget every 100 ms
+        plc.set_status(PlcStatus(pump_running=True, estop=100 <= k < 200))
+        plc.set_hmi_target(HmiTarget(0.01 * (k // 100), 0.0, seq=k // 100))
+        plc.poll()
+        for m in plc_bus.sent:
+            bus.inject(m)
+        plc_bus.sent.clear()
+        ipc.poll()
+        clock.advance(DT)
+        st, t = ipc.status(), ipc.hmi_target()
+        if k < 30:  # the first of each arrived
+            continue
+        assert st is not None and t is not None
+        assert st is ipc.status() and t is ipc.hmi_target()  # no new frame: same word
+        seen.append((st.estop, t.seq))
+    # Each change arrives with the next PLC_Status / PLC_HmiTarget frame.
+    assert seen[0] == (False, 0) and seen[150] == (True, 1) and seen[-1] == (False, 2)
+    assert 90 <= [e for e, _ in seen].count(True) <= 100
+    clock.advance(1.0)
+    assert ipc.status() is None and ipc.hmi_target() is None  # stale: never the cached one
+    ipc.close()
+    plc.close()
