@@ -409,12 +409,12 @@ class CanLink(Strict):
     """The IPC <-> PLC CAN link (plc_bridge; docs/can-protocol.md).
 
     ``channel`` is the interface name for ``socketcan`` (``can0``, ``vcan0``), any
-    name for ``virtual`` (in-process), the multicast group for ``udp_multicast``
-    (``239.74.163.2``) and ``host:port`` for ``remote``. ``bitrate`` is the bus's
+    name for ``virtual`` (in-process), the multicast group for ``udp_multicast`` and
+    ``wara_udp`` (``239.74.163.2``) and ``host:port`` for ``remote``. ``bitrate`` is the bus's
     bit rate for the load budget; on ``socketcan`` the OS sets it (deploy/).
     """
 
-    interface: Literal["socketcan", "virtual", "udp_multicast", "remote"] = "virtual"
+    interface: Literal["socketcan", "virtual", "udp_multicast", "wara_udp", "remote"] = "virtual"
     channel: str = "wara"
     bitrate: Annotated[int, Field(ge=10_000, le=1_000_000)] = 500_000
     max_bus_load_percent: Annotated[float, Field(gt=0, le=100)] = 50.0
@@ -425,7 +425,7 @@ class CanLink(Strict):
     stale_cycles: Annotated[float, Field(ge=1.5, le=100)] = 3.0
     #: E2E MaxDeltaCounter: accept a counter step of up to this (max_delta - 1 lost frames).
     max_delta_counter: Annotated[int, Field(ge=1, le=7)] = 2
-    #: UDP port of the ``udp_multicast`` interface.
+    #: UDP port of the ``udp_multicast`` and ``wara_udp`` interfaces.
     udp_port: Annotated[int, Field(ge=1024, le=65535)] = 43113
 
 

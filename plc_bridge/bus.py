@@ -14,6 +14,11 @@ python-can bus (python-can's own interchangeable back-ends):
 - ``udp_multicast``: cross-process on one host (HIL runs); ``channel`` is the multicast
   group. Its sockets echo a node's own frames back to it: the link drops frames with
   the ids it sends itself and counts them (``own_echo``), so no filter is set here.
+- ``wara_udp``: cross-process on one host like ``udp_multicast`` (``channel`` the group,
+  ``can.udp_port`` the port), with less work per frame inside the loop: our own back-end,
+  :class:`plc_bridge.udp_bus.WaraUdpBus` (fixed 20-byte frames, no ``select`` per frame,
+  own frames skipped by a sender id before they reach the link). Not interoperable with
+  ``udp_multicast``.
 - ``remote``: python-can-remote (optional plug-in); ``channel`` is ``host:port``.
 """
 
@@ -31,6 +36,7 @@ import can
 
 from config.schema import CanLink
 from plc_bridge.errors import BusOpenError
+from plc_bridge.udp_bus import WaraUdpBus
 
 # linux/can/error.h: error class bits in the id of an error frame, and data[1] flags.
 CAN_ERR_TX_TIMEOUT = 0x001
@@ -102,14 +108,14 @@ def receive_filters(frame_ids: Iterable[int]) -> list[dict[str, Any]]:
     return [{"can_id": i, "can_mask": 0x7FF, "extended": False} for i in sorted(set(frame_ids))]
 
 
-def _check_multicast(channel: str) -> None:
+def _check_multicast(channel: str, kind: str) -> None:
     try:
         addr = ipaddress.ip_address(channel)
     except ValueError:
         addr = None
     if addr is None or not addr.is_multicast:
         raise BusOpenError(
-            f"can.channel: {channel!r} is not a multicast group; interface udp_multicast "
+            f"can.channel: {channel!r} is not a multicast group; interface {kind} "
             f"needs one, e.g. 239.74.163.2 (IPv4) or ff15:7079:7468:6f6e:6465:6d6f:6d63:6173"
         )
 
@@ -154,13 +160,18 @@ def open_bus(link: CanLink, rx_ids: Iterable[int] = ()) -> can.BusABC:
     elif kind == "virtual":
         kwargs = {"receive_own_messages": False}
     elif kind == "udp_multicast":
-        _check_multicast(link.channel)
+        _check_multicast(link.channel, kind)
         kwargs = {"port": link.udp_port, "fd": False}
+    elif kind == "wara_udp":
+        _check_multicast(link.channel, kind)
     elif kind == "remote":
         kwargs = {"can_filters": filters}
     try:
-        bus = can.Bus(interface=kind, channel=link.channel, **kwargs)
-        if kind == "udp_multicast":
+        if kind == "wara_udp":
+            bus: can.BusABC = WaraUdpBus(link.channel, port=link.udp_port)
+        else:
+            bus = can.Bus(interface=kind, channel=link.channel, **kwargs)
+        if kind in ("udp_multicast", "wara_udp"):
             enlarge_receive_buffer(bus)
         return bus
     except (can.CanInterfaceNotImplementedError, ImportError) as exc:
@@ -172,6 +183,11 @@ def open_bus(link: CanLink, rx_ids: Iterable[int] = ()) -> can.BusABC:
             hint = (
                 f"; does {link.channel} exist and is it up? "
                 f"(vcan: ip link add dev {link.channel} type vcan && ip link set {link.channel} up)"
+            )
+        elif kind in ("udp_multicast", "wara_udp"):
+            hint = (
+                f"; is port {link.udp_port} free and multicast routed on this host? "
+                "(e.g. ip route add 239.0.0.0/8 dev lo)"
             )
         raise BusOpenError(
             f"cannot open can.interface {kind!r} channel {link.channel!r}: {exc}{hint}"

@@ -499,9 +499,15 @@ class IpcLink(_Side):
         self._pos_rows = _rows(cat, "PLC_RodPos_")
         self._press_rows = _rows(cat, "PLC_Pressure_")
         self._last_hmi_seq: int | None = None
+        # The decoded values (a new tuple per accepted frame) and the word built from
+        # them: status() and hmi_target() run every cycle, a frame comes every 2-10.
+        self._status_of: tuple[object, PlcStatus | None] = (None, None)
+        self._hmi_of: tuple[object, HmiTarget | None] = (None, None)
         super().__init__(cfg, bus, **kwargs)
         self._pos = [(self._rx_by_name[n], s) for n, s in self._pos_rows]
         self._press = [(self._rx_by_name[n], s) for n, s in self._press_rows]
+        self._pos_fast = self._compile_rows(self._pos, 1)
+        self._press_fast = self._compile_rows(self._press, 2)
         self._status_rec = self._rx_by_name["PLC_Status"]
         self._hmi_rec = self._rx_by_name["PLC_HmiTarget"]
         self._limits_rec = self._rx_by_name["PLC_Limits"]
@@ -623,44 +629,66 @@ class IpcLink(_Side):
 
     # ----------------------------------------------------------------- readings
 
+    @staticmethod
+    def _compile_rows(
+        rows: list[tuple[RxRecord, list[int]]], width: int
+    ) -> list[tuple[RxRecord, int, int, int, int]]:
+        """Per message (record, first slot, end slot, first value, end value), for
+        :meth:`_array`: each message carries consecutive ``can_index`` slots (checked)."""
+        out = []
+        for rec, slots in rows:
+            lo, hi = slots[0], slots[-1] + 1
+            if list(slots) != list(range(lo, hi)):
+                raise ValueError(f"{rec.name}: slots {slots} are not consecutive")
+            out.append((rec, lo, hi, lo * width, hi * width))
+        return out
+
     def _array(
         self,
-        rows: list[tuple[RxRecord, list[int]]],
+        rows: list[tuple[RxRecord, int, int, int, int]],
         width: int,
         si_per_unit: float,
         now: float,
     ) -> Reading:
+        """The latest values of ``rows`` by ``can_index`` in SI; NaN where not usable.
+
+        Plain list slices per message, one numpy conversion at the end (this runs twice
+        every loop cycle).
+        """
         vals = [math.nan] * (N_CYLINDERS * width)
         ages = [math.inf] * N_CYLINDERS
-        for rec, slots in rows:
-            a = rec.age_s(now)
+        for rec, lo, hi, vlo, vhi in rows:
+            last = rec.last_rx
+            if last is None:
+                continue
+            ages[lo:hi] = [now - last] * (hi - lo)
             v = rec.latest(now)
-            for j, i in enumerate(slots):
-                ages[i] = a
-                if v is not None:
-                    vals[i * width : (i + 1) * width] = v[j * width : (j + 1) * width]
-        val = np.array(vals) * si_per_unit  # DBC unit -> SI, factor from config.units
+            if v is not None:
+                vals[vlo:vhi] = v[: vhi - vlo]
+        val = np.array(vals)
+        val *= si_per_unit  # DBC unit -> SI, factor from config.units
         if width > 1:
             val = val.reshape(N_CYLINDERS, width)
-        age = np.array(ages)
-        return Reading(value=val, valid=~np.isnan(val), age_s=age)
+        return Reading(value=val, valid=~np.isnan(val), age_s=np.array(ages))
 
     def positions_m(self, now: float | None = None) -> Reading:
         """Rod positions from fully retracted [m], by ``can_index`` (NaN where not valid)."""
-        return self._array(self._pos, 1, units.MM, self._clock() if now is None else now)
+        return self._array(self._pos_fast, 1, units.MM, self._clock() if now is None else now)
 
     def pressures_pa(self, now: float | None = None) -> Reading:
         """Chamber pressures [Pa], shape (19, 2): column 0 cap side, column 1 rod side."""
-        return self._array(self._press, 2, units.MPA, self._clock() if now is None else now)
+        return self._array(self._press_fast, 2, units.MPA, self._clock() if now is None else now)
 
     def status(self, now: float | None = None) -> PlcStatus | None:
         """The PLC status word, or None when stale (the PLC is then considered lost)."""
         v = self._status_rec.latest(self._clock() if now is None else now)
         if v is None:
             return None
+        if v is self._status_of[0]:  # the same frame as last call: the same (frozen) word
+            return self._status_of[1]
         d = dict(zip(self._status_rec.codec.signal_names, v, strict=True))
         code = int(d["FaultCode"])
-        return PlcStatus(
+        st = PlcStatus(
             mode=Mode(int(d["ModeActual"])),
             estop=bool(d["EStop"]),
             pump_running=bool(d["PumpRunning"]),
@@ -669,19 +697,25 @@ class IpcLink(_Side):
             fault=Fault(code) if code in Fault._value2member_map_ else code,
             supply_pressure_pa=units.mpa(d["SupplyPressure"]),
         )
+        self._status_of = (v, st)
+        return st
 
     def hmi_target(self, now: float | None = None) -> HmiTarget | None:
         """The operator's current target request, or None when stale."""
         v = self._hmi_rec.latest(self._clock() if now is None else now)
         if v is None:
             return None
+        if v is self._hmi_of[0]:  # the same frame as last call: the same (frozen) target
+            return self._hmi_of[1]
         d = dict(zip(self._hmi_rec.codec.signal_names, v, strict=True))
-        return HmiTarget(
+        t = HmiTarget(
             roll_rad=units.deg(d["TargetRoll"]),
             pitch_rad=units.deg(d["TargetPitch"]),
             request=TargetRequest(int(d["TargetRequest"])),
             seq=int(d["TargetSeq"]),
         )
+        self._hmi_of = (v, t)
+        return t
 
     def new_hmi_request(self, now: float | None = None) -> HmiTarget | None:
         """A fresh HMI request whose ``seq`` has not been returned before, else None."""

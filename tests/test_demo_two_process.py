@@ -1,5 +1,6 @@
 """``wara demo --two-process`` (short form): simulator and service as two processes over
-``udp_multicast`` in a private network namespace, Example 1 only, no 60 s padding.
+``wara_udp`` (the default transport) in a private network namespace, Example 1 only, no
+60 s padding.
 
 The command makes the namespace itself (``unshare --user --map-root-user --net``, its own
 loopback with multicast routed to it); the root namespace's network is never touched.
@@ -55,7 +56,7 @@ def test_example_1_through_two_processes(netns: None) -> None:
     assert proc.returncode in (0, 1), proc.stderr
     out = json.loads(proc.stdout)
     assert "error" not in out, (out, proc.stderr[-2000:])
-    assert out["mode"] == "two-process" and "udp_multicast" in out["bus"]
+    assert out["mode"] == "two-process" and out["bus"].startswith("wara_udp ")
     (ex,) = out["examples"]
     assert (ex["target_roll_deg"], ex["target_pitch_deg"]) == (2.0, 1.0)
     # Reached through the other process, judged from the service's sensors after a

@@ -389,3 +389,84 @@ def test_interface_down_is_reopened_with_back_off(project: ProjectConfig) -> Non
     assert ipc.bus_health.counters["reopen_failures"] == 2
     gaps = np.diff(attempts)
     assert len(attempts) == 3 and gaps[1] > gaps[0]  # back-off grows
+
+
+def _reference_array(rows: Any, width: int, si_per_unit: float, now: float) -> Any:
+    """The former IpcLink._array, kept as the definition the faster one must match."""
+    vals = [math.nan] * (19 * width)
+    ages = [math.inf] * 19
+    for rec, slots in rows:
+        a = rec.age_s(now)
+        v = rec.latest(now)
+        for j, i in enumerate(slots):
+            ages[i] = a
+            if v is not None:
+                vals[i * width : (i + 1) * width] = v[j * width : (j + 1) * width]
+    val = np.array(vals) * si_per_unit
+    if width > 1:
+        val = val.reshape(19, width)
+    return val, np.array(ages)
+
+
+def test_readings_match_the_reference_definition_bit_for_bit(project: ProjectConfig) -> None:
+    clock = Clock()
+    bus = QueueBus()
+    ipc = IpcLink(project, bus, clock=clock)
+    plc_bus = QueueBus()
+    plc = PlcLink(project, plc_bus, clock=clock)
+    plc.set_positions_m(X)
+    plc.set_pressures_pa(P)
+    plc.set_status(PlcStatus(pump_running=True))
+    ipc.set_active_cylinders(range(8))
+    for k in range(40):
+        plc.poll()
+        for m in plc_bus.sent:
+            if not (m.arbitration_id in (0x111, 0x142) and k > 10):  # two go stale
+                bus.inject(m)
+        plc_bus.sent.clear()
+        ipc.poll()
+        clock.advance(DT)
+    ipc._pos[3][0].last_rx = None  # one never received (e.g. after a restart)
+    ipc._pos[3][0].values = None
+    for now in (clock.t, clock.t + 0.02, clock.t + 1.0):
+        for reading, rows, width, unit in (
+            (ipc.positions_m(now), ipc._pos, 1, 1e-3),
+            (ipc.pressures_pa(now), ipc._press, 2, 1e6),
+        ):
+            ref_val, ref_age = _reference_array(rows, width, unit, now)
+            np.testing.assert_array_equal(reading.value, ref_val)
+            np.testing.assert_array_equal(reading.age_s, ref_age)
+            np.testing.assert_array_equal(reading.valid, ~np.isnan(ref_val))
+    x = ipc.positions_m(clock.t)
+    assert x.valid.any() and not x.valid.all()  # the cases above were all exercised
+
+
+def test_status_and_hmi_target_follow_each_new_frame(project: ProjectConfig) -> None:
+    """The words are rebuilt only for a new frame; a changed frame is never missed."""
+    clock = Clock()
+    bus, plc_bus = QueueBus(), QueueBus()
+    ipc = IpcLink(project, bus, clock=clock)
+    plc = PlcLink(project, plc_bus, clock=clock)
+    seen = []
+    for k in range(300):  # PLC_Status every 20 ms, PLC_HmiTarget every 100 ms
+        plc.set_status(PlcStatus(pump_running=True, estop=100 <= k < 200))
+        plc.set_hmi_target(HmiTarget(0.01 * (k // 100), 0.0, seq=k // 100))
+        plc.poll()
+        for m in plc_bus.sent:
+            bus.inject(m)
+        plc_bus.sent.clear()
+        ipc.poll()
+        clock.advance(DT)
+        st, t = ipc.status(), ipc.hmi_target()
+        if k < 30:  # the first of each arrived
+            continue
+        assert st is not None and t is not None
+        assert st is ipc.status() and t is ipc.hmi_target()  # no new frame: same word
+        seen.append((st.estop, t.seq))
+    # Each change arrives with the next PLC_Status / PLC_HmiTarget frame.
+    assert seen[0] == (False, 0) and seen[150] == (True, 1) and seen[-1] == (False, 2)
+    assert 90 <= [e for e, _ in seen].count(True) <= 100
+    clock.advance(1.0)
+    assert ipc.status() is None and ipc.hmi_target() is None  # stale: never the cached one
+    ipc.close()
+    plc.close()

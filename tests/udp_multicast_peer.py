@@ -1,7 +1,8 @@
-"""Both sides of the link as separate processes on ``udp_multicast`` (run by
-``tests/test_plc_udp_multicast.py`` inside a private network namespace only).
+"""Both sides of the link as separate processes on ``udp_multicast`` or ``wara_udp`` (run
+by ``tests/test_plc_udp_multicast.py`` inside a private network namespace only).
 
-``python -m tests.udp_multicast_peer ipc`` starts the PLC side as a child process,
+``python -m tests.udp_multicast_peer ipc SECONDS [INTERFACE]`` starts the PLC side as a
+child process (same interface),
 runs the IPC side for a while and prints one JSON line with what it saw. The PLC
 child reports the valve command it received for cylinder 0 back as the rod position
 of cylinder 18, so one run checks both directions.
@@ -26,14 +27,14 @@ GROUP = "239.74.163.2"
 X = np.linspace(0.01, 0.19, 19)
 
 
-def config() -> ProjectConfig:
+def config(interface: str) -> ProjectConfig:
     data = load_project().model_dump()
-    data["can"].update(interface="udp_multicast", channel=GROUP, udp_port=43117)
+    data["can"].update(interface=interface, channel=GROUP, udp_port=43117)
     return ProjectConfig.model_validate(data)
 
 
-def run_plc(seconds: float) -> None:
-    plc = PlcLink.from_config(config())
+def run_plc(seconds: float, interface: str) -> None:
+    plc = PlcLink.from_config(config(interface))
     plc.set_status(PlcStatus(mode=Mode.ATTITUDE_ADJUST, pump_running=True, supply_pressure_pa=16e6))
     x = X.copy()
     t_end = time.monotonic() + seconds
@@ -51,12 +52,12 @@ def rcvbuf_bytes(bus: can.BusABC) -> int:
         return int(sock.getsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF))
 
 
-def run_ipc(seconds: float) -> int:
+def run_ipc(seconds: float, interface: str) -> int:
     child = subprocess.Popen(
-        [sys.executable, "-m", "tests.udp_multicast_peer", "plc", str(seconds + 1.0)]
+        [sys.executable, "-m", "tests.udp_multicast_peer", "plc", str(seconds + 1.0), interface]
     )
     try:
-        ipc = IpcLink.from_config(config())
+        ipc = IpcLink.from_config(config(interface))
         ipc.set_control(mode=Mode.ATTITUDE_ADJUST, enable=True)
         u = np.zeros(19)
         u[0] = 0.5
@@ -85,6 +86,8 @@ def run_ipc(seconds: float) -> int:
                     "accepted": h["rx"].get("accepted", 0),
                     "crc_error": h["rx"].get("crc_error", 0),
                     "rcvbuf_bytes": rcvbuf_bytes(ipc.bus),
+                    "bus": type(ipc.bus).__name__,
+                    "bus_own_skipped": getattr(ipc.bus, "own_skipped", None),
                 }
             )
         )
@@ -96,7 +99,8 @@ def run_ipc(seconds: float) -> int:
 
 if __name__ == "__main__":
     role, seconds = sys.argv[1], float(sys.argv[2]) if len(sys.argv) > 2 else 1.5
+    interface = sys.argv[3] if len(sys.argv) > 3 else "udp_multicast"
     if role == "plc":
-        run_plc(seconds)
+        run_plc(seconds, interface)
     else:
-        sys.exit(run_ipc(seconds))
+        sys.exit(run_ipc(seconds, interface))

@@ -1,11 +1,12 @@
 """The two-process form of the end-to-end demo: ``wara demo --two-process``.
 
 The HIL simulator (``wara hil --realtime``) and the IPC service (``wara serve``) run as
-two processes on a ``udp_multicast`` CAN bus, inside a private network namespace so the
-multicast traffic never reaches the host's network:
+two processes on a UDP multicast CAN bus (``wara_udp`` by default, python-can's
+``udp_multicast`` with ``--transport udp_multicast``), inside a private network namespace
+so the multicast traffic never reaches the host's network:
 
 1. :func:`run_two_process` (the command, in the caller's namespace) writes a copy of the
-   project YAML with ``can.interface: udp_multicast`` on :data:`MULTICAST_GROUP`, makes
+   project YAML with ``can.interface`` the transport on :data:`MULTICAST_GROUP`, makes
    the namespace with ``unshare --user --map-root-user --net``, gives it a loopback with
    multicast routed to it (:data:`NETNS_SETUP`) and re-executes ``wara demo --two-process
    --inside-netns`` in it. No namespace (no user namespaces, no ``unshare``/``ip``):
@@ -68,6 +69,9 @@ from wara.demo import (
 
 REPO = Path(__file__).resolve().parents[1]
 
+#: The cross-process CAN interfaces the demo can run on, and its default.
+TRANSPORTS = ("wara_udp", "udp_multicast")
+DEFAULT_TRANSPORT = "wara_udp"
 #: Multicast group of the demo's bus (administratively scoped IPv4, inside the namespace).
 MULTICAST_GROUP = "239.74.163.2"
 #: Run inside the new namespace before anything else: loopback up, multicast routed to it.
@@ -116,13 +120,15 @@ def netns_problem() -> str | None:
     return None
 
 
-def multicast_config(config_path: str | Path | None, out_path: Path) -> ProjectConfig:
-    """Copy the project YAML to ``out_path`` with the bus on udp_multicast; validated."""
+def multicast_config(
+    config_path: str | Path | None, out_path: Path, transport: str = DEFAULT_TRANSPORT
+) -> ProjectConfig:
+    """Copy the project YAML to ``out_path`` with the bus on ``transport``; validated."""
     src = Path(config_path) if config_path is not None else default_project_path()
     load_project(src)  # a bad config is the user's error (exit 2), reported against src
     data = yaml.safe_load(src.read_text(encoding="utf-8"))
     can_block = data.setdefault("can", {})
-    can_block["interface"] = "udp_multicast"
+    can_block["interface"] = transport
     can_block["channel"] = MULTICAST_GROUP
     out_path.write_text(
         "# written by `wara demo --two-process` from "
@@ -150,6 +156,7 @@ def run_two_process(
     examples: int,
     min_run_s: float,
     keep_dir: Path | None = None,
+    transport: str = DEFAULT_TRANSPORT,
 ) -> int:
     """``wara demo --two-process``: make the namespace and re-run inside it; exit code.
 
@@ -165,7 +172,7 @@ def run_two_process(
         else:  # keep the YAML, both logs and the run record (for a look afterwards)
             work = keep_dir.resolve()
             work.mkdir(parents=True, exist_ok=True)
-        multicast_config(config_path, work / "project.yaml")
+        multicast_config(config_path, work / "project.yaml", transport)
         inner = [
             sys.executable,
             "-m",
@@ -453,14 +460,14 @@ def run_inside_netns(
     """Simulator + service as two processes; the JSON-ready summary (``passed``)."""
     say = progress or (lambda _s: None)
     cfg = load_project(config_path)
-    if cfg.can.interface != "udp_multicast":
-        raise TwoProcessError(f"{config_path}: can.interface must be udp_multicast")
+    if cfg.can.interface not in TRANSPORTS:
+        raise TwoProcessError(f"{config_path}: can.interface must be one of {TRANSPORTS}")
     period = cfg.control.period_s
     sock = workdir / "ctl.sock"
     wara = [sys.executable, "-m", "wara"]
     results: list[ExampleResult] = []
     watch = _LoopWatch()
-    say(f"simulator and service on udp_multicast {cfg.can.channel}:{cfg.can.udp_port}")
+    say(f"simulator and service on {cfg.can.interface} {cfg.can.channel}:{cfg.can.udp_port}")
     sim = _Child(
         "simulator",
         [*wara, "hil", "--realtime", "--config", config_path, "--status-interval", "2"],
@@ -550,7 +557,7 @@ def run_inside_netns(
     active = [c.can_index for c in cfg.cylinders if c.id in (*lo, *up)]
     return {
         "mode": "two-process",
-        "bus": f"udp_multicast {cfg.can.channel}:{cfg.can.udp_port} (private netns)",
+        "bus": f"{cfg.can.interface} {cfg.can.channel}:{cfg.can.udp_port} (private netns)",
         "examples": [asdict(r) for r in results],
         "loop": loop,
         "loop_goal": {

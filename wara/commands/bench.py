@@ -19,6 +19,7 @@ BENCHES: dict[str, str] = {
     "sim": "wara.benches.sim:run",
     "loop": "wara.benches.loop:run",
     "hil": "wara.benches.hil:run",
+    "transport": "wara.benches.transport:run",
 }
 
 

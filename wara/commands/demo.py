@@ -2,8 +2,9 @@
 
 Exit 0 only if every example met its tolerances (attitude error <= 0.01 deg, twist
 <= 0.5 mm during motion, sync error at standstill <= 0.07 mm). ``--two-process`` runs the
-simulator and the service as two processes over ``udp_multicast`` in a private network
-namespace (:mod:`wara.demo_two_process`); it also needs the loop goal (compute p99 under
+simulator and the service as two processes over UDP multicast in a private network
+namespace (:mod:`wara.demo_two_process`; ``--transport``: ``wara_udp`` by default, or
+python-can's ``udp_multicast``); it also needs the loop goal (compute p99 under
 20 % of the period, no overruns after start-up in a 60 s run); exit 2 when the namespace
 cannot be made here.
 """
@@ -31,8 +32,15 @@ def register(sub: argparse._SubParsersAction) -> None:
     form.add_argument(
         "--two-process",
         action="store_true",
-        help="simulator and service as two processes over udp_multicast in a private "
+        help="simulator and service as two processes over UDP multicast in a private "
         "network namespace (needs unshare and ip; at least 60 s)",
+    )
+    p.add_argument(
+        "--transport",
+        choices=("wara_udp", "udp_multicast"),
+        default=None,
+        help="--two-process: the cross-process CAN interface (default wara_udp; "
+        "udp_multicast is python-can's)",
     )
     p.add_argument(
         "--settle-s",
@@ -53,7 +61,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 def _run(args: argparse.Namespace) -> int:
     if args.two_process:
         return _run_two_process(args)
-    for opt in ("settle_s", "examples", "min_run_s", "inside_netns", "keep_dir"):
+    for opt in ("settle_s", "examples", "min_run_s", "inside_netns", "keep_dir", "transport"):
         if getattr(args, opt) is not None:
             raise UsageError(f"--{opt.replace('_', '-')} goes with --two-process")
     from ipc_app.service.logs import configure_logging
@@ -103,6 +111,7 @@ def _run_two_process(args: argparse.Namespace) -> int:
                 examples=n,
                 min_run_s=min_run,
                 keep_dir=Path(args.keep_dir) if args.keep_dir else None,
+                transport=args.transport or d2.DEFAULT_TRANSPORT,
             )
         except d2.NetnsUnavailable as exc:
             print(
