@@ -159,20 +159,20 @@ CASES = [
     (
         {"kind": "sensor", "start_s": FAULT_AT_S, "cylinder": "upper_2", "mode": "stuck"},
         Mode.FAULT,
-        "",
-        400,
+        "sync error|tracking error",
+        100,
     ),
     (
-        {"kind": "stuck_valve", "start_s": FAULT_AT_S, "cylinder": "upper_1", "opening": 0.0},
+        {"kind": "stuck_valve", "start_s": FAULT_AT_S, "cylinder": "upper_2", "opening": 0.0},
         Mode.FAULT,
-        "",
-        400,
+        "sync error|tracking error",
+        100,
     ),
     (
         {"kind": "ignore_commands", "start_s": FAULT_AT_S},
         Mode.FAULT,
         "tracking error|sync error",
-        400,
+        100,
     ),
     ({"kind": "estop", "start_s": FAULT_AT_S}, Mode.ESTOP, "", 8),
 ]

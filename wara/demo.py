@@ -9,8 +9,10 @@ Two timings:
 - ``realtime`` (the default): the service's :class:`FixedRateLoop` runs in its own thread
   on the wall clock (jitter and overruns are real), the simulator in another thread,
   paced by the wall clock, on the in-process ``virtual`` bus;
-- ``lockstep``: simulator and service alternate in one thread on simulated time
-  (deterministic apart from when the planner's answer arrives; fast; for tests).
+- ``lockstep``: simulator and service alternate in one thread on simulated time (fast;
+  for tests and studies). Simulated time stands still while the planner process works
+  (bounded by the worker's own timeout), so a plan arrives in the cycle after it was
+  asked for, however busy the machine is: a run does not depend on the wall clock.
 """
 
 from __future__ import annotations
@@ -187,7 +189,14 @@ class Demo:
             self.core.step(self._k, self.sim.t_s)
             self.trace.add(self.sim, self.core)
             if self.core.modes.mode == Mode.PLANNING:
-                time.sleep(0.001)  # the planner process works on the wall clock
+                self._await_planner()
+
+    def _await_planner(self) -> None:
+        """Lockstep: hold simulated time until the planner's answer is in (or its own
+        timeout, on the wall clock, has turned the request into a failure)."""
+        deadline = time.monotonic() + self.worker.timeout_s + 5.0
+        while self.worker.busy and time.monotonic() < deadline:
+            time.sleep(0.0005)
 
     def wait_for(self, mode: Mode, timeout_s: float) -> bool:
         """Advance until the service is in ``mode`` (machine time in lockstep)."""
