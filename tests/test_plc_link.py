@@ -539,3 +539,36 @@ def test_limit_switches_are_one_read_only_word_per_frame(project: ProjectConfig)
     assert not words[0][1] and words[-1][1]  # the change arrived
     ipc.close()
     plc.close()
+
+
+def test_sent_frames_deep_copy_like_python_can_messages() -> None:
+    """The virtual bus deep-copies each frame sent: the cheaper copy is an equal,
+    independent can.Message."""
+    import copy
+
+    from plc_bridge.link import _TxMessage
+
+    for kw in (
+        {"arbitration_id": 0x200, "data": bytes(range(8)), "is_extended_id": False},
+        {"arbitration_id": 0x1ABCDE, "data": b"\x01", "channel": "c0", "is_rx": False},
+    ):
+        msg = _TxMessage(check=False, **kw)  # type: ignore[arg-type]
+        ref = copy.deepcopy(can.Message(check=False, **kw))  # type: ignore[arg-type]
+        got = copy.deepcopy(msg)
+        assert type(got) is can.Message
+        assert all(getattr(got, a) == getattr(ref, a) for a in can.Message.__slots__ if a[0] != "_")
+        assert got.data == msg.data and got.data is not msg.data
+        got.data[0] ^= 0xFF
+        assert got.data != msg.data  # independent
+
+
+def test_counter_lookup_is_check_counter(project: ProjectConfig) -> None:
+    from plc_bridge.e2e import check_counter
+    from plc_bridge.supervision import RxRecord
+
+    for max_delta in (1, 2, 5, 14):
+        rec = RxRecord(FrameCodec(CAT.by_name("PLC_RodPos_0")), 0.1, max_delta)
+        for last in (None, *range(15)):
+            for counter in range(16):
+                i = (15 if last is None else last) * 16 + counter
+                assert rec._counter_checks[i] == check_counter(last, counter, max_delta)
