@@ -29,7 +29,6 @@ E-stop from the PLC takes the machine to ESTOP (valves closed) until released an
 
 from __future__ import annotations
 
-import copy
 import threading
 from dataclasses import dataclass
 from typing import Any, NamedTuple, Protocol
@@ -512,7 +511,7 @@ class ServiceCore:
             x=x,
             link=lstate,
             metrics=dict(self.attitude.metrics),
-            motion=copy.copy(self.motion),
+            motion=MotionStats(**vars(self.motion)),  # a copy (copy.copy: 4x the time)
             loop=self.loop_stats,
         )
         if self.record is not None:
