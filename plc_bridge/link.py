@@ -60,7 +60,14 @@ from plc_bridge.catalog import Catalog, MessageSpec, load_catalog
 from plc_bridge.codec import FrameCodec
 from plc_bridge.e2e import COUNTER_MODULO
 from plc_bridge.errors import BusLoadError
-from plc_bridge.supervision import RX_FAULTS, BusHealth, BusState, LinkState, RxRecord
+from plc_bridge.supervision import (
+    RX_FAULTS,
+    BusHealth,
+    BusState,
+    LinkState,
+    RxRecord,
+    all_fresh,
+)
 
 log = logging.getLogger("plc_bridge")
 
@@ -457,13 +464,13 @@ class _Side:
             now = self._clock()
         if not self.bus_health.can_send():
             return LinkState.LOST
-        if not all(r.fresh(now) for r in self._critical()):
+        if not all_fresh(self._critical(), now):
             return LinkState.LOST
         if (
             self.bus_health.state is not BusState.ACTIVE
             or now - self._last_fault <= FAULT_HOLD_S
             or now - self.bus_health.last_fault_time <= FAULT_HOLD_S
-            or not all(r.fresh(now) for r in self._rx.values())
+            or not all_fresh(self._rx.values(), now)
         ):
             return LinkState.DEGRADED
         return LinkState.OK

@@ -19,6 +19,7 @@ import errno
 import logging
 import math
 from collections import Counter
+from collections.abc import Iterable
 from enum import StrEnum
 
 from plc_bridge.bus import ErrorFrame
@@ -188,6 +189,15 @@ class RxRecord:
             self.values = None
         self.was_fresh = fresh
         return went_stale
+
+
+def all_fresh(records: Iterable[RxRecord], now: float) -> bool:
+    """``all(r.fresh(now) for r in records)`` without the generator (the link's state
+    is asked every loop cycle, over every received message)."""
+    for r in records:  # noqa: SIM110 - the generator is what this avoids
+        if not r.fresh(now):
+            return False
+    return True
 
 
 class BusState(StrEnum):
