@@ -728,7 +728,7 @@ class IpcLink(_Side):
         val *= si_per_unit  # DBC unit -> SI, factor from config.units
         if width > 1:
             val = val.reshape(N_CYLINDERS, width)
-        return Reading(value=val, valid=~np.isnan(val), age_s=np.array(ages))
+        return Reading(value=val, valid=val == val, age_s=np.array(ages))  # == : not NaN
 
     def positions_m(self, now: float | None = None) -> Reading:
         """Rod positions from fully retracted [m], by ``can_index`` (NaN where not valid)."""

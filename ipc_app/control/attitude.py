@@ -172,8 +172,10 @@ class AttitudeController:
             h = self._half_lists[name]
             e0, e1, e2, e3 = (y[0] - h[0], y[1] - h[1], y[2] - h[2], y[3] - h[3])
             self.metrics[name] = LayerMetrics(
-                sync_error_m=max(abs(v) for v in group.last_sync_error),
+                sync_error_m=max(map(abs, group.last_sync_error)),
                 twist_m=abs((e0 - e1 + e2 - e3) / 4.0),
-                tracking_error_m=max(abs(ri - yi) for ri, yi in zip(r, y, strict=True)),
+                tracking_error_m=max(
+                    abs(r[0] - y[0]), abs(r[1] - y[1]), abs(r[2] - y[2]), abs(r[3] - y[3])
+                ),
             )
         return np.array(u)
