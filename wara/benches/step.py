@@ -57,7 +57,8 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     quick = bool(getattr(args, "quick", False))
     idle_s, hold_s = (0.5, 1.0) if quick else (3.0, 4.0)
     cfg = load_project(config_path)
-    logging_handle = configure_logging("INFO")  # JSON lines on stderr, as in the service
+    # JSON lines on stderr, as in the service; loggers not cached (no logging per step)
+    logging_handle = configure_logging("INFO", cache_loggers=False)
     samples: dict[str, tuple[list[int], list[int]]] = {str(m): ([], []) for m in Mode}
     with tempfile.TemporaryDirectory(prefix="wara-bench-step-") as tmp:
         record = RunRecorder(Path(tmp) / "run", ServiceCore.record_columns(cfg))
