@@ -90,13 +90,12 @@ class FrameCodec:
         return raws
 
     def _finish(self, word: int) -> bytes:
-        body = bytearray(word.to_bytes(self.dlc, "little"))
+        """The frame of ``word`` (byte 0 still zero) with its CRC in byte 0."""
         t = CRC_TABLE
         crc = self._crc0
-        for b in body[1:]:
+        for b in (word >> 8).to_bytes(self.dlc - 1, "little"):  # bytes 1..DLC-1
             crc = t[crc ^ b]
-        body[0] = crc
-        return bytes(body)
+        return (word | crc).to_bytes(self.dlc, "little")
 
     def encode_raw(self, counter: int, raws: Sequence[int]) -> bytes:
         """Frame bytes from raw signal values (not range-checked) and the alive counter."""

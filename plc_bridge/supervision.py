@@ -19,11 +19,12 @@ import errno
 import logging
 import math
 from collections import Counter
+from collections.abc import Iterable
 from enum import StrEnum
 
 from plc_bridge.bus import ErrorFrame
 from plc_bridge.codec import FrameCodec
-from plc_bridge.e2e import CounterCheck, check_counter
+from plc_bridge.e2e import COUNTER_MODULO, CounterCheck, check_counter
 
 log = logging.getLogger("plc_bridge")
 
@@ -76,6 +77,8 @@ class RxRecord:
     """Supervision and latest accepted values of one received message."""
 
     __slots__ = (
+        "_counter_checks",
+        "_nan_checked",
         "codec",
         "counters",
         "grace_timeout_s",
@@ -99,6 +102,15 @@ class RxRecord:
         self.grace_until = -math.inf
         self.max_delta = max_delta
         self.nan_ok = tuple(s.sna_raw is not None for s in codec.spec.signals)
+        # False when every signal may be NaN (positions, pressures): nothing to check
+        self._nan_checked = not all(self.nan_ok)
+        # check_counter(last, counter, max_delta) for every (last, counter), by
+        # (15 if last is None else last) * 16 + counter: one lookup per frame
+        self._counter_checks = tuple(
+            check_counter(last, counter, max_delta)
+            for last in (*range(COUNTER_MODULO), None)
+            for counter in range(16)
+        )
         self.last_counter: int | None = None
         self.last_rx: float | None = None
         self.values: tuple[float, ...] | None = None
@@ -121,15 +133,18 @@ class RxRecord:
         elif not codec.check_crc(data):
             outcome = "crc_error"
         else:
-            result, lost = check_counter(self.last_counter, data[1] & 0x0F, self.max_delta)
+            counter = data[1] & 0x0F
+            last = self.last_counter
+            result, lost = self._counter_checks[(15 if last is None else last) * 16 + counter]
             if result is CounterCheck.OK:
                 values = codec.decode(data)
                 bad = False
-                for v, nan_ok in zip(values, self.nan_ok, strict=True):
-                    if v != v and not nan_ok:
-                        bad = True
-                        break
-                self.last_counter = data[1] & 0x0F
+                if self._nan_checked:
+                    for v, nan_ok in zip(values, self.nan_ok, strict=True):
+                        if v != v and not nan_ok:
+                            bad = True
+                            break
+                self.last_counter = counter
                 if bad:
                     outcome = "value_error"
                 else:
@@ -174,6 +189,15 @@ class RxRecord:
             self.values = None
         self.was_fresh = fresh
         return went_stale
+
+
+def all_fresh(records: Iterable[RxRecord], now: float) -> bool:
+    """``all(r.fresh(now) for r in records)`` without the generator (the link's state
+    is asked every loop cycle, over every received message)."""
+    for r in records:  # noqa: SIM110 - the generator is what this avoids
+        if not r.fresh(now):
+            return False
+    return True
 
 
 class BusState(StrEnum):

@@ -7,6 +7,7 @@ import math
 import subprocess
 import sys
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -221,3 +222,51 @@ def test_cli_table(capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["plan", "--roll-deg", "2", "--pitch-deg", "1"]) == 0
     out = capsys.readouterr().out
     assert "FEASIBLE" in out and "upper" in out and "trajectory duration" in out
+
+
+def _former_reference(tr: Any, t: float) -> tuple[np.ndarray, ...]:
+    """``Trajectory.reference`` as it was written on numpy (the definition the loop's
+    plain-float form must reproduce bit for bit)."""
+    from ipc_app.planner.trajectory import time_scaling
+
+    if tr.duration_s <= 0:
+        tau, rate = np.asarray(1.0), 0.0
+    else:
+        tau, rate = np.asarray(t / tr.duration_s), 1.0 / tr.duration_s
+    s, ds, _ = time_scaling(tr.profile, tau)
+    eps = 1e-7
+    _, _, dl = tr.lower.at(s)
+    _, _, du = tr.upper.at(s)
+    _, _, dl2 = tr.lower.at(s + eps)
+    _, _, du2 = tr.upper.at(s + eps)
+    sdot = float(ds) * rate
+    return dl, du, (dl2 - dl) / eps * sdot, (du2 - du) / eps * sdot
+
+
+@pytest.mark.parametrize("profile", ["quintic", "trapezoidal"])
+def test_reference_on_plain_floats_equals_the_numpy_form_bit_for_bit(
+    project: ProjectConfig, profile: str
+) -> None:
+    from dataclasses import replace
+
+    from ipc_app.planner.trajectory import time_scaling, time_scaling_at
+
+    for tau in np.linspace(-0.01, 1.01, 20_001).tolist():
+        s_np, ds_np, _ = time_scaling(profile, np.asarray(tau))  # 0-d, as the loop had it
+        assert time_scaling_at(profile, tau) == (float(s_np), float(ds_np)), tau
+
+    twisted_start = {"start_lower_m": (0.0004, -0.0003, -0.0002, 0.0006)}
+    cases = [((2.0, 1.0), {}), ((-3.0, 2.0), {}), ((5.0, -1.0), twisted_start)]
+    for (roll, pitch), start in cases:
+        tr = plan(project, roll, pitch, **start).trajectory  # type: ignore[arg-type]
+        assert tr is not None
+        tr = replace(tr, profile=profile)
+        assert tr.lower.twist0 != 0.0 or not start  # the twist/heave terms are exercised
+        for t in [*np.linspace(-0.5, tr.duration_s + 0.5, 3001).tolist(), 0.0, tr.duration_s]:
+            new = tr.sample(t)
+            old = _former_reference(tr, t)
+            for a, b in zip(new, old, strict=True):
+                assert np.array_equal(np.array(a), b), (t, a, b)
+            assert all(np.array_equal(a, b) for a, b in zip(tr.reference(t), old, strict=True))
+            pl, pu = tr.positions(t)
+            assert (pl, pu) == (new[0], new[1])

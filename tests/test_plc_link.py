@@ -470,3 +470,105 @@ def test_status_and_hmi_target_follow_each_new_frame(project: ProjectConfig) -> 
     assert ipc.status() is None and ipc.hmi_target() is None  # stale: never the cached one
     ipc.close()
     plc.close()
+
+
+def test_valve_commands_match_the_former_numpy_form(project: ProjectConfig) -> None:
+    """NaN -> 0 and clipping to [-1, 1] on plain floats: the same frames and counts as the
+    former np.where / np.clip form (kept here as the definition)."""
+    rng = np.random.default_rng(7)
+    cases = [rng.uniform(-1.5, 1.5, 19) for _ in range(200)]
+    for u in cases[:100]:
+        u[rng.integers(0, 19, 3)] = [np.nan, np.inf, -np.inf]
+    cases += [np.zeros(19), -np.zeros(19), np.full(19, np.nan), np.linspace(-1, 1, 19)]
+    link, bus, clock = _ipc(project)
+    ref_link, ref_bus, _ = _ipc(project)  # sent the former form's values: already clean
+    bus.sent.clear()
+    ref_bus.sent.clear()
+    nan_total = clipped_total = 0
+    for u in cases:
+        link.send_valve_commands(u, clock.t)
+        arr = np.asarray(u, dtype=float)
+        nan = np.isnan(arr)
+        nan_total += int(nan.sum())
+        arr = np.where(nan, 0.0, arr)
+        over = np.abs(arr) > 1.0
+        clipped_total += int(over.sum())
+        ref_link.send_valve_commands(np.clip(arr, -1.0, 1.0), clock.t)
+        clock.advance(DT)
+    assert [(m.arbitration_id, bytes(m.data)) for m in bus.sent] == [
+        (m.arbitration_id, bytes(m.data)) for m in ref_bus.sent
+    ]
+    assert len(bus.sent) > 2 * len(cases)
+    assert link.tx_counts["nan"] == nan_total > 0
+    assert link.tx_counts["clipped"] == clipped_total > 0
+    assert "nan" not in ref_link.tx_counts and "clipped" not in ref_link.tx_counts
+
+
+def test_unchanged_control_word_sends_nothing(project: ProjectConfig) -> None:
+    link, bus, _ = _ipc(project)
+    bus.sent.clear()
+    link.set_control(mode=Mode.IDLE, enable=False)  # already so
+    assert bus.sent == []
+    link.set_control(mode=Mode.ATTITUDE_ADJUST, enable=True)
+    link.set_control(mode=Mode.ATTITUDE_ADJUST, enable=True)
+    assert len(bus.sent) == 1 and link.control.enable
+    with pytest.raises(TypeError):
+        link.set_control(not_a_field=1)
+
+
+def test_limit_switches_are_one_read_only_word_per_frame(project: ProjectConfig) -> None:
+    clock = Clock()
+    bus, plc_bus = QueueBus(), QueueBus()
+    ipc = IpcLink(project, bus, clock=clock)
+    plc = PlcLink(project, plc_bus, clock=clock)
+    words = []
+    for k in range(200):
+        plc.set_limit_switches([i == 3 and k >= 100 for i in range(19)], [False] * 19)
+        plc.poll()
+        for m in plc_bus.sent:
+            bus.inject(m)
+        plc_bus.sent.clear()
+        ipc.poll()
+        clock.advance(DT)
+        ls = ipc.limit_switches()
+        if ls is not None:
+            assert ls is ipc.limit_switches()  # no new frame: the same word
+            assert not ls.retracted.flags.writeable and not ls.extended.flags.writeable
+            words.append((id(ls), bool(ls.retracted[3])))
+    assert len({w for w, _ in words}) > 2  # a new word per received frame
+    assert not words[0][1] and words[-1][1]  # the change arrived
+    ipc.close()
+    plc.close()
+
+
+def test_sent_frames_deep_copy_like_python_can_messages() -> None:
+    """The virtual bus deep-copies each frame sent: the cheaper copy is an equal,
+    independent can.Message."""
+    import copy
+
+    from plc_bridge.link import _TxMessage
+
+    for kw in (
+        {"arbitration_id": 0x200, "data": bytes(range(8)), "is_extended_id": False},
+        {"arbitration_id": 0x1ABCDE, "data": b"\x01", "channel": "c0", "is_rx": False},
+    ):
+        msg = _TxMessage(check=False, **kw)  # type: ignore[arg-type]
+        ref = copy.deepcopy(can.Message(check=False, **kw))  # type: ignore[arg-type]
+        got = copy.deepcopy(msg)
+        assert type(got) is can.Message
+        assert all(getattr(got, a) == getattr(ref, a) for a in can.Message.__slots__ if a[0] != "_")
+        assert got.data == msg.data and got.data is not msg.data
+        got.data[0] ^= 0xFF
+        assert got.data != msg.data  # independent
+
+
+def test_counter_lookup_is_check_counter(project: ProjectConfig) -> None:
+    from plc_bridge.e2e import check_counter
+    from plc_bridge.supervision import RxRecord
+
+    for max_delta in (1, 2, 5, 14):
+        rec = RxRecord(FrameCodec(CAT.by_name("PLC_RodPos_0")), 0.1, max_delta)
+        for last in (None, *range(15)):
+            for counter in range(16):
+                i = (15 if last is None else last) * 16 + counter
+                assert rec._counter_checks[i] == check_counter(last, counter, max_delta)

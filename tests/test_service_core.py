@@ -154,3 +154,70 @@ def test_pressure_and_stroke_end_checks_name_the_cylinder(
     x[j] = core.stroke[j] - core.end_margin_m / 2
     core._motion_checks(x)
     assert faults == [f"stroke end: {project.cylinders_by_can_index[j].id} at {x[j] * 1e3:.1f} mm"]
+
+
+def test_interlock_checks_match_their_former_numpy_form(
+    project: ProjectConfig, worker: PlannerWorker
+) -> None:
+    """The pressure peak (one reduction) and the stroke-end check (plain floats, the switch
+    mask once per word) give the messages of the former numpy definitions (kept here)."""
+    from plc_bridge.link import LimitSwitches, LinkState
+
+    core, _, _ = _setup(project, worker)
+    rng = np.random.default_rng(3)
+    status = PlcStatus(pump_running=True, drives_enabled=True)
+    n = len(project.cylinders)
+    lim = core.max_pressure_pa
+
+    def former_pressure(p: np.ndarray, valid: np.ndarray) -> list[str]:
+        if valid.any():
+            pv = np.where(valid, p, 0.0)
+            if float(pv.max()) > lim:
+                i = int(np.argmax(pv.max(axis=1)))
+                return [f"pressure: {project.cylinders_by_can_index[i].id} "]
+        return []
+
+    hits = 0
+    for k in range(400):
+        p = rng.uniform(-1e6, lim * (1.1 if k % 2 else 0.99), (n, 2))
+        p[rng.random((n, 2)) < (0.3 if k % 3 else 1.0)] = np.nan  # some or all invalid
+        valid = ~np.isnan(p)
+        got = core._conditions(True, status, LinkState.OK, p, valid)
+        want = former_pressure(p, valid)
+        assert len(got) == len(want) and all(
+            g.startswith(w) for g, w in zip(got, want, strict=True)
+        )
+        hits += len(want)
+    assert 50 < hits < 350  # both outcomes exercised
+
+    idx = core.active
+    faults: list[str] = []
+    core.modes.fault = faults.append  # type: ignore[method-assign,assignment]
+    switches: list[LimitSwitches | None] = [None]
+    core.link.limit_switches = lambda now=None: switches[0]  # type: ignore[method-assign]
+
+    def former_stroke(x: np.ndarray, limits: LimitSwitches | None) -> list[str]:
+        xa = x[core._active_arr]
+        near = (xa < core.end_margin_m) | (xa > core._stroke_hi)
+        if limits is not None:
+            near |= limits.retracted[core._active_arr] | limits.extended[core._active_arr]
+        if near.any():
+            cid = project.cylinders_by_can_index[idx[int(np.argmax(near))]].id
+            return [f"stroke end: {cid} at {float(x[idx][near][0]) * 1e3:.1f} mm"]
+        return []
+
+    core.attitude.metrics = {}  # only the stroke-end part
+    hits = 0
+    for k in range(400):
+        x = core.stroke * rng.uniform(-0.002, 1.002, n)
+        if k % 4 == 0:
+            x = core.stroke / 2
+        if k % 5 == 0:
+            switches[0] = LimitSwitches(rng.random(n) < 0.05, rng.random(n) < 0.05)
+        elif k % 5 == 1:
+            switches[0] = None
+        faults.clear()
+        core._motion_checks(x)
+        assert faults == former_stroke(x, switches[0]), k
+        hits += len(faults)
+    assert 50 < hits < 350

@@ -102,27 +102,49 @@ class AttitudeController:
 
     def references(self, t_now: float) -> FloatArray:
         """Rod-position references (m from the retracted end) of all 19 cylinders."""
-        ref = self.hold_ref.copy()
-        if self.trajectory is not None:
-            d_lower, d_upper = self.trajectory.positions(t_now - self.t_start)
-            lo, up = self.layers["lower"], self.layers["upper"]
-            ref[lo] = self.half_stroke[lo] + d_lower
-            ref[up] = self.half_stroke[up] + d_upper
-        return ref
+        return self._sample(t_now, False)[0]
 
     def references_and_rates(self, t_now: float) -> tuple[FloatArray, FloatArray | None]:
         """:meth:`references` and the rod speeds of the trajectory (None when holding)."""
-        if self.trajectory is None:
-            return self.hold_ref.copy(), None
-        d_lower, d_upper, v_lower, v_upper = self.trajectory.reference(t_now - self.t_start)
-        lo, up = self.layers["lower"], self.layers["upper"]
-        ref = self.hold_ref.copy()
-        ref[lo] = self.half_stroke[lo] + d_lower
-        ref[up] = self.half_stroke[up] + d_upper
+        ref, _, layer_rates = self._sample(t_now, True)
+        if layer_rates is None:
+            return ref, None
         rates = np.zeros(self.n)
-        rates[lo] = v_lower
-        rates[up] = v_upper
+        for name, idx in self.layers.items():
+            rates[idx] = layer_rates[name]
         return ref, rates
+
+    def _sample(
+        self, t_now: float, with_rates: bool
+    ) -> tuple[FloatArray, dict[str, list[float]], dict[str, list[float]] | None]:
+        """This cycle's references: all 19 (array), each layer's four (plain floats), and
+        each layer's rod speeds (``with_rates`` and following a trajectory, else None).
+
+        ``x_ref = stroke / 2 + d(t)``, element by element as numpy would add them.
+        """
+        traj = self.trajectory
+        held = self.hold_ref.tolist()
+        if traj is None:
+            return (
+                self.hold_ref.copy(),
+                {k: [held[i] for i in idx] for k, idx in self.layers.items()},
+                None,
+            )
+        t = t_now - self.t_start
+        rates: dict[str, list[float]] | None = None
+        if with_rates:
+            d_lower, d_upper, v_lower, v_upper = traj.sample(t)
+            rates = {"lower": v_lower, "upper": v_upper}
+        else:
+            d_lower, d_upper = traj.positions(t)
+        per_layer: dict[str, list[float]] = {}
+        for name, d in (("lower", d_lower), ("upper", d_upper)):
+            h = self._half_lists[name]
+            r = [h[0] + d[0], h[1] + d[1], h[2] + d[2], h[3] + d[3]]
+            for i, v in zip(self.layers[name], r):  # noqa: B905 - four each
+                held[i] = v
+            per_layer[name] = r
+        return np.array(held), per_layer, rates
 
     def final_references(self) -> FloatArray:
         """End point of the present trajectory (or the hold references)."""
@@ -134,24 +156,26 @@ class AttitudeController:
 
     def update(self, t_now: float, x_rod_m: FloatArray) -> FloatArray:
         """Valve commands (19 values in [-1, 1]) for this cycle."""
-        if self.feedforward:
-            ref, rates = self.references_and_rates(t_now)
-        else:
-            ref, rates = self.references(t_now), None
+        ref, layer_refs, layer_rates = self._sample(t_now, self.feedforward)
         self.last_references = ref
-        u = np.zeros(self.n)
+        xs = x_rod_m.tolist()
+        u = [0.0] * self.n
         # Four values per layer: plain floats (numpy's per-call overhead dominates here);
         # the same IEEE operations in the same order as kinematics.twist, so bit-identical.
         for name, idx in self.layers.items():
             group = self.groups[name]
-            y = x_rod_m[idx].tolist()
-            r = ref[idx].tolist()
-            u[idx] = group.update(r, y, None if rates is None else rates[idx].tolist())
+            y = [xs[i] for i in idx]
+            r = layer_refs[name]
+            cmds = group.commands(r, y, None if layer_rates is None else layer_rates[name])
+            for i, c in zip(idx, cmds):  # noqa: B905 - four each
+                u[i] = c
             h = self._half_lists[name]
             e0, e1, e2, e3 = (y[0] - h[0], y[1] - h[1], y[2] - h[2], y[3] - h[3])
             self.metrics[name] = LayerMetrics(
-                sync_error_m=max(abs(v) for v in group.last_sync_error),
+                sync_error_m=max(map(abs, group.last_sync_error)),
                 twist_m=abs((e0 - e1 + e2 - e3) / 4.0),
-                tracking_error_m=max(abs(ri - yi) for ri, yi in zip(r, y, strict=True)),
+                tracking_error_m=max(
+                    abs(r[0] - y[0]), abs(r[1] - y[1]), abs(r[2] - y[2]), abs(r[3] - y[3])
+                ),
             )
-        return u
+        return np.array(u)

@@ -105,6 +105,15 @@ class SyncGroup:
         ``reference_rates``: each reference's rate, handed to the controllers as
         feed-forward (None: none). The synchronization term is feedback only.
         """
+        return np.array(self.commands(references, measurements, reference_rates))
+
+    def commands(
+        self,
+        references: Sequence[float],
+        measurements: Sequence[float] | NDArray[np.float64],
+        reference_rates: Sequence[float] | None = None,
+    ) -> list[float]:
+        """:meth:`update` as a plain list (the attitude loop's form: no array per call)."""
         if isinstance(measurements, np.ndarray):
             ys = measurements.tolist()
         else:
@@ -120,14 +129,10 @@ class SyncGroup:
         lam = self.coupling_lambda
         ctrls = self.controllers
         if reference_rates is None:
-            return np.array(
-                [ctrls[i].update(references[i] + lam * eps[i], ys[i]) for i in range(len(ys))]
-            )
+            return [ctrls[i].update(references[i] + lam * eps[i], ys[i]) for i in range(len(ys))]
         if len(reference_rates) != len(ys):
             raise ValueError(f"expected {len(ys)} reference rates, got {len(reference_rates)}")
-        return np.array(
-            [
-                ctrls[i].update(references[i] + lam * eps[i], ys[i], reference_rates[i])
-                for i in range(len(ys))
-            ]
-        )
+        return [
+            ctrls[i].update(references[i] + lam * eps[i], ys[i], reference_rates[i])
+            for i in range(len(ys))
+        ]

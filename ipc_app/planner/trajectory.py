@@ -17,6 +17,7 @@ checked on a dense grid of ``s`` including the ``d''(s) s_dot^2`` term.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -56,6 +57,30 @@ def time_scaling(profile: str, tau: Array) -> tuple[Array, Array, Array]:
     raise ValueError(f"unknown time scaling {profile!r}; expected 'quintic' or 'trapezoidal'")
 
 
+def time_scaling_at(profile: str, tau: float) -> tuple[float, float]:
+    """``s, ds/dtau`` of :func:`time_scaling` at one ``tau``, on plain floats.
+
+    The same IEEE operations in the same order as :func:`time_scaling` on a 0-d input
+    (what the loop used to pass: ``np.clip`` returns a numpy scalar, whose ``x**2`` is C
+    ``pow`` like Python's, not the ``x * x`` of an array's ``square``), so bit for bit its
+    values (``tests/test_planner.py`` checks it on a dense grid): the control loop samples
+    one point per cycle, where numpy's per-call overhead is most of the cost.
+    """
+    tau = 0.0 if tau < 0.0 else (1.0 if tau > 1.0 else tau)
+    if profile == "quintic":
+        return tau**3 * (10 - 15 * tau + 6 * tau**2), 30 * tau**2 * (1 - tau) ** 2
+    if profile == "trapezoidal":
+        f = 0.25
+        vpk = 1.0 / (1.0 - f)
+        acc = vpk / f
+        if tau < f:
+            return 0.5 * acc * tau**2, acc * tau
+        if tau <= 1 - f:
+            return 0.5 * acc * f**2 + vpk * (tau - f), vpk
+        return 1.0 - 0.5 * acc * (1 - tau) ** 2, acc * (1 - tau)
+    raise ValueError(f"unknown time scaling {profile!r}; expected 'quintic' or 'trapezoidal'")
+
+
 @dataclass(frozen=True)
 class LayerPath:
     """One layer's path in s: start attitude, plan attitude, start heave and twist."""
@@ -76,6 +101,30 @@ class LayerPath:
         d = extensions(roll, pitch, self.a, self.b, self.heave0 * (1 - s))
         d = d + (self.twist0 * (1 - np.asarray(s)))[..., None] * _TWIST_PATTERN
         return roll, pitch, d
+
+    def extensions_at(self, s: float) -> list[float]:
+        """The extensions of :meth:`at` at one ``s``, on plain floats, bit for bit.
+
+        :func:`~ipc_app.model.kinematics.extensions` and the twist term written out per
+        cylinder with the same operations in the same order; ``math.sin``/``math.cos``
+        give numpy's float64 values on this platform (libm; ``tests/test_planner.py``
+        checks the whole path on a dense grid against :meth:`at`).
+        """
+        roll = self.roll0 + s * (self.roll1 - self.roll0)
+        pitch = self.pitch0 + s * (self.pitch1 - self.pitch0)
+        z = self.heave0 * (1 - s)
+        tw = self.twist0 * (1 - s)
+        # extensions(): z - (S_i a) sin(pitch) + ((T_i b) sin(roll)) cos(pitch), then
+        # + twist0 (1 - s) P_i, with S = (1, -1, -1, 1), T = (1, 1, -1, -1) and
+        # P = (1, -1, 1, -1): every product with a sign is the signed product, exactly.
+        asp = self.a * math.sin(pitch)
+        bsc = self.b * math.sin(roll) * math.cos(pitch)
+        return [
+            z - asp + bsc + tw,
+            z - -asp + bsc + -tw,
+            z - -asp + -bsc + tw,
+            z - asp + -bsc + -tw,
+        ]
 
 
 @dataclass(frozen=True)
@@ -100,31 +149,48 @@ class Trajectory:
 
         Returns ``(d_lower, d_upper, v_lower, v_upper)`` (m, m/s, each 4 values), for the
         control loop's reference generator. Before 0 and after the end the trajectory
-        holds its end points.
+        holds its end points. The arrays of :meth:`sample`.
+        """
+        dl, du, vl, vu = self.sample(t)
+        return np.array(dl), np.array(du), np.array(vl), np.array(vu)
+
+    def sample(self, t: float) -> tuple[list[float], list[float], list[float], list[float]]:
+        """:meth:`reference` as plain lists (what the control loop uses every cycle).
+
+        The velocity is the forward difference of the path over ``s`` (step ``1e-7``)
+        times ``ds/dt``. Computed on plain floats (:func:`time_scaling_at`,
+        :meth:`LayerPath.extensions_at`), bit for bit what the former numpy form gave
+        (``tests/test_planner.py``).
         """
         s, ds, rate = self._scaling(t)
         eps = 1e-7
-        _, _, dl = self.lower.at(s)
-        _, _, du = self.upper.at(s)
-        _, _, dl2 = self.lower.at(s + eps)
-        _, _, du2 = self.upper.at(s + eps)
-        sdot = float(ds) * rate
-        return dl, du, (dl2 - dl) / eps * sdot, (du2 - du) / eps * sdot
+        lower, upper = self.lower, self.upper
+        dl = lower.extensions_at(s)
+        du = upper.extensions_at(s)
+        dl2 = lower.extensions_at(s + eps)
+        du2 = upper.extensions_at(s + eps)
+        sdot = ds * rate
+        return (
+            dl,
+            du,
+            [(b - a) / eps * sdot for a, b in zip(dl, dl2)],  # noqa: B905 - four each
+            [(b - a) / eps * sdot for a, b in zip(du, du2)],  # noqa: B905
+        )
 
-    def positions(self, t: float) -> tuple[Array, Array]:
-        """``(d_lower, d_upper)`` of :meth:`reference` without the velocities (half the work;
-        what the control loop needs every cycle)."""
+    def positions(self, t: float) -> tuple[list[float], list[float]]:
+        """``(d_lower, d_upper)`` of :meth:`sample` without the velocities (half the work;
+        what the control loop needs every cycle without feed-forward)."""
         s, _, _ = self._scaling(t)
-        return self.lower.at(s)[2], self.upper.at(s)[2]
+        return self.lower.extensions_at(s), self.upper.extensions_at(s)
 
-    def _scaling(self, t: float) -> tuple[Array, Array, float]:
+    def _scaling(self, t: float) -> tuple[float, float, float]:
         if self.duration_s <= 0:
-            tau = np.asarray(1.0)
+            tau = 1.0
             rate = 0.0
         else:
-            tau = np.asarray(t / self.duration_s)
+            tau = t / self.duration_s
             rate = 1.0 / self.duration_s
-        s, ds, _ = time_scaling(self.profile, tau)
+        s, ds = time_scaling_at(self.profile, tau)
         return s, ds, rate
 
 

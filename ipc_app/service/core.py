@@ -30,8 +30,8 @@ E-stop from the PLC takes the machine to ESTOP (valves closed) until released an
 from __future__ import annotations
 
 import threading
-from dataclasses import dataclass, replace
-from typing import Any, Protocol
+from dataclasses import dataclass
+from typing import Any, NamedTuple, Protocol
 
 import numpy as np
 import structlog
@@ -82,8 +82,7 @@ class MotionStats:
     plan: dict[str, Any] | None = None
 
 
-@dataclass(frozen=True)
-class _Published:
+class _Published(NamedTuple):
     """One cycle's figures for :meth:`ServiceCore.snapshot` (built in the caller's thread)."""
 
     modes: dict[str, Any]
@@ -130,6 +129,9 @@ class ServiceCore:
         self.end_margin_m = units.mm(s.stroke_end_margin_mm)
         self._active_arr = np.array(self.active, dtype=np.intp)
         self._stroke_hi = self.stroke[self._active_arr] - self.end_margin_m
+        self._stroke_hi_list: list[float] = self._stroke_hi.tolist()
+        # the last limit-switch word and its per-active-cylinder mask (_motion_checks)
+        self._limits_of: tuple[object, list[bool] | None] = (None, None)
         self._present: list[str] = []  # interlock conditions present this cycle
         self.modes = ModeMachine(
             active_causes=lambda: list(self._present), on_transition=self._on_transition
@@ -268,7 +270,7 @@ class ServiceCore:
         status = link.status(now)
         lstate = link.state(now)
         x = pos.value
-        valid = pos.all_valid(self.active)
+        valid = bool(pos.valid[self._active_arr].all())  # Reading.all_valid(self.active)
         mode = self.modes.mode
 
         # E-stop first: it needs nothing else to be valid.
@@ -352,16 +354,18 @@ class ServiceCore:
                 else status.fault
             )
             out.append(f"plc fault: {name}")
-        if p_valid.any():
-            pv = np.where(p_valid, p, 0.0)
-            if float(pv.max()) > self.max_pressure_pa:  # rare: then find whose it is
-                i = int(np.argmax(pv.max(axis=1)))
-                peak = float(pv[i].max())
-                cid = self._by_index[i].id
-                out.append(
-                    f"pressure: {cid} {units.to_mpa(peak):.2f} MPa above the limit "
-                    f"{units.to_mpa(self.max_pressure_pa):.2f} MPa"
-                )
+        # The largest valid pressure (NaN where not valid, so fmax skips them; NaN when
+        # none is), against the limit (positive, so the zeros the former np.where put
+        # in for invalid values never mattered).
+        if float(np.fmax.reduce(p, axis=None)) > self.max_pressure_pa:
+            pv = np.where(p_valid, p, 0.0)  # rare: then find whose it is
+            i = int(np.argmax(pv.max(axis=1)))
+            peak = float(pv[i].max())
+            cid = self._by_index[i].id
+            out.append(
+                f"pressure: {cid} {units.to_mpa(peak):.2f} MPa above the limit "
+                f"{units.to_mpa(self.max_pressure_pa):.2f} MPa"
+            )
         return out
 
     def _hmi_ack(self, status: TargetAck, seq: int | None = None) -> None:
@@ -385,15 +389,24 @@ class ServiceCore:
                     f"sync error: {name} group {units.to_mm(m.sync_error_m):.2f} mm above the "
                     f"limit {units.to_mm(self.max_sync_m):.2f} mm"
                 )
-        idx = self.active
-        xa = x[self._active_arr]
-        near = (xa < self.end_margin_m) | (xa > self._stroke_hi)
+        # Plain floats: the first active rod within the margin of an end or at a limit
+        # switch (the mask of the switches is worked out once per received word).
         limits = self.link.limit_switches(self._now)
-        if limits is not None:
-            near |= limits.retracted[self._active_arr] | limits.extended[self._active_arr]
-        if near.any():
-            cid = self._by_index[idx[int(np.argmax(near))]].id
-            self.modes.fault(f"stroke end: {cid} at {units.to_mm(float(x[idx][near][0])):.1f} mm")
+        if limits is not self._limits_of[0]:
+            at = None
+            if limits is not None:
+                a = self._active_arr
+                at = (limits.retracted[a] | limits.extended[a]).tolist()
+            self._limits_of = (limits, at)
+        at_limit = self._limits_of[1]
+        xs = x.tolist()
+        lo = self.end_margin_m
+        for k, (i, hi) in enumerate(zip(self.active, self._stroke_hi_list, strict=True)):
+            v = xs[i]
+            if v < lo or v > hi or (at_limit is not None and at_limit[k]):
+                cid = self._by_index[i].id
+                self.modes.fault(f"stroke end: {cid} at {units.to_mm(v):.1f} mm")
+                break
 
     def _planning(self, x: np.ndarray, valid: bool, now: float) -> None:
         mode = self.modes.mode
@@ -498,28 +511,34 @@ class ServiceCore:
             x=x,
             link=lstate,
             metrics=dict(self.attitude.metrics),
-            motion=replace(self.motion),
+            motion=MotionStats(**vars(self.motion)),  # a copy (copy.copy: 4x the time)
             loop=self.loop_stats,
         )
         if self.record is not None:
+            # The row on plain floats (the values numpy's indexing gave, without an
+            # array per column group).
+            active = self.active
+            xs = x.tolist()
             if not enabled:
-                ref = x[self.active]
+                refs = xs
             elif ref_now is not None:
-                ref = ref_now[self.active]
+                refs = ref_now.tolist()
             else:
-                ref = self.attitude.references(now)[self.active]
+                refs = self.attitude.references(now).tolist()
+            us = u.tolist()
+            to_mm = units.to_mm
             met = self.attitude.metrics
             self.record.sample(
                 now,
                 [
                     float(_MODE_CODES[self.modes.mode]),
                     float(enabled),
-                    *(units.to_mm(v) for v in x[self.active]),
-                    *(units.to_mm(v) for v in ref),
-                    *u[self.active],
-                    units.to_mm(met["lower"].twist_m),
-                    units.to_mm(met["upper"].twist_m),
-                    units.to_mm(met["lower"].sync_error_m),
-                    units.to_mm(met["upper"].sync_error_m),
+                    *[to_mm(xs[i]) for i in active],
+                    *[to_mm(refs[i]) for i in active],
+                    *[us[i] for i in active],
+                    to_mm(met["lower"].twist_m),
+                    to_mm(met["upper"].twist_m),
+                    to_mm(met["lower"].sync_error_m),
+                    to_mm(met["upper"].sync_error_m),
                 ],
             )

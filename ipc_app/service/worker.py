@@ -226,6 +226,8 @@ class PlannerWorker:
 
     def poll(self) -> PlanResult | None:
         """The next finished result, or None; never blocks."""
+        if self._out.empty():  # the usual case, every loop cycle: no exception raised
+            return None
         try:
             return self._out.get_nowait()
         except queue.Empty:

@@ -20,6 +20,7 @@ BENCHES: dict[str, str] = {
     "loop": "wara.benches.loop:run",
     "hil": "wara.benches.hil:run",
     "transport": "wara.benches.transport:run",
+    "step": "wara.benches.step:run",
 }
 
 
