@@ -73,6 +73,11 @@ def test_example_1_through_two_processes(netns: None) -> None:
     loop = out["loop"]
     assert loop["reports"] >= 1 and loop["measured_cycles"] > 0
     assert loop["compute_p99_ms"] is not None and loop["overruns"] is not None
+    # Placement: with two CPUs or more the loop thread and the simulator get their own.
+    pl = out["placement"]
+    if len(os.sched_getaffinity(0)) >= 2:
+        assert pl["service_loop_cpus"] and pl["simulator_cpus"], pl
+        assert not set(pl["service_loop_cpus"]) & set(pl["simulator_cpus"])
     # The loop goal is judged (exit 1 when not met on a busy machine), never skipped.
     assert proc.returncode == (0 if out["passed"] else 1)
 
@@ -103,3 +108,29 @@ def test_two_process_options_are_checked() -> None:
     assert main(["demo", "--settle-s", "3"]) == 2  # only with --two-process
     assert main(["demo", "--two-process", "--settle-s", "0.5"]) == 2
     assert main(["demo", "--two-process", "--examples", "4"]) == 2
+    assert main(["demo", "--no-pin"]) == 2  # only with --two-process
+
+
+def test_placement_of_loop_and_simulator(tmp_path: Path) -> None:
+    import yaml
+
+    from config import load_project
+    from wara.demo_two_process import loop_cpus, multicast_config, simulator_cpus
+
+    cfg = load_project()
+    assert loop_cpus(cfg, [0, 1]) == [0] and loop_cpus(cfg, [3]) == []
+    pinned = multicast_config(None, tmp_path / "p.yaml", pin=True)
+    free = sorted(os.sched_getaffinity(0))
+    if len(free) >= 2:
+        assert list(pinned.control.realtime.cpu_affinity) == [free[0]]
+        assert simulator_cpus(pinned, free) == free[1:]
+    unpinned = multicast_config(None, tmp_path / "u.yaml", pin=False)
+    assert not unpinned.control.realtime.cpu_affinity
+    assert simulator_cpus(unpinned, free) == []
+    # A project that pins its loop itself keeps its choice.
+    data = yaml.safe_load((tmp_path / "u.yaml").read_text())
+    data["control"]["realtime"]["cpu_affinity"] = [1]
+    (tmp_path / "own.yaml").write_text(yaml.safe_dump(data))
+    own = multicast_config(tmp_path / "own.yaml", tmp_path / "o.yaml", pin=True)
+    assert list(own.control.realtime.cpu_affinity) == [1]
+    assert simulator_cpus(own, [0, 1, 2]) == [0, 2]

@@ -74,3 +74,32 @@ def test_wara_bench_hil_json(capsys: pytest.CaptureFixture[str]) -> None:
     out = json.loads(capsys.readouterr().out)
     assert out["cylinders"] == 19 and out["step_ms"] == 0.25
     assert out["realtime_factor"] > 0 and out["plant_realtime_factor"] > out["realtime_factor"]
+
+
+def test_wara_hil_cpus_are_checked(capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["hil", "--lockstep", "--duration", "0.1", "--cpus", "x"]) == 2
+    assert "expected CPU numbers" in capsys.readouterr().err
+    assert main(["hil", "--lockstep", "--duration", "0.1", "--cpus", "4095"]) == 2
+    assert "this process may use" in capsys.readouterr().err
+
+
+def test_wara_hil_runs_on_the_cpus_given() -> None:
+    """In a child process (pinning the test runner would outlive the test)."""
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    cpu = min(os.sched_getaffinity(0))
+    code = (
+        "import os, sys; from wara.cli import main; "
+        f"rc = main(['hil', '--lockstep', '--duration', '0.05', '--quiet', '--cpus', '{cpu}']); "
+        "print(sorted(os.sched_getaffinity(0))); sys.exit(rc)"
+    )
+    repo = Path(__file__).resolve().parents[1]
+    proc = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, timeout=120,
+        cwd=repo, env={**os.environ, "PYTHONPATH": str(repo)}, check=False,
+    )  # fmt: skip
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout.strip().splitlines()[-1] == f"[{cpu}]"

@@ -120,16 +120,45 @@ def netns_problem() -> str | None:
     return None
 
 
+def loop_cpus(cfg: ProjectConfig, available: Sequence[int]) -> list[int]:
+    """The CPU for the service's loop thread when the demo places the processes: the
+    project's own ``control.realtime.cpu_affinity`` if it sets one, else the first of
+    ``available`` when there are at least two (none on one CPU)."""
+    if cfg.control.realtime.cpu_affinity:
+        return list(cfg.control.realtime.cpu_affinity)
+    return [min(available)] if len(available) >= 2 else []
+
+
+def simulator_cpus(cfg: ProjectConfig, available: Sequence[int]) -> list[int]:
+    """The simulator's CPUs: the available ones the loop thread is not pinned to."""
+    pinned = set(cfg.control.realtime.cpu_affinity)
+    rest = sorted(set(available) - pinned)
+    return rest if pinned and rest else []
+
+
 def multicast_config(
-    config_path: str | Path | None, out_path: Path, transport: str = DEFAULT_TRANSPORT
+    config_path: str | Path | None,
+    out_path: Path,
+    transport: str = DEFAULT_TRANSPORT,
+    *,
+    pin: bool = False,
 ) -> ProjectConfig:
-    """Copy the project YAML to ``out_path`` with the bus on ``transport``; validated."""
+    """Copy the project YAML to ``out_path`` with the bus on ``transport``; validated.
+
+    ``pin``: the service's loop thread gets a CPU of its own (:func:`loop_cpus`, written
+    as ``control.realtime.cpu_affinity``); the simulator then runs on the others.
+    """
     src = Path(config_path) if config_path is not None else default_project_path()
-    load_project(src)  # a bad config is the user's error (exit 2), reported against src
+    cfg = load_project(src)  # a bad config is the user's error (exit 2), reported against src
     data = yaml.safe_load(src.read_text(encoding="utf-8"))
     can_block = data.setdefault("can", {})
     can_block["interface"] = transport
     can_block["channel"] = MULTICAST_GROUP
+    if pin:
+        cpus = loop_cpus(cfg, sorted(os.sched_getaffinity(0)))
+        if cpus:
+            rt = data.setdefault("control", {}).setdefault("realtime", {})
+            rt["cpu_affinity"] = cpus
     out_path.write_text(
         "# written by `wara demo --two-process` from "
         + str(src)
@@ -157,8 +186,12 @@ def run_two_process(
     min_run_s: float,
     keep_dir: Path | None = None,
     transport: str = DEFAULT_TRANSPORT,
+    pin: bool = True,
 ) -> int:
     """``wara demo --two-process``: make the namespace and re-run inside it; exit code.
+
+    ``pin``: the service's loop thread and the simulator on CPUs of their own (see
+    :func:`multicast_config`); ``False`` leaves the placement to the scheduler.
 
     The inner run prints the table / JSON on this process's stdout. Raises
     :class:`NetnsUnavailable` when the namespace cannot be made.
@@ -172,7 +205,7 @@ def run_two_process(
         else:  # keep the YAML, both logs and the run record (for a look afterwards)
             work = keep_dir.resolve()
             work.mkdir(parents=True, exist_ok=True)
-        multicast_config(config_path, work / "project.yaml", transport)
+        multicast_config(config_path, work / "project.yaml", transport, pin=pin)
         inner = [
             sys.executable,
             "-m",
@@ -468,11 +501,17 @@ def run_inside_netns(
     results: list[ExampleResult] = []
     watch = _LoopWatch()
     say(f"simulator and service on {cfg.can.interface} {cfg.can.channel}:{cfg.can.udp_port}")
-    sim = _Child(
-        "simulator",
-        [*wara, "hil", "--realtime", "--config", config_path, "--status-interval", "2"],
-        workdir / "hil.log",
-    )
+    sim_cpus = simulator_cpus(cfg, sorted(os.sched_getaffinity(0)))
+    placement = {
+        "service_loop_cpus": list(cfg.control.realtime.cpu_affinity),
+        "simulator_cpus": sim_cpus,
+    }
+    if sim_cpus:
+        say(f"service loop on CPU {placement['service_loop_cpus']}, simulator on {sim_cpus}")
+    sim_argv = [*wara, "hil", "--realtime", "--config", config_path, "--status-interval", "2"]
+    if sim_cpus:
+        sim_argv += ["--cpus", ",".join(map(str, sim_cpus))]
+    sim = _Child("simulator", sim_argv, workdir / "hil.log")
     svc_child: _Child | None = None
     codes: dict[str, int] = {}
     try:
@@ -558,6 +597,7 @@ def run_inside_netns(
     return {
         "mode": "two-process",
         "bus": f"{cfg.can.interface} {cfg.can.channel}:{cfg.can.udp_port} (private netns)",
+        "placement": placement,
         "examples": [asdict(r) for r in results],
         "loop": loop,
         "loop_goal": {
@@ -580,6 +620,15 @@ def run_inside_netns(
     }
 
 
+def _placement_line(pl: dict[str, Any]) -> str:
+    if pl.get("simulator_cpus"):
+        return (
+            f"placement: service loop thread on CPU {pl['service_loop_cpus']}, "
+            f"simulator on CPU {pl['simulator_cpus']}"
+        )
+    return "placement: left to the scheduler (--no-pin, or one CPU)"
+
+
 def render_table(summary: dict[str, Any]) -> str:
     """The in-process demo's table plus the loop goal of the two-process run."""
     from wara.demo import example_rows
@@ -597,6 +646,7 @@ def render_table(summary: dict[str, Any]) -> str:
         f"bus: {summary['bus']}; bus load {summary['bus_load_percent']:.1f} %; simulator "
         + ("n/a" if rtf is None else f"{rtf:.1f}x")
         + " real time (compute)",
+        _placement_line(summary.get("placement") or {}),
         f"loop: {lp['period_ms']:.1f} ms period, {lp['measured_s']:.1f} s measured after "
         f"start-up ({lp['measured_cycles']} cycles, {lp['reports']} reports); worst p99 of "
         f"the reports: compute {ms(lp['compute_p99_ms'])} "

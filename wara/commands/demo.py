@@ -43,6 +43,12 @@ def register(sub: argparse._SubParsersAction) -> None:
         "udp_multicast is python-can's)",
     )
     p.add_argument(
+        "--no-pin",
+        action="store_true",
+        help="--two-process: leave CPU placement to the scheduler (default: the service's "
+        "loop thread and the simulator each on CPUs of their own, as on the IPC)",
+    )
+    p.add_argument(
         "--settle-s",
         type=float,
         default=None,
@@ -61,6 +67,8 @@ def register(sub: argparse._SubParsersAction) -> None:
 def _run(args: argparse.Namespace) -> int:
     if args.two_process:
         return _run_two_process(args)
+    if args.no_pin:
+        raise UsageError("--no-pin goes with --two-process")
     for opt in ("settle_s", "examples", "min_run_s", "inside_netns", "keep_dir", "transport"):
         if getattr(args, opt) is not None:
             raise UsageError(f"--{opt.replace('_', '-')} goes with --two-process")
@@ -112,6 +120,7 @@ def _run_two_process(args: argparse.Namespace) -> int:
                 min_run_s=min_run,
                 keep_dir=Path(args.keep_dir) if args.keep_dir else None,
                 transport=args.transport or d2.DEFAULT_TRANSPORT,
+                pin=not args.no_pin,
             )
         except d2.NetnsUnavailable as exc:
             print(

@@ -16,6 +16,7 @@ A status line shows simulated time, realtime factor, PLC state and the faults ac
 from __future__ import annotations
 
 import argparse
+import os
 import re
 import signal
 import sys
@@ -52,7 +53,29 @@ def register(sub: argparse._SubParsersAction) -> None:
         "--status-interval", type=float, default=1.0, help="seconds between status lines"
     )
     p.add_argument("--quiet", action="store_true", help="no status line")
+    p.add_argument(
+        "--cpus",
+        default=None,
+        metavar="N[,N...]",
+        help="run on these CPUs only (e.g. beside a service whose loop has another CPU)",
+    )
     p.set_defaults(func=_run)
+
+
+def set_cpus(spec: str) -> list[int]:
+    """Pin this process (and the threads it starts later) to the CPUs in ``spec``."""
+    try:
+        cpus = sorted({int(v) for v in spec.split(",") if v.strip()})
+    except ValueError:
+        raise UsageError(f"--cpus {spec!r}: expected CPU numbers, e.g. 1 or 2,3") from None
+    if not cpus:
+        raise UsageError(f"--cpus {spec!r}: expected CPU numbers, e.g. 1 or 2,3")
+    try:
+        os.sched_setaffinity(0, cpus)
+    except (OSError, ValueError) as exc:
+        allowed = sorted(os.sched_getaffinity(0))
+        raise UsageError(f"--cpus {spec!r}: {exc} (this process may use {allowed})") from None
+    return cpus
 
 
 def parse_fault(spec: str) -> dict[str, Any]:
@@ -80,6 +103,8 @@ def _interrupt(_signum: int, _frame: object) -> None:
 
 
 def _run(args: argparse.Namespace) -> int:
+    if args.cpus is not None:
+        set_cpus(args.cpus)  # first, so every thread started later inherits it
     cfg = load_project(args.config)
     scenario = scenario_with_faults(load_hil_scenario(args.scenario), args.fault)
     duration = args.duration if args.duration is not None else scenario.duration_s
