@@ -300,6 +300,7 @@ class _Side:
             self._period[spec.frame_id] = spec.cycle_in_force_s(
                 is_active(spec, active), self._loop_period_s
             )
+        self._update_critical()
 
     def _periodic_tx(self) -> tuple[MessageSpec, ...]:
         """Transmitted messages that :meth:`poll` schedules by their cycle time."""
@@ -455,8 +456,22 @@ class _Side:
 
     # ----------------------------------------------------------------- state
 
+    def _critical_rows(self) -> Sequence[tuple[RxRecord, Sequence[int]]]:
+        """This side's loop-rate inputs with the cylinder slots each carries (the IPC's
+        positions, the PLC's valve commands); empty until the subclass has built them."""
+        return ()
+
+    def _update_critical(self) -> None:
+        """The records the link is LOST without: the peer's heartbeat and the loop-rate
+        rows that carry an active cylinder."""
+        act = self._active
+        self._critical_recs = (
+            self._rx_by_name[self.HEARTBEAT],
+            *(rec for rec, slots in self._critical_rows() if any(i in act for i in slots)),
+        )
+
     def _critical(self) -> tuple[RxRecord, ...]:
-        raise NotImplementedError
+        return self._critical_recs
 
     def state(self, now: float | None = None) -> LinkState:
         """OK / DEGRADED / LOST (see :class:`LinkState`)."""
@@ -558,15 +573,8 @@ class IpcLink(_Side):
     def _periodic_tx(self) -> tuple[MessageSpec, ...]:
         return (self.catalog.by_name("IPC_Control"),)
 
-    def _update_critical(self) -> None:
-        act = self._active
-        self._critical_recs = (
-            self._rx_by_name["PLC_Status"],
-            *(rec for rec, slots in getattr(self, "_pos", []) if any(i in act for i in slots)),
-        )
-
-    def _critical(self) -> tuple[RxRecord, ...]:
-        return self._critical_recs
+    def _critical_rows(self) -> Sequence[tuple[RxRecord, Sequence[int]]]:
+        return getattr(self, "_pos", ())
 
     # ----------------------------------------------------------------- commands
 
@@ -625,7 +633,6 @@ class IpcLink(_Side):
         if now is None:
             now = self._clock()
         self._apply_active(act, now)
-        self._update_critical()
         self._send(self._ctl_codec, self._control_values(), now)
         return load
 
@@ -830,15 +837,8 @@ class PlcLink(_Side):
         self._valve = [(self._rx_by_name[n], s) for n, s in _rows(self.catalog, "IPC_ValveCmd_")]
         self._update_critical()
 
-    def _update_critical(self) -> None:
-        act = self._active
-        self._critical_recs = (
-            self._rx_by_name["IPC_Control"],
-            *(rec for rec, slots in getattr(self, "_valve", []) if any(i in act for i in slots)),
-        )
-
-    def _critical(self) -> tuple[RxRecord, ...]:
-        return self._critical_recs
+    def _critical_rows(self) -> Sequence[tuple[RxRecord, Sequence[int]]]:
+        return getattr(self, "_valve", ())
 
     def _on_accepted(self, rec: RxRecord, now: float) -> None:
         if rec.name == "IPC_Control" and rec.values is not None:
@@ -847,7 +847,6 @@ class PlcLink(_Side):
             if act != self._active:
                 log.info("PLC: active group now %s", sorted(act))
                 self._apply_active(act, now)
-                self._update_critical()
 
     # ----------------------------------------------------------------- inputs
 
