@@ -13,6 +13,7 @@ from __future__ import annotations
 import argparse
 import time
 import uuid
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -105,15 +106,30 @@ def _link_cycle_us(cfg: Any, cycles: int) -> float:
     import can
 
     channel = f"bench-{uuid.uuid4().hex}"
+
+    def on_virtual(side: Any, clock: Callable[[], float]) -> Any:
+        return side(cfg, can.Bus(interface="virtual", channel=channel), clock=clock)
+
+    return ipc_side_cycles(cfg, cycles, on_virtual)[0]
+
+
+def ipc_side_cycles(
+    cfg: Any,
+    cycles: int,
+    open_side: Callable[[Any, Callable[[], float]], Any],
+    pause_s: float = 0.0,
+) -> tuple[float, float]:
+    """(median microseconds of the IPC side of one loop cycle: poll, readings, status,
+    valve commands; frames the IPC read per cycle), the PLC side sending at its cycle
+    times under a simulated clock. ``open_side(IpcLink | PlcLink, clock)`` builds one side
+    on the bus under test; ``pause_s`` after the PLC's turn lets a real socket deliver."""
     clock = {"t": 0.0}
 
     def now() -> float:
         return clock["t"]
 
-    ipc_bus = can.Bus(interface="virtual", channel=channel)
-    plc_bus = can.Bus(interface="virtual", channel=channel)
-    ipc = IpcLink(cfg, ipc_bus, clock=now)
-    plc = PlcLink(cfg, plc_bus, clock=now)
+    ipc = open_side(IpcLink, now)
+    plc = open_side(PlcLink, now)
     plc.set_positions_m(np.full(N_CYLINDERS, 0.1))
     plc.set_pressures_pa(np.full((N_CYLINDERS, 2), 5e6))
     plc.set_status(PlcStatus(pump_running=True, supply_pressure_pa=16e6))
@@ -124,6 +140,8 @@ def _link_cycle_us(cfg: Any, cycles: int) -> float:
         for k in range(cycles + 20):
             clock["t"] += dt
             plc.poll()
+            if pause_s:
+                time.sleep(pause_s)
             t0 = time.perf_counter()
             ipc.poll()
             ipc.positions_m()
@@ -132,7 +150,8 @@ def _link_cycle_us(cfg: Any, cycles: int) -> float:
             ipc.send_valve_commands(u)
             if k >= 20:  # warm-up: counters synchronised, all messages flowing
                 spent.append(time.perf_counter() - t0)
+        frames = sum(ipc.rx_outcomes.values()) / (cycles + 20)
     finally:
         ipc.close()
         plc.close()
-    return 1e6 * float(np.median(spent))
+    return 1e6 * float(np.median(spent)), frames

@@ -33,8 +33,9 @@ import can
 import numpy as np
 
 from config import load_project
-from config.schema import N_CYLINDERS, ProjectConfig
-from plc_bridge import IpcLink, PlcLink, PlcStatus, open_bus
+from config.schema import ProjectConfig
+from plc_bridge import open_bus
+from wara.benches.can import ipc_side_cycles
 
 TRANSPORTS = ("udp_multicast", "wara_udp")
 GROUP = "239.74.163.2"
@@ -109,37 +110,9 @@ def _frame_costs(cfg: ProjectConfig, n: int, batch: int = 120) -> tuple[float, f
 
 def _link_cycles(cfg: ProjectConfig, cycles: int) -> tuple[float, float]:
     """(median microseconds of the IPC side of one cycle, frames read per cycle)."""
-    clock = {"t": 0.0}
-
-    def now() -> float:
-        return clock["t"]
-
-    ipc = IpcLink.from_config(cfg, clock=now)
-    plc = PlcLink.from_config(cfg, clock=now)
-    plc.set_positions_m(np.full(N_CYLINDERS, 0.1))
-    plc.set_pressures_pa(np.full((N_CYLINDERS, 2), 5e6))
-    plc.set_status(PlcStatus(pump_running=True, supply_pressure_pa=16e6))
-    u = np.linspace(-0.5, 0.5, N_CYLINDERS)
-    dt = cfg.control.period_s
-    spent: list[float] = []
-    try:
-        for k in range(cycles + 20):
-            clock["t"] += dt
-            plc.poll()
-            time.sleep(0.0002)  # the PLC's frames are in the IPC's socket
-            t0 = time.perf_counter()
-            ipc.poll()
-            ipc.positions_m()
-            ipc.pressures_pa()
-            ipc.status()
-            ipc.send_valve_commands(u)
-            if k >= 20:
-                spent.append(time.perf_counter() - t0)
-        frames = sum(ipc.rx_outcomes.values()) / (cycles + 20)
-    finally:
-        ipc.close()
-        plc.close()
-    return 1e6 * float(np.median(spent)), frames
+    return ipc_side_cycles(
+        cfg, cycles, lambda side, clock: side.from_config(cfg, clock=clock), pause_s=0.0002
+    )
 
 
 def measure(config: str | None, quick: bool) -> dict[str, Any]:
