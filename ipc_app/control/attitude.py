@@ -104,16 +104,6 @@ class AttitudeController:
         """Rod-position references (m from the retracted end) of all 19 cylinders."""
         return self._sample(t_now, False)[0]
 
-    def references_and_rates(self, t_now: float) -> tuple[FloatArray, FloatArray | None]:
-        """:meth:`references` and the rod speeds of the trajectory (None when holding)."""
-        ref, _, layer_rates = self._sample(t_now, True)
-        if layer_rates is None:
-            return ref, None
-        rates = np.zeros(self.n)
-        for name, idx in self.layers.items():
-            rates[idx] = layer_rates[name]
-        return ref, rates
-
     def _sample(
         self, t_now: float, with_rates: bool
     ) -> tuple[FloatArray, dict[str, list[float]], dict[str, list[float]] | None]:
