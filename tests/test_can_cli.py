@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import subprocess
+import sys
 import threading
 import time
 import uuid
@@ -100,8 +101,7 @@ def test_record_writes_a_log_that_python_can_and_cantools_read(
     names = {db.get_message_by_frame_id(m.arbitration_id).name for m in frames}
     assert "PLC_Status" in names or any(n.startswith("PLC_RodPos") for n in names)
     if suffix == ".log":  # candump -l format: `cantools decode` reads it
-        exe = Path("/work/venv/bin/cantools")
-        cmd = [str(exe)] if exe.exists() else ["python", "-m", "cantools"]
+        cmd = [sys.executable, "-m", "cantools"]
         dec = subprocess.run(
             [*cmd, "decode", "--single-line", str(DBC_PATH)],
             input=out.read_text(),
