@@ -443,7 +443,10 @@ class _Side:
         if not self.bus_health.due_for_reopen(now):
             return
         if self._bus_factory is None:
-            self.bus_health.reopened(False, now, "no bus factory: bus was passed in")
+            # A bus passed in cannot be made anew here: after the same back-off it is
+            # used again as it is (a bus-off controller restarts by itself; if it is
+            # still off or down, the next error frame or send failure says so).
+            self.bus_health.reopened(True, now, "back-off over, the bus passed in used again")
             return
         with contextlib.suppress(Exception):  # a broken bus may fail to close; reopen anyway
             self.bus.shutdown()

@@ -296,7 +296,7 @@ class BusHealth:
         self.backoff_s = min(2.0 * self.backoff_s, self.backoff_max_s)
         if ok:
             self.counters["reopened"] += 1
-            self._set(BusState.ACTIVE, now, "bus reopened")
+            self._set(BusState.ACTIVE, now, why or "bus reopened")
             self.next_attempt = math.inf
             self.reopen_failing = False
         else:
