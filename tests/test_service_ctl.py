@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import socket
@@ -14,6 +15,7 @@ from typing import Any
 import pytest
 from structlog.testing import capture_logs
 
+from ipc_app.service.app import CtlWatch
 from ipc_app.service.ctl import (
     CtlError,
     CtlHandlers,
@@ -233,3 +235,220 @@ def test_wara_ctl_without_service_is_one_line_exit_2(
     err = capsys.readouterr().err
     assert code == 2
     assert err.count("\n") == 1 and err.startswith("wara ctl: error: no W-ARa service")
+
+
+# --------------------------------------------------------------------------- rude clients
+
+
+def _connect(path: Path) -> socket.socket:
+    s = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+    s.settimeout(5)
+    s.connect(str(path))
+    return s
+
+
+def _ask(s: socket.socket, line: bytes) -> dict[str, Any]:
+    s.sendall(line)
+    buf = b""
+    while not buf.endswith(b"\n"):
+        chunk = s.recv(65536)
+        if not chunk:
+            break
+        buf += chunk
+    reply = json.loads(buf)
+    assert isinstance(reply, dict)
+    return reply
+
+
+def test_rude_clients_with_every_slot_taken_do_not_end_the_server(
+    served: tuple[FakeService, Path],
+) -> None:
+    _, path = served
+    held = [_connect(path) for _ in range(16)]  # every slot (and more than the 8 of old)
+    try:
+        for _ in range(30):  # connect and close at once, as fast as possible
+            with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as r:
+                r.settimeout(5)
+                r.connect(str(path))
+        for _ in range(5):  # and with a reset (SO_LINGER 0) instead of a close
+            r = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+            r.setsockopt(socket.SOL_SOCKET, socket.SO_LINGER, b"\x01\0\0\0\0\0\0\0")
+            r.connect(str(path))
+            r.close()
+        assert request("status", socket_path=path, timeout_s=5)["mode"] == "IDLE"
+        assert request("stop", socket_path=path, timeout_s=5)["ok"]
+    finally:
+        for s in held:
+            s.close()
+
+
+def test_nested_and_oversized_json_are_bad_requests(served: tuple[FakeService, Path]) -> None:
+    svc, path = served
+    with _connect(path) as s:
+        r = _ask(s, b"[" * 50_000 + b"\n")
+        assert r["code"] == "bad_request" and "nested too deeply" in r["error"]
+        r = _ask(s, b'{"cmd": {"a": ' * 3_000 + b"1" + b"}" * 3_000 + b"\n")
+        assert r["code"] == "bad_request"
+        r = _ask(s, b'{"cmd": "adjust", "roll_deg": ' + b"7" * 5_000 + b', "pitch_deg": 0}\n')
+        assert r["code"] == "bad_request"  # 4300-digit limit of int()
+        r = _ask(s, b'{"cmd": "adjust", "roll_deg": 1' + b"0" * 400 + b', "pitch_deg": 0}\n')
+        assert r["code"] == "bad_request" and "finite number" in r["error"]
+        assert "digits" in r["error"] and len(r["error"]) < 200
+        r = _ask(s, b'{"cmd": ["status"]}\n')
+        assert r["code"] == "bad_request" and "a list" in r["error"]
+        assert _ask(s, b'{"cmd": "status"}\n')["ok"]  # the same connection still works
+    assert svc.calls == []
+
+
+def test_a_line_too_long_is_answered_then_closed(served: tuple[FakeService, Path]) -> None:
+    _, path = served
+    with _connect(path) as s:
+        with contextlib.suppress(OSError):  # the server may close before all is sent
+            s.sendall(b"x" * (70 * 1024))
+        r = json.loads(s.makefile("rb").readline())
+    assert r == {"ok": False, "error": "request line too long", "code": "bad_request"}
+    assert request("status", socket_path=path)["ok"]
+
+
+def test_a_full_listen_queue_is_retried(short_tmp: Path) -> None:
+    svc = FakeService()
+    server = CtlServer(svc.handlers(), short_tmp / "q.sock", backlog=2)
+    server.bind()  # listening, nobody accepting: the queue fills
+    results: list[Any] = []
+
+    def ask() -> None:
+        try:
+            results.append(request("status", socket_path=server.path, timeout_s=10)["ok"])
+        except CtlError as exc:
+            results.append(exc)
+
+    with capture_logs():
+        threads = [threading.Thread(target=ask) for _ in range(10)]
+        for t in threads:
+            t.start()
+        threading.Event().wait(0.3)
+        server.start()
+        for t in threads:
+            t.join(30)
+        server.stop()
+    assert results == [True] * 10
+
+
+def test_idle_and_slow_clients_never_lock_out_stop_and_status(
+    served: tuple[FakeService, Path],
+) -> None:
+    svc, path = served
+    idle = [_connect(path) for _ in range(16)]
+    slow = [_connect(path) for _ in range(16)]
+    try:
+        for s in slow:
+            s.sendall(b'{"cmd": "sta')  # a line that never ends
+        for _ in range(3):
+            svc.modes.request_adjust(1.0, 0.0)
+            assert request("stop", socket_path=path, timeout_s=2, retry_s=0)["mode"] == "IDLE"
+            assert request("status", socket_path=path, timeout_s=2, retry_s=0)["ok"]
+    finally:
+        for s in idle + slow:
+            s.close()
+
+
+def test_blocking_requests_are_bounded_and_never_hold_up_stop(short_tmp: Path) -> None:
+    svc = FakeService()
+    release = threading.Event()
+
+    def slow_adjust(roll: float, pitch: float) -> dict[str, Any]:
+        release.wait(30)
+        return {"mode": "PLANNING"}
+
+    h = CtlHandlers(slow_adjust, svc.status, svc.stop, svc.reset)
+    with capture_logs(), CtlServer(h, short_tmp / "b.sock", max_workers=2) as server:
+        waiting = [_connect(server.path) for _ in range(2)]
+        for s in waiting:
+            s.sendall(b'{"cmd": "adjust", "roll_deg": 1, "pitch_deg": 0}\n')
+        threading.Event().wait(0.2)
+        r = request("adjust", socket_path=server.path, roll_deg=1.0, pitch_deg=0.0, retry_s=0)
+        assert r["code"] == "busy"
+        assert request("stop", socket_path=server.path, timeout_s=2, retry_s=0)["ok"]
+        assert request("status", socket_path=server.path, timeout_s=2, retry_s=0)["ok"]
+        assert server.health()["in_flight"] == 2
+        release.set()
+        assert [json.loads(s.makefile("rb").readline())["ok"] for s in waiting] == [True, True]
+        for s in waiting:
+            s.close()
+        assert threading.active_count() < 20  # no thread per client
+
+
+def test_pipelined_requests_and_a_half_closed_last_line_are_answered_in_order(
+    served: tuple[FakeService, Path],
+) -> None:
+    _, path = served
+    with _connect(path) as s:
+        s.sendall(b'{"cmd": "status"}\n' * 40 + b'{"cmd": "launch"}\n{"cmd": "stop"}')
+        s.shutdown(socket.SHUT_WR)
+        lines = s.makefile("rb").read().splitlines()
+    replies = [json.loads(x) for x in lines]
+    assert len(replies) == 42
+    assert all(r["ok"] and r["mode"] == "IDLE" for r in replies[:40])
+    assert replies[40]["code"] == "bad_request" and replies[41]["ok"]
+
+
+class _Bug(BaseException):
+    """Stands for a defect in the server itself (not caught by its error handling)."""
+
+
+def test_a_dead_server_thread_is_a_fault_and_is_restarted(
+    short_tmp: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    svc = FakeService()
+    with capture_logs(), CtlServer(svc.handlers(), short_tmp / "d.sock") as server:
+        watch = CtlWatch(server, svc.modes.fault)
+        assert watch.check() and server.healthy
+        turn = server._turn
+
+        def broken(sel: Any) -> None:
+            raise _Bug("selector state corrupted")
+
+        monkeypatch.setattr(server, "_turn", broken)
+        assert server._thread is not None
+        server._thread.join(5)
+        assert server.state() == "dead" and not server.healthy
+        monkeypatch.setattr(server, "_turn", turn)
+        assert watch.check()  # latched and restarted
+        assert server.healthy and server.restarts == 1
+        st = request("status", socket_path=server.path)
+        assert st["mode"] == "FAULT"
+        assert st["fault_reasons"] == [
+            "control channel: server dead (I/O thread ended: _Bug: selector state corrupted)"
+        ]
+        assert watch.check() and watch.outages == 1  # once per outage
+
+
+def test_a_removed_socket_file_is_a_fault_and_is_bound_again(short_tmp: Path) -> None:
+    svc = FakeService()
+    with capture_logs(), CtlServer(svc.handlers(), short_tmp / "g.sock") as server:
+        watch = CtlWatch(server, svc.modes.fault)
+        server.path.unlink()
+        assert server.state() == "socket_gone"
+        assert watch.check()
+        assert request("status", socket_path=server.path)["mode"] == "FAULT"
+        assert svc.modes.fault_reasons[0].startswith("control channel: server socket gone")
+
+
+def test_a_stalled_server_stops_the_service(short_tmp: Path) -> None:
+    svc = FakeService()
+    gate = threading.Event()
+
+    def stuck_status() -> dict[str, Any]:
+        gate.wait(30)
+        return {}
+
+    h = CtlHandlers(svc.adjust, stuck_status, svc.stop, svc.reset)
+    with capture_logs(), CtlServer(h, short_tmp / "t.sock", stall_s=0.3) as server:
+        watch = CtlWatch(server, svc.modes.fault)
+        with _connect(server.path) as s:
+            s.sendall(b'{"cmd": "status"}\n')
+            threading.Event().wait(0.8)
+            assert server.state() == "stalled"
+            assert not watch.check()  # the service stops (systemd restarts it)
+            assert svc.modes.mode == "FAULT"
+            gate.set()

@@ -7,7 +7,8 @@ is usable and tested on its own. Threads and processes of a running service::
     wara-loop          FixedRateLoop: step() = read CAN -> interlocks -> controllers
                        -> write CAN; the only thread at SCHED_FIFO (control.realtime)
     wara-planner       PlannerWorker's supervisor; the planner runs in its own process
-    wara-ctl[-client]  CtlServer: the local socket, JSON lines; handlers run here
+    wara-ctl           CtlServer: the local socket (one selector thread, status and stop
+                       answered there); wara-ctl-worker-N (at most 4): adjust and reset
     wara-record        RunRecorder's writer: CSV rows, JSONL events, fsync
     (logging)          QueueListener: renders structlog JSON lines to stderr/journal
 

@@ -1,17 +1,27 @@
 """The IPC service process: wires the CAN link, the planner worker, the control core,
 the fixed-rate loop, the control channel and systemd together.
 
-``wara serve`` runs it (the systemd unit's ExecStart). READY is sent once the loop runs;
+``wara serve`` runs it (the systemd unit's ExecStart). Start-up opens the CAN bus and
+binds the control socket before anything else (a failure is one line,
+:class:`StartupError`, and leaves no run record behind). READY is sent once the loop runs;
 WATCHDOG is sent from the loop thread itself, so a stalled loop is restarted by systemd.
 SIGTERM/SIGINT stop it: valves commanded closed, then everything shut down in order.
+
+The control channel is supervised (:class:`CtlWatch`): when its server thread ends or
+the socket file goes away, FAULT is latched (the operator lost ``stop``) and the server is
+restarted; ``wara ctl status`` shows it under ``ctl``. A server that stalls, or cannot be
+restarted, stops the service in order (exit 1, systemd restarts it), and the loop holds
+back WATCHDOG while the channel is unhealthy.
 """
 
 from __future__ import annotations
 
+import contextlib
 import os
 import signal
 import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -20,18 +30,88 @@ import structlog
 
 from config import load_project
 from ipc_app.service.core import ServiceCore
-from ipc_app.service.ctl import CtlHandlers, CtlServer
+from ipc_app.service.ctl import CtlError, CtlHandlers, CtlServer
 from ipc_app.service.logs import configure_logging
 from ipc_app.service.loop import FixedRateLoop
 from ipc_app.service.record import RunRecorder, new_run_dir
 from ipc_app.service.sdnotify import SystemdNotifier
 from ipc_app.service.worker import PlannerWorker
+from plc_bridge.errors import BridgeError
 from plc_bridge.link import IpcLink
 
 log = structlog.get_logger("wara.service")
 
 #: How long ``wara ctl adjust`` waits for the planner's verdict.
 ADJUST_WAIT_S = 15.0
+
+
+class StartupError(Exception):
+    """The service cannot start: the CAN bus, the control socket or the run record
+    directory cannot be opened (one line: what, where, and the fix where known)."""
+
+
+def service_handlers(
+    core: Callable[[], ServiceCore],
+    ctl: Callable[[], CtlServer],
+    wait_s: float = ADJUST_WAIT_S,
+) -> CtlHandlers:
+    """The control channel's commands on the service core (``core`` and ``ctl`` are asked
+    for at each request: the socket is bound before the core is built). ``adjust`` and
+    ``reset`` wait up to ``wait_s`` for their outcome; the status carries ``ctl``, the
+    channel's own health."""
+    return CtlHandlers(
+        adjust=lambda r, p: _reply(core().request_adjust(r, p, wait_s=wait_s)),
+        status=lambda: core().snapshot() | {"ctl": ctl().health()},
+        stop=lambda: _reply(core().modes.stop("operator stop (wara ctl)").to_dict()),
+        reset=lambda: _reply(core().request_reset(wait_s=wait_s)),
+    )
+
+
+def _reply(out: dict[str, Any]) -> dict[str, Any]:
+    """The core's answers in the channel's terms: a mode-machine outcome that was not
+    accepted is ``refused`` (with its message as the error), and a refusal carries its
+    one-line ``error`` (an infeasible verdict has only the planner's reasons)."""
+    if "ok" not in out and out.get("accepted") is False:
+        out = {"ok": False, "code": "refused", "error": out.get("message", "refused")} | out
+    if out.get("ok") is False and not isinstance(out.get("error"), str):
+        reasons = out.get("reasons") or []
+        why = "target infeasible" if out.get("code") == "infeasible" else "refused"
+        out = out | {"error": f"{why}: {reasons[0]}" if reasons else why}
+    return out
+
+
+class CtlWatch:
+    """Supervises the control channel from the service's main thread (:meth:`check`
+    every 0.2 s): an unhealthy channel is a fault, latched once per outage with
+    ``fault(reason)``, and a server whose thread ended or whose socket file is gone is
+    restarted. :meth:`check` returns False when the channel cannot be brought back (a
+    stalled thread, a failed restart): the service then stops.
+    """
+
+    def __init__(self, ctl: CtlServer, fault: Callable[[str], object]) -> None:
+        self.ctl = ctl
+        self.fault = fault
+        self.outages = 0
+        self._down = False
+
+    def check(self) -> bool:
+        state = self.ctl.state()
+        if state in ("ok", "stopped"):
+            self._down = False
+            return True
+        if not self._down:
+            self._down = True
+            self.outages += 1
+            why = self.ctl.last_error or "no error recorded"
+            reason = f"control channel: server {state.replace('_', ' ')} ({why})"
+            log.error("ctl_unhealthy", state=state, reason=reason)
+            self.fault(reason)
+        if state == "stalled":
+            return False
+        if not self.ctl.restart():
+            return False
+        self._down = False
+        return True
 
 
 def run_service(
@@ -53,13 +133,34 @@ def run_service(
     logging_handle = configure_logging(log_level)
     stop = stop_event or threading.Event()
     root = Path(record_root) if record_root else default_record_root()
-    recorder = RunRecorder(
-        new_run_dir(root),
-        ServiceCore.record_columns(cfg),
-        meta={"project": cfg.project.name, "period_s": cfg.control.period_s},
-    )
-    recorder.start()
-    link = IpcLink.from_config(cfg)
+    ctl = CtlServer(service_handlers(lambda: core, lambda: ctl), socket_path)
+    # The bus and the socket first: a start that fails there writes nothing.
+    with contextlib.ExitStack() as undo:
+        undo.callback(logging_handle.stop)
+        try:
+            link = IpcLink.from_config(cfg)
+        except BridgeError as exc:
+            raise StartupError(str(exc)) from None
+        undo.callback(link.close)
+        try:
+            ctl.bind()
+        except CtlError as exc:
+            raise StartupError(str(exc)) from None
+        undo.callback(ctl.stop)
+        run_dir = new_run_dir(root)
+        recorder = RunRecorder(
+            run_dir,
+            ServiceCore.record_columns(cfg),
+            meta={"project": cfg.project.name, "period_s": cfg.control.period_s},
+        )
+        try:
+            recorder.start()
+        except OSError as exc:
+            raise StartupError(
+                f"cannot write the run record {run_dir}: {exc.strerror or exc} "
+                "(--record-dir, or $STATE_DIRECTORY under systemd)"
+            ) from None
+        undo.pop_all()
     worker = PlannerWorker(config_path)
     worker.start()
     core = ServiceCore(cfg, link, worker, record=recorder)
@@ -67,7 +168,7 @@ def run_service(
 
     def step(cycle: int, now: float) -> None:
         core.step(cycle, now)
-        if notifier.watchdog_due(now):
+        if notifier.watchdog_due(now) and ctl.healthy:  # a dead channel withholds it
             notifier.watchdog(now)
 
     def on_stats(stats: dict[str, Any]) -> None:
@@ -85,13 +186,7 @@ def run_service(
     loop = FixedRateLoop(
         step, cfg.control.period_s, realtime=cfg.control.realtime, on_stats=on_stats
     )
-    handlers = CtlHandlers(
-        adjust=lambda r, p: core.request_adjust(r, p, wait_s=ADJUST_WAIT_S),
-        status=core.snapshot,
-        stop=lambda: core.modes.stop("operator stop (wara ctl)").to_dict(),
-        reset=lambda: core.request_reset(wait_s=ADJUST_WAIT_S),
-    )
-    ctl = CtlServer(handlers, socket_path)
+    watch = CtlWatch(ctl, core.modes.fault)
     if threading.current_thread() is threading.main_thread():
         for sig in (signal.SIGTERM, signal.SIGINT):
             signal.signal(sig, lambda *_: stop.set())
@@ -111,6 +206,10 @@ def run_service(
     while not stop.wait(0.2):
         if loop.error is not None or not loop.running:
             log.error("loop_stopped", error=repr(loop.error))
+            code = 1
+            break
+        if not watch.check():
+            log.error("ctl_lost", state=ctl.state(), error=ctl.last_error)
             code = 1
             break
         if deadline is not None and time.monotonic() >= deadline:
