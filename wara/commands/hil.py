@@ -30,6 +30,7 @@ from config import load_project
 from config.hil_scenario import EVENT_KINDS, HilScenario, load_hil_scenario
 from config.loader import validate_data
 from hil_sim.simulator import HilSimulator
+from plc_bridge.errors import BridgeError
 from wara.cli import UsageError
 
 
@@ -112,7 +113,7 @@ def _run(args: argparse.Namespace) -> int:
         raise UsageError("--lockstep needs --duration (or duration_s in the scenario)")
     try:
         sim = HilSimulator(cfg, None, scenario, seed=args.seed)
-    except ValueError as exc:
+    except (ValueError, BridgeError) as exc:  # a scenario mistake; a bus that cannot open
         raise UsageError(str(exc)) from None
     tty = sys.stderr.isatty()
 

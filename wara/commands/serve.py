@@ -4,7 +4,8 @@ from __future__ import annotations
 
 import argparse
 
-from ipc_app.service.app import run_service
+from ipc_app.service.app import StartupError, run_service
+from wara.cli import UsageError
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -27,10 +28,13 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def _run(args: argparse.Namespace) -> int:
-    return run_service(
-        args.config,
-        socket_path=args.socket,
-        duration_s=args.duration_s,
-        record_root=args.record_dir,
-        log_level=args.log_level,
-    )
+    try:
+        return run_service(
+            args.config,
+            socket_path=args.socket,
+            duration_s=args.duration_s,
+            record_root=args.record_dir,
+            log_level=args.log_level,
+        )
+    except StartupError as exc:  # bus, socket or record directory: one line, exit 2
+        raise UsageError(str(exc)) from None
