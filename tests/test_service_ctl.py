@@ -15,7 +15,7 @@ from typing import Any
 import pytest
 from structlog.testing import capture_logs
 
-from ipc_app.service.app import CtlWatch
+from ipc_app.service.app import CtlWatch, watched_step
 from ipc_app.service.ctl import (
     CtlError,
     CtlHandlers,
@@ -25,6 +25,7 @@ from ipc_app.service.ctl import (
     request,
 )
 from ipc_app.service.modes import ModeMachine
+from ipc_app.service.sdnotify import SystemdNotifier
 from wara.cli import main
 
 
@@ -452,3 +453,35 @@ def test_a_stalled_server_stops_the_service(short_tmp: Path) -> None:
             assert not watch.check()  # the service stops (systemd restarts it)
             assert svc.modes.mode == "FAULT"
             gate.set()
+
+
+def test_the_loop_withholds_the_watchdog_while_the_channel_is_dead(
+    short_tmp: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    sd = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+    sd.bind(str(short_tmp / "notify"))
+    sd.settimeout(0.05)
+    notifier = SystemdNotifier(str(short_tmp / "notify"), watchdog_usec=20_000)  # 10 ms
+    steps: list[float] = []
+
+    def pings(t0: float) -> int:
+        n = 0
+        for k in range(10):
+            step(k, t0 + 0.011 * k)
+        with contextlib.suppress(TimeoutError):
+            while sd.recv(64) == b"WATCHDOG=1":
+                n += 1
+        return n
+
+    svc = FakeService()
+    with capture_logs(), CtlServer(svc.handlers(), short_tmp / "w.sock") as server:
+        step = watched_step(lambda k, t: steps.append(t), notifier, server)
+        assert pings(0.0) == 10
+        monkeypatch.setattr(server, "_turn", lambda sel: (_ for _ in ()).throw(_Bug("x")))
+        assert server._thread is not None
+        server._thread.join(5)
+        assert pings(1.0) == 0 and len(steps) == 20  # the steps still ran
+        monkeypatch.undo()
+        assert server.restart()
+        assert pings(2.0) == 10
+    sd.close()

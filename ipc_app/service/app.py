@@ -80,6 +80,21 @@ def _reply(out: dict[str, Any]) -> dict[str, Any]:
     return out
 
 
+def watched_step(
+    step: Callable[[int, float], None], notifier: SystemdNotifier, ctl: CtlServer
+) -> Callable[[int, float], None]:
+    """The loop's step: ``step``, then ``WATCHDOG=1`` when due, but only while the control
+    channel is healthy (so systemd restarts a service whose channel stays dead even if
+    its main thread no longer supervises it)."""
+
+    def run(cycle: int, now: float) -> None:
+        step(cycle, now)
+        if notifier.watchdog_due(now) and ctl.healthy:
+            notifier.watchdog(now)
+
+    return run
+
+
 class CtlWatch:
     """Supervises the control channel from the service's main thread (:meth:`check`
     every 0.2 s): an unhealthy channel is a fault, latched once per outage with
@@ -166,10 +181,7 @@ def run_service(
     core = ServiceCore(cfg, link, worker, record=recorder)
     notifier = SystemdNotifier.from_env()
 
-    def step(cycle: int, now: float) -> None:
-        core.step(cycle, now)
-        if notifier.watchdog_due(now) and ctl.healthy:  # a dead channel withholds it
-            notifier.watchdog(now)
+    step = watched_step(core.step, notifier, ctl)
 
     def on_stats(stats: dict[str, Any]) -> None:
         core.loop_stats = stats
