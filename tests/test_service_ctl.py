@@ -15,7 +15,7 @@ from typing import Any
 import pytest
 from structlog.testing import capture_logs
 
-from ipc_app.service.app import CtlWatch, watched_step
+from ipc_app.service.app import CtlWatch, service_handlers, watched_step
 from ipc_app.service.ctl import (
     CtlError,
     CtlHandlers,
@@ -485,3 +485,35 @@ def test_the_loop_withholds_the_watchdog_while_the_channel_is_dead(
         assert server.restart()
         assert pings(2.0) == 10
     sd.close()
+
+
+def test_the_service_handlers_answer_refusals_as_refused(short_tmp: Path) -> None:
+    """The core answers with mode-machine outcomes and planner verdicts; on the channel a
+    refused reset is ``ok: false`` (exit 1 of `wara ctl reset`), and every refusal has its
+    one-line error."""
+    svc = FakeService()
+
+    class Core:
+        modes = svc.modes
+
+        def request_reset(self, wait_s: float = 0.0) -> dict[str, Any]:
+            return self.modes.reset().to_dict()
+
+        def request_adjust(self, r: float, p: float, wait_s: float = 0.0) -> dict[str, Any]:
+            return {"ok": False, "code": "infeasible", "reasons": ["upper_1 beyond its stroke"]}
+
+        def snapshot(self) -> dict[str, Any]:
+            return self.modes.snapshot()
+
+    core: Any = Core()
+    with (
+        capture_logs(),
+        CtlServer(service_handlers(lambda: core, lambda: server), short_tmp / "h.sock") as server,
+    ):
+        r = request("reset", socket_path=server.path)
+        assert r["ok"] is False and r["code"] == "refused"
+        assert r["error"] == "nothing to reset: mode is IDLE"
+        r = request("adjust", socket_path=server.path, roll_deg=1.0, pitch_deg=0.0)
+        assert r["error"] == "target infeasible: upper_1 beyond its stroke"
+        assert request("stop", socket_path=server.path)["ok"] is True
+        assert request("status", socket_path=server.path)["ctl"]["state"] == "ok"
