@@ -7,15 +7,15 @@ from __future__ import annotations
 
 import os
 import sqlite3
-import subprocess
-import sys
 from pathlib import Path
+from subprocess import CompletedProcess
 from typing import Any
 
 import pytest
 
 from ipc_app.acceptance.csv_import import COLUMNS, parse_csv_text
 from ipc_app.acceptance.store import AcceptanceStore, RingMeasurement
+from tests.cli_helpers import run_wara
 from wara.cli import main
 
 HEADER = ",".join(COLUMNS)
@@ -164,15 +164,9 @@ def test_missing_file_creates_no_database(
     assert not db.exists() and list(db.parent.iterdir()) == []
 
 
-def _subprocess_import(tmp_path: Path, path: Path | str) -> subprocess.CompletedProcess[str]:
+def _subprocess_import(tmp_path: Path, path: Path | str) -> CompletedProcess[str]:
     db = tmp_path / "sub.sqlite"
-    proc = subprocess.run(
-        [sys.executable, "-m", "wara", "acceptance", "import", str(path), "--db", str(db)],
-        capture_output=True,
-        text=True,
-        timeout=60,
-        check=False,
-    )
+    proc = run_wara(["acceptance", "import", str(path), "--db", str(db)], timeout_s=60)
     assert proc.returncode == 2 and "Traceback" not in proc.stderr
     assert not db.exists()
     return proc

@@ -9,8 +9,6 @@ import json
 import math
 import os
 import re
-import subprocess
-import sys
 from pathlib import Path
 from typing import Any
 
@@ -21,6 +19,7 @@ from pydantic.fields import FieldInfo
 from config import ConfigError, ProjectConfig, default_project_path, load_project
 from config.hil_scenario import load_hil_scenario
 from config.scenario import load_scenario, scenario_path
+from tests.cli_helpers import run_wara
 from wara.cli import main
 
 REPO = Path(__file__).resolve().parents[1]
@@ -222,13 +221,7 @@ def test_validate_names_the_sections_taken_from_defaults(
 
 def _one_line_exit_2(path: Path | str, expected: str) -> None:
     """Through the real entry point in a subprocess: one line, exit 2, quickly."""
-    proc = subprocess.run(
-        [sys.executable, "-m", "wara", "config", "validate", str(path)],
-        capture_output=True,
-        text=True,
-        timeout=60,
-        check=False,
-    )
+    proc = run_wara(["config", "validate", str(path)], timeout_s=60)
     assert proc.returncode == 2, proc.stderr
     assert proc.stdout == "" and "Traceback" not in proc.stderr
     (line,) = proc.stderr.splitlines()
