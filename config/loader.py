@@ -13,11 +13,19 @@ from typing import Any, TypeVar
 import yaml
 from pydantic import BaseModel, ValidationError
 
+from config.files import InputFileError, read_input_file
 from config.schema import ProjectConfig
 
 M = TypeVar("M", bound=BaseModel)
 
 DEFAULT_PROJECT = "shanghai_airport_link"
+
+#: Largest YAML file read (a project YAML is about 8 KB).
+MAX_YAML_BYTES = 1024 * 1024
+#: Deepest nesting of mappings and sequences (the project schema needs 4).
+MAX_YAML_DEPTH = 32
+#: Longest value quoted back in an error message.
+MAX_QUOTED_CHARS = 60
 
 
 class ConfigError(Exception):
@@ -34,22 +42,104 @@ def default_project_path() -> Path:
     return Path(str(resources.files("config") / "projects" / f"{DEFAULT_PROJECT}.yaml"))
 
 
-def read_yaml(path: Path) -> Any:
-    """Parse a YAML file; errors name the file and the line."""
+class _Refused(yaml.YAMLError):
+    """A YAML document this loader refuses although PyYAML would take it."""
+
+
+class _Loader(yaml.SafeLoader):
+    """PyYAML's safe loader, refusing duplicate keys and nesting deeper than the bound."""
+
+    _depth = 0
+
+    def compose_node(self, parent: Any, index: Any) -> Any:
+        if self._depth >= MAX_YAML_DEPTH:
+            mark = self.peek_event().start_mark
+            raise _Refused(
+                f"nesting deeper than {MAX_YAML_DEPTH} levels at line {mark.line + 1}, "
+                f"column {mark.column + 1}"
+            )
+        self._depth += 1
+        try:
+            return super().compose_node(parent, index)
+        finally:
+            self._depth -= 1
+
+    def construct_mapping(self, node: Any, deep: bool = False) -> Any:
+        if isinstance(node, yaml.MappingNode):
+            first_line: dict[Any, int] = {}
+            for key_node, _ in node.value:
+                if key_node.tag == "tag:yaml.org,2002:merge":
+                    continue
+                key = self.construct_object(key_node, deep=True)
+                try:
+                    earlier = first_line.get(key)
+                except TypeError:  # unhashable: the base class reports it
+                    continue
+                line = key_node.start_mark.line + 1
+                if earlier is not None:
+                    raise _Refused(
+                        f"duplicate key {_quote(key)} on line {line} (first on line {earlier})"
+                    )
+                first_line[key] = line
+        return super().construct_mapping(node, deep=deep)
+
+
+def _quote(value: Any) -> str:
+    text = repr(value)
+    return text if len(text) <= MAX_QUOTED_CHARS else text[: MAX_QUOTED_CHARS - 3] + "..."
+
+
+def _one_line(text: str) -> str:
+    return " ".join(str(text).split())
+
+
+def parse_yaml_text(text: str, source: str) -> Any:
+    """Parse YAML text with the project's rules; errors are one line naming ``source``."""
+    loader: _Loader | None = None
     try:
-        text = path.read_text(encoding="utf-8")
-    except FileNotFoundError:
-        raise ConfigError(f"{path}: file not found") from None
-    except OSError as exc:
-        raise ConfigError(f"{path}: cannot read: {exc.strerror}") from None
-    try:
-        return yaml.safe_load(text)
+        loader = _Loader(text)  # the reader checks the characters here
+        return loader.get_single_data()
+    except _Refused as exc:
+        raise ConfigError(f"{source}: {exc}") from None
     except yaml.MarkedYAMLError as exc:
-        mark = exc.problem_mark
+        mark = exc.problem_mark or exc.context_mark
         where = f"line {mark.line + 1}, column {mark.column + 1}" if mark else "?"
-        raise ConfigError(f"{path}: YAML syntax error at {where}: {exc.problem}") from None
+        what = _one_line(exc.problem or exc.context or "not YAML")
+        raise ConfigError(f"{source}: YAML syntax error at {where}: {what}") from None
     except yaml.YAMLError as exc:
-        raise ConfigError(f"{path}: YAML error: {exc}") from None
+        raise ConfigError(f"{source}: YAML error: {_one_line(str(exc))}") from None
+    except Exception as exc:  # hostile text in a third-party parser
+        # PyYAML's constructors let ValueError (2024-13-45, a 5000-digit integer),
+        # AttributeError (!!timestamp 'x') and the like through: all mean a bad file.
+        raise ConfigError(
+            f"{source}: YAML error: {type(exc).__name__}: {_one_line(str(exc))[:200]}"
+        ) from None
+    finally:
+        if loader is not None:
+            loader.dispose()
+
+
+def read_yaml(path: Path) -> Any:
+    """Read and parse a YAML file (regular file, UTF-8, at most MAX_YAML_BYTES)."""
+    try:
+        data = read_input_file(path, MAX_YAML_BYTES)
+    except InputFileError as exc:
+        raise ConfigError(str(exc)) from None
+    try:
+        text = data.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        raise ConfigError(f"{path}: not UTF-8 text (byte {exc.start})") from None
+    return parse_yaml_text(text, str(path))
+
+
+def defaulted_sections(model: type[BaseModel], data: Any) -> list[str]:
+    """Top-level sections of ``model`` absent from ``data``, so taken whole from defaults."""
+    present = data if isinstance(data, dict) else {}
+    return [
+        name
+        for name, field in model.model_fields.items()
+        if not field.is_required() and name not in present
+    ]
 
 
 def _key_path(loc: tuple[int | str, ...]) -> str:
@@ -58,7 +148,7 @@ def _key_path(loc: tuple[int | str, ...]) -> str:
         if isinstance(part, int):
             out += f"[{part}]"
         else:
-            out += ("." if out else "") + part
+            out += ("." if out else "") + _quote(part)[1:-1]
     return out or "(top level)"
 
 
@@ -87,11 +177,11 @@ def format_validation_error(source: str, exc: ValidationError, data: Any) -> str
         elif kind == "missing":
             lines.append(f"{source}: {path}: missing required key")
         elif kind == "value_error":
-            lines.append(f"{source}: {path}: {msg}")
+            lines.append(f"{source}: {path}: {_one_line(msg)}")
         else:
             found, value = _lookup(data, loc)
-            got = f"got {value!r}: " if found and not isinstance(value, dict | list) else ""
-            lines.append(f"{source}: {path}: {got}expected {msg[0].lower()}{msg[1:]}")
+            got = f"got {_quote(value)}: " if found and not isinstance(value, dict | list) else ""
+            lines.append(f"{source}: {path}: {got}expected {_one_line(msg[0].lower() + msg[1:])}")
     return "\n".join(lines)
 
 

@@ -3,6 +3,11 @@
 Every model forbids unknown keys and is frozen. Keys carry engineering units in their
 names; each model offers SI properties (``stroke_m``, ``cap_area_m2``) computed with
 :mod:`config.units`, so the code never converts units itself.
+
+Every number is finite (:data:`Finite`: no NaN, no infinity) and every numeric key of a
+project states the range a machine of this kind can have, so that a typo (an extra
+zero, ``.inf``, a loop rate in kHz written as Hz) is refused at load time rather than
+switching an interlock off or reaching the planner.
 """
 
 from __future__ import annotations
@@ -14,15 +19,41 @@ from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from config import units
 
-Positive = Annotated[float, Field(gt=0)]
-NonNegative = Annotated[float, Field(ge=0)]
-Vec3 = tuple[float, float, float]
+#: A finite float (NaN and +-inf refused): the base of every float in the schema.
+Finite = Annotated[float, Field(allow_inf_nan=False)]
+Positive = Annotated[Finite, Field(gt=0)]
+NonNegative = Annotated[Finite, Field(ge=0)]
+
+# Ranges a machine of this kind can have (generous: they catch typos, not tuning).
+#: a mass on or of the machine: the workpiece is 36 t
+MassKg = Annotated[Finite, Field(gt=0, le=1e6)]
+#: a length in metres on the machine or the tunnel
+LengthM = Annotated[Finite, Field(gt=0, le=100)]
+#: an envelope dimension in millimetres
+LengthMm = Annotated[Finite, Field(gt=0, le=100_000)]
+#: a cylinder bore or rod diameter
+DiameterMm = Annotated[Finite, Field(gt=0, le=1000)]
+#: a cylinder stroke
+StrokeMm = Annotated[Finite, Field(gt=0, le=10_000)]
+#: a hydraulic pressure: industrial hydraulics stay below 70 MPa (700 bar)
+PressureMpa = Annotated[Finite, Field(gt=0, le=70)]
+#: a small pressure (tank, margin) that may be zero
+PressureMarginMpa = Annotated[Finite, Field(ge=0, le=20)]
+#: a coordinate in metres (centre of gravity, platform origin)
+CoordM = Annotated[Finite, Field(ge=-100, le=100)]
+#: a timeout in milliseconds: above 0, at most a minute
+TimeoutMs = Annotated[Finite, Field(gt=0, le=60_000)]
+#: a gain or bandwidth that may be zero
+GainNonNegative = Annotated[Finite, Field(ge=0, le=1e6)]
+#: a bandwidth in rad/s or Hz
+BandwidthPositive = Annotated[Finite, Field(gt=0, le=1e5)]
+Vec3 = tuple[CoordM, CoordM, CoordM]
 
 
 class Strict(BaseModel):
-    """Base: unknown keys are errors, values are immutable after loading."""
+    """Base: unknown keys are errors, values are immutable after loading, floats finite."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
 
 # --------------------------------------------------------------------------- project
@@ -35,9 +66,9 @@ class ProjectInfo(Strict):
 
 
 class Tunnel(Strict):
-    outer_diameter_m: Positive
-    inner_diameter_m: Positive
-    ring_width_m: Positive
+    outer_diameter_m: Annotated[Finite, Field(gt=0, le=30)]
+    inner_diameter_m: Annotated[Finite, Field(gt=0, le=30)]
+    ring_width_m: Annotated[Finite, Field(gt=0, le=10)]
 
     @model_validator(mode="after")
     def _inner_smaller(self) -> Tunnel:
@@ -52,24 +83,24 @@ class Tunnel(Strict):
 class Workpiece(Strict):
     """The precast arc part."""
 
-    length_m: Positive
-    height_m: Positive
-    width_m: Positive
-    mass_kg: Positive
+    length_m: LengthM
+    height_m: LengthM
+    width_m: LengthM
+    mass_kg: MassKg
 
 
 class Robot(Strict):
-    length_mm: Positive
-    width_mm: Positive
-    height_mm: Positive
-    mass_kg: Positive
+    length_mm: LengthMm
+    width_mm: LengthMm
+    height_mm: LengthMm
+    mass_kg: MassKg
 
 
 class Base(Strict):
     """Attitude of the tunnel invert under the standing frame (model.md section 1)."""
 
-    roll_deg: Annotated[float, Field(ge=-15, le=15)] = 0.0
-    pitch_deg: Annotated[float, Field(ge=-15, le=15)] = 0.0
+    roll_deg: Annotated[Finite, Field(ge=-15, le=15)] = 0.0
+    pitch_deg: Annotated[Finite, Field(ge=-15, le=15)] = 0.0
 
     @property
     def roll_rad(self) -> float:
@@ -88,7 +119,7 @@ class Body(Strict):
     """
 
     name: str = Field(min_length=1)
-    mass_kg: Positive
+    mass_kg: MassKg
     cog_m: Vec3
 
 
@@ -118,13 +149,13 @@ class CylinderPlant(Strict):
     ratio of the hydraulic spring-mass mode (see docs/model-choices.md).
     """
 
-    internal_leakage_m3_s_pa: NonNegative = 7.2e-12
-    external_leakage_m3_s_pa: NonNegative = 7.2e-12
-    area_gradient_mm: Positive = 26.0
-    damping_ratio: NonNegative = 0.65
-    dead_volume_l: Positive = 1.0
-    coulomb_friction_n: NonNegative = 2000.0
-    moving_mass_kg: Positive = 9000.0
+    internal_leakage_m3_s_pa: Annotated[Finite, Field(ge=0, le=1e-8)] = 7.2e-12
+    external_leakage_m3_s_pa: Annotated[Finite, Field(ge=0, le=1e-8)] = 7.2e-12
+    area_gradient_mm: Annotated[Finite, Field(gt=0, le=1000)] = 26.0
+    damping_ratio: Annotated[Finite, Field(ge=0, le=10)] = 0.65
+    dead_volume_l: Annotated[Finite, Field(gt=0, le=1000)] = 1.0
+    coulomb_friction_n: Annotated[Finite, Field(ge=0, le=1e6)] = 2000.0
+    moving_mass_kg: MassKg = 9000.0
 
     @property
     def area_gradient_m(self) -> float:
@@ -142,9 +173,9 @@ class Cylinder(Strict):
     role: CylinderRole
     group: str = Field(pattern=r"^[a-z][a-z0-9_]*$")
     position: Annotated[int, Field(ge=1, le=4)] | None = None
-    bore_mm: Positive
-    rod_mm: Positive
-    stroke_mm: Positive
+    bore_mm: DiameterMm
+    rod_mm: DiameterMm
+    stroke_mm: StrokeMm
     can_index: Annotated[int, Field(ge=0, lt=N_CYLINDERS)]
     plant: CylinderPlant | None = None
 
@@ -176,12 +207,12 @@ class Cylinder(Strict):
 class Layer(Strict):
     """One attitude layer: four vertical cylinders under a rigid platform."""
 
-    half_span_x_m: Positive
-    half_span_y_m: Positive
-    bore_mm: Positive
-    rod_mm: Positive
-    stroke_mm: Positive
-    reserve_mm: NonNegative
+    half_span_x_m: Annotated[Finite, Field(gt=0, le=20)]
+    half_span_y_m: Annotated[Finite, Field(gt=0, le=20)]
+    bore_mm: DiameterMm
+    rod_mm: DiameterMm
+    stroke_mm: StrokeMm
+    reserve_mm: Annotated[Finite, Field(ge=0, le=10_000)]
     cylinders: tuple[str, str, str, str]
     bodies: tuple[Body, ...] = ()
 
@@ -245,17 +276,17 @@ class Layers(Strict):
 
 
 class Hydraulics(Strict):
-    supply_pressure_mpa: Positive
-    tank_pressure_mpa: NonNegative = 0.0
-    rated_pressure_mpa: Positive
-    load_sensing_margin_mpa: NonNegative
-    oil_density_kg_m3: Positive
-    bulk_modulus_mpa: Positive
-    discharge_coefficient: Annotated[float, Field(gt=0, le=1)] = 0.61
-    pump_flow_l_min: Positive
-    valve_natural_frequency_hz: Positive = 60.0
-    valve_damping_ratio: Positive = 0.7
-    valve_max_opening_mm: Positive = 0.5
+    supply_pressure_mpa: PressureMpa
+    tank_pressure_mpa: PressureMarginMpa = 0.0
+    rated_pressure_mpa: PressureMpa
+    load_sensing_margin_mpa: PressureMarginMpa
+    oil_density_kg_m3: Annotated[Finite, Field(ge=500, le=1500)]
+    bulk_modulus_mpa: Annotated[Finite, Field(ge=10, le=5000)]
+    discharge_coefficient: Annotated[Finite, Field(gt=0, le=1)] = 0.61
+    pump_flow_l_min: Annotated[Finite, Field(gt=0, le=10_000)]
+    valve_natural_frequency_hz: Annotated[Finite, Field(gt=0, le=1000)] = 60.0
+    valve_damping_ratio: Annotated[Finite, Field(gt=0, le=10)] = 0.7
+    valve_max_opening_mm: Annotated[Finite, Field(gt=0, le=20)] = 0.5
     cylinder_defaults: CylinderPlant = CylinderPlant()
 
     @model_validator(mode="after")
@@ -301,14 +332,14 @@ class LdwPso(Strict):
 
     swarm_size: Annotated[int, Field(ge=4, le=10_000)] = 50
     iterations: Annotated[int, Field(ge=1, le=100_000)] = 1000
-    inertia_start: Positive = 0.9
-    inertia_end: Positive = 0.4
-    c1: Positive = 2.0
-    c2: Positive = 2.0
-    seed: int = 0
+    inertia_start: Annotated[Finite, Field(gt=0, le=2)] = 0.9
+    inertia_end: Annotated[Finite, Field(gt=0, le=2)] = 0.4
+    c1: Annotated[Finite, Field(gt=0, le=10)] = 2.0
+    c2: Annotated[Finite, Field(gt=0, le=10)] = 2.0
+    seed: Annotated[int, Field(ge=0, lt=2**32)] = 0
     #: Weight of one unit of dimensionless violation against the objective divided by
     #: its median over the initial swarm.
-    penalty_weight: Positive = 1.0
+    penalty_weight: Annotated[Finite, Field(gt=0, le=1e6)] = 1.0
 
 
 class Exact(Strict):
@@ -317,15 +348,15 @@ class Exact(Strict):
     grid_points: Annotated[int, Field(ge=5, le=1001)] = 21
     newton_iterations: Annotated[int, Field(ge=0, le=100)] = 8
     zoom_points: Annotated[int, Field(ge=3, le=201)] = 7
-    zoom_factor: Annotated[float, Field(gt=1, le=50)] = 3.0
-    tolerance_m: Annotated[float, Field(gt=0, le=1e-3)] = 1e-10
+    zoom_factor: Annotated[Finite, Field(gt=1, le=50)] = 3.0
+    tolerance_m: Annotated[Finite, Field(gt=0, le=1e-3)] = 1e-10
 
 
 class Trajectory(Strict):
     profile: Literal["quintic", "trapezoidal"] = "quintic"
-    max_rod_speed_mm_s: Positive = 20.0
-    max_rod_accel_mm_s2: Positive = 20.0
-    sample_period_s: Positive = 0.05
+    max_rod_speed_mm_s: Annotated[Finite, Field(gt=0, le=1000)] = 20.0
+    max_rod_accel_mm_s2: Annotated[Finite, Field(gt=0, le=10_000)] = 20.0
+    sample_period_s: Annotated[Finite, Field(ge=0.001, le=10)] = 0.05
 
     @property
     def max_rod_speed_m_s(self) -> float:
@@ -339,9 +370,9 @@ class Trajectory(Strict):
 class Planner(Strict):
     objective: Literal["sum_pressure", "peak_pressure", "pump_energy"] = "pump_energy"
     method: Literal["exact", "ldw_pso"] = "exact"
-    min_rod_force_kn: NonNegative
-    coplanarity_tolerance_mm: Positive
-    attitude_tolerance_rad: Positive = 1e-9
+    min_rod_force_kn: Annotated[Finite, Field(ge=0, le=10_000)]
+    coplanarity_tolerance_mm: Annotated[Finite, Field(gt=0, le=100)]
+    attitude_tolerance_rad: Annotated[Finite, Field(gt=0, le=1e-3)] = 1e-9
     ldw_pso: LdwPso = LdwPso()
     exact: Exact = Exact()
     trajectory: Trajectory = Trajectory()
@@ -360,37 +391,39 @@ class Planner(Strict):
 
 class Ladrc(Strict):
     order: Literal[1, 2] = 1
-    wc_rad_s: Positive = 6.0
-    wo_rad_s: Positive = 12.0
+    wc_rad_s: BandwidthPositive = 6.0
+    wo_rad_s: BandwidthPositive = 12.0
     discretization: Literal["euler", "zoh"] = "zoh"
-    rate_limit_per_s: Positive = 20.0
+    rate_limit_per_s: Annotated[Finite, Field(gt=0, le=1e6)] = 20.0
     #: feed the trajectory's rod speeds forward (docs/control.md); off: model.md's plain law
     reference_feedforward: bool = True
 
 
 class Pid(Strict):
-    kp_per_m: NonNegative = 100.0
-    ki_per_m_s: NonNegative = 20.0
-    kd_s_per_m: NonNegative = 0.0
+    kp_per_m: GainNonNegative = 100.0
+    ki_per_m_s: GainNonNegative = 20.0
+    kd_s_per_m: GainNonNegative = 0.0
     #: corner frequency of the first-order filter on the derivative term
-    derivative_filter_hz: Positive = 20.0
+    derivative_filter_hz: BandwidthPositive = 20.0
 
 
 class Sync(Strict):
     scheme: Literal["mean_deviation", "cross_coupled"] = "mean_deviation"
-    coupling_lambda: NonNegative = 1.0
+    coupling_lambda: Annotated[Finite, Field(ge=0, le=100)] = 1.0
 
 
 class Realtime(Strict):
     """Applied by the service when asked and allowed; reported when refused."""
 
     priority: Annotated[int, Field(ge=0, le=99)] = 0
-    cpu_affinity: tuple[int, ...] = ()
+    cpu_affinity: tuple[Annotated[int, Field(ge=0, le=4095)], ...] = ()
     lock_memory: bool = False
 
 
 class Control(Strict):
-    loop_rate_hz: Annotated[float, Field(gt=0, le=2000)] = 200.0
+    #: 50 Hz is the slowest rate at which the interlocks and the sync control still
+    #: act within the safety timeouts; 2000 Hz the fastest the bus budget allows.
+    loop_rate_hz: Annotated[Finite, Field(ge=50, le=2000)] = 200.0
     controller: Literal["ladrc", "pid"] = "ladrc"
     ladrc: Ladrc = Ladrc()
     pid: Pid = Pid()
@@ -417,12 +450,12 @@ class CanLink(Strict):
     interface: Literal["socketcan", "virtual", "udp_multicast", "wara_udp", "remote"] = "virtual"
     channel: str = "wara"
     bitrate: Annotated[int, Field(ge=10_000, le=1_000_000)] = 500_000
-    max_bus_load_percent: Annotated[float, Field(gt=0, le=100)] = 50.0
+    max_bus_load_percent: Annotated[Finite, Field(gt=0, le=100)] = 50.0
     #: Cylinder groups whose frames run at the loop rate at start-up (the attitude
     #: group with the main frame standing); the IPC may switch it at run time.
     active_groups: tuple[str, ...] = ("main_legs", "upper")
     #: A received message is stale after this many of its cycle times without a valid frame.
-    stale_cycles: Annotated[float, Field(ge=1.5, le=100)] = 3.0
+    stale_cycles: Annotated[Finite, Field(ge=1.5, le=100)] = 3.0
     #: E2E MaxDeltaCounter: accept a counter step of up to this (max_delta - 1 lost frames).
     max_delta_counter: Annotated[int, Field(ge=1, le=7)] = 2
     #: UDP port of the ``udp_multicast`` and ``wara_udp`` interfaces.
@@ -433,36 +466,42 @@ class CanLink(Strict):
 
 
 class Safety(Strict):
-    max_twist_mm: Positive = 1.5
-    max_sync_error_mm: Positive = 2.0
+    max_twist_mm: Annotated[Finite, Field(gt=0, le=100)] = 1.5
+    max_sync_error_mm: Annotated[Finite, Field(gt=0, le=100)] = 2.0
     #: Largest |reference - measurement| of an attitude cylinder while moving (catches a
     #: group that stops as a whole: commands ignored, all valves stuck).
-    max_tracking_error_mm: Positive = 10.0
-    max_pressure_mpa: Positive = 24.0
-    stroke_end_margin_mm: NonNegative = 5.0
-    sensor_timeout_ms: Positive = 50.0
-    plc_heartbeat_timeout_ms: Positive = 100.0
-    command_timeout_ms: Positive = 100.0
+    max_tracking_error_mm: Annotated[Finite, Field(gt=0, le=1000)] = 10.0
+    max_pressure_mpa: PressureMpa = 24.0
+    stroke_end_margin_mm: Annotated[Finite, Field(ge=0, le=1000)] = 5.0
+    sensor_timeout_ms: TimeoutMs = 50.0
+    plc_heartbeat_timeout_ms: TimeoutMs = 100.0
+    command_timeout_ms: TimeoutMs = 100.0
 
 
 # --------------------------------------------------------------------------- acceptance
 
 
+#: an acceptance tolerance (Table 4: 5-10 mm)
+ToleranceMm = Annotated[Finite, Field(gt=0, le=100)]
+#: an acceptance angle tolerance
+ToleranceDeg = Annotated[Finite, Field(gt=0, le=10)]
+
+
 class Acceptance(Strict):
     """Paper Table 4. The angle rows lost their values in the source: no default."""
 
-    vertical_misalignment_mm: Positive
-    horizontal_misalignment_mm: Positive
-    max_gap_mm: Positive
-    centreline_deviation_x_mm: Positive
-    centreline_deviation_y_mm: Positive
-    pitch_angle_deg: Positive | None = None
-    tilt_angle_deg: Positive | None = None
-    rotation_angle_deg: Positive | None = None
+    vertical_misalignment_mm: ToleranceMm
+    horizontal_misalignment_mm: ToleranceMm
+    max_gap_mm: ToleranceMm
+    centreline_deviation_x_mm: ToleranceMm
+    centreline_deviation_y_mm: ToleranceMm
+    pitch_angle_deg: ToleranceDeg | None = None
+    tilt_angle_deg: ToleranceDeg | None = None
+    rotation_angle_deg: ToleranceDeg | None = None
 
 
 class Task(Strict):
-    assembly_time_min: Positive = 5.0
+    assembly_time_min: Annotated[Finite, Field(gt=0, le=10_000)] = 5.0
 
 
 # --------------------------------------------------------------------------- project

@@ -63,7 +63,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         code = args.func(args)
     except ConfigError as exc:
-        print(f"wara: configuration error:\n{exc}", file=sys.stderr)
+        for line in str(exc).splitlines():  # one line per problem, each self-contained
+            print(f"wara: configuration error: {line}", file=sys.stderr)
         return EXIT_USAGE
     except UsageError as exc:
         print(f"wara {args.command}: error: {exc}", file=sys.stderr)

@@ -53,7 +53,7 @@ from typing import IO, Any
 import yaml
 
 from config import load_project
-from config.loader import default_project_path
+from config.loader import default_project_path, read_yaml
 from config.schema import ProjectConfig
 from ipc_app.service.core import ServiceCore
 from ipc_app.service.ctl import CtlError, request
@@ -150,7 +150,7 @@ def multicast_config(
     """
     src = Path(config_path) if config_path is not None else default_project_path()
     cfg = load_project(src)  # a bad config is the user's error (exit 2), reported against src
-    data = yaml.safe_load(src.read_text(encoding="utf-8"))
+    data = read_yaml(src)
     can_block = data.setdefault("can", {})
     can_block["interface"] = transport
     can_block["channel"] = MULTICAST_GROUP

@@ -1,12 +1,15 @@
 """Import a survey CSV export: bad rows are rejected with line numbers and reasons.
 
-Semantics (one file = one transaction):
+Semantics (one file = one transaction, whole file or nothing):
 
-- The whole file is read and checked before anything is written.
-- A file-level problem (file missing, not UTF-8, no header, unknown / duplicate /
-  missing required column) raises :class:`CsvFileError`: nothing is written.
-- Otherwise every valid row is written in **one** transaction, and every bad row is
-  reported as ``line N: reason``. A crash part-way writes none of the file's rows.
+- The whole file is read and checked before anything is written (or any database is
+  created).
+- A file-level problem (file missing, not a regular file, over :data:`MAX_CSV_BYTES`,
+  not UTF-8, no header, unknown / duplicate / missing required column) raises
+  :class:`CsvFileError`: nothing is written.
+- Every bad row is reported as ``line N: reason``; if there is any, **nothing** of the
+  file is written. Otherwise every row is written in **one** transaction; a crash
+  part-way writes none of the file's rows.
 - A ring that appears on more than one row of the same file is ambiguous (which survey
   is right?): all its rows are rejected. Put a re-survey in its own file or use
   ``wara acceptance add``.
@@ -16,9 +19,12 @@ Semantics (one file = one transaction):
 
 Format: UTF-8 (a BOM as written by spreadsheet programs is fine), comma-separated, one
 header row naming the columns (any order, case-insensitive); blank lines and lines whose
-first cell starts with ``#`` are ignored. Columns: ``ring``, ``measured_at`` and the
-five linear items are required; the three angle items, ``operator`` and ``remarks`` are
-optional. An empty angle cell means "not measured".
+first cell starts with ``#`` are ignored. One row is one line: a field may not contain
+a line break (a quote left open would otherwise swallow the rows after it). Columns:
+``ring``, ``measured_at`` and the five linear items are required; the three angle items,
+``operator`` and ``remarks`` are optional. An empty angle cell means "not measured".
+Ring numbers and values: :mod:`ipc_app.acceptance.items` (ASCII digits, sign, decimal
+point, exponent; a plausible range per item).
 """
 
 from __future__ import annotations
@@ -29,7 +35,8 @@ import io
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from ipc_app.acceptance.items import ITEM_KEYS, ITEMS, REQUIRED_KEYS
+from config.files import InputFileError, read_input_file
+from ipc_app.acceptance.items import ITEM_KEYS, ITEMS, REQUIRED_KEYS, parse_ring
 from ipc_app.acceptance.store import AcceptanceStore, RingMeasurement, StoredRecord
 
 REQUIRED_COLUMNS: tuple[str, ...] = ("ring", "measured_at", *REQUIRED_KEYS)
@@ -40,13 +47,16 @@ OPTIONAL_COLUMNS: tuple[str, ...] = (
 )
 #: Column order used when writing a CSV (the example data set).
 COLUMNS: tuple[str, ...] = ("ring", "measured_at", *ITEM_KEYS, "operator", "remarks")
+#: Largest survey file read (about 100 000 rings).
+MAX_CSV_BYTES = 16 * 1024 * 1024
 
 
 class CsvFileError(Exception):
     """The file as a whole cannot be imported (nothing from it was written).
 
-    Scenarios: the file does not exist, is not UTF-8 text, has no header row, or its
-    header names an unknown column, a column twice, or lacks a required column.
+    Scenarios: the file does not exist, is not a regular file or too long, is not UTF-8
+    text, has no header row, or its header names an unknown column, a column twice, or
+    lacks a required column.
     """
 
 
@@ -86,26 +96,6 @@ class ImportResult:
         return not self.errors
 
 
-def _parse_number(column: str, text: str) -> float | None:
-    if text == "":
-        return None
-    try:
-        return float(text)
-    except ValueError:
-        hint = " (use a decimal point, e.g. 8.5)" if "," in text else ""
-        raise ValueError(f"{column}: {text!r} is not a number{hint}") from None
-
-
-def _parse_ring(text: str) -> int:
-    try:
-        ring = int(text)
-    except ValueError:
-        raise ValueError(f"ring: {text!r} is not a whole number") from None
-    if ring < 1:
-        raise ValueError(f"ring: got {ring}: expected a ring number >= 1")
-    return ring
-
-
 def _header(cells: list[str], source: str, line: int) -> list[str]:
     names = [c.strip().lower() for c in cells]
     known = set(COLUMNS)
@@ -143,12 +133,32 @@ def parse_csv_text(text: str, source: str = "<csv>") -> ParsedCsv:
             break
         except csv.Error as exc:
             line = prev_end + 1
+            why = f"unreadable CSV: {exc}"
+            if reader.line_num > line:
+                why += f" (a quoted field runs on to line {reader.line_num}: unterminated quote?)"
             if header is None:
-                raise CsvFileError(f"{source}: line {line}: unreadable CSV: {exc}") from None
-            errors.append(RowError(line, f"unreadable CSV: {exc}"))
+                raise CsvFileError(f"{source}: line {line}: {why}") from None
+            errors.append(RowError(line, why))
             prev_end = reader.line_num
             continue
         line, prev_end = prev_end + 1, reader.line_num
+        if reader.line_num > line:
+            # A quoted field ran over a line break: most likely a quote left open,
+            # which swallowed the row(s) after it. One row is one line.
+            if header is None:
+                raise CsvFileError(
+                    f"{source}: line {line}: a quoted field runs on to line "
+                    f"{reader.line_num} (unterminated quote?)"
+                )
+            errors.append(
+                RowError(
+                    line,
+                    f"a quoted field runs on to line {reader.line_num}, taking lines "
+                    f"{line}-{reader.line_num} as one row (unterminated quote? a field may "
+                    "not contain a line break)",
+                )
+            )
+            continue
         if not cells or all(c.strip() == "" for c in cells) or cells[0].lstrip().startswith("#"):
             continue
         if header is None:
@@ -161,7 +171,7 @@ def parse_csv_text(text: str, source: str = "<csv>") -> ParsedCsv:
         reasons: list[str] = []
         ring: int | None = None
         try:
-            ring = _parse_ring(row["ring"])
+            ring = parse_ring(row["ring"])
             ring_lines.setdefault(ring, []).append(line)
         except ValueError as exc:
             reasons.append(str(exc))
@@ -170,7 +180,8 @@ def parse_csv_text(text: str, source: str = "<csv>") -> ParsedCsv:
             if item.key not in row:
                 continue
             try:
-                values[item.key] = _parse_number(item.key, row[item.key])
+                text = row[item.key]
+                values[item.key] = None if text == "" else item.parse(text)
             except ValueError as exc:
                 reasons.append(str(exc))
                 values[item.key] = 0.0  # placeholder; the row is rejected anyway
@@ -215,11 +226,9 @@ def parse_csv(path: str | Path) -> ParsedCsv:
     """Read and check a survey CSV file."""
     p = Path(path)
     try:
-        data = p.read_bytes()
-    except FileNotFoundError:
-        raise CsvFileError(f"{p}: file not found") from None
-    except OSError as exc:
-        raise CsvFileError(f"{p}: cannot read: {exc.strerror}") from None
+        data = read_input_file(p, MAX_CSV_BYTES)
+    except InputFileError as exc:
+        raise CsvFileError(str(exc)) from None
     try:
         text = data.decode("utf-8-sig")
     except UnicodeDecodeError as exc:
@@ -230,7 +239,9 @@ def parse_csv(path: str | Path) -> ParsedCsv:
 
 
 def import_parsed(store: AcceptanceStore, parsed: ParsedCsv) -> ImportResult:
-    """Write a checked file's valid rows in one transaction (see the module docstring)."""
+    """Write a checked file's rows in one transaction, or none if any row was rejected."""
+    if parsed.errors:
+        return ImportResult(parsed.source, [], [], parsed.errors, None)
     current = {r.ring: r.measurement for r in store.current()}
     new: list[tuple[int, RingMeasurement]] = []
     unchanged: list[int] = []

@@ -39,7 +39,7 @@ from pathlib import Path
 from types import TracebackType
 from typing import Any
 
-from ipc_app.acceptance.items import ITEMS, ITEMS_BY_KEY
+from ipc_app.acceptance.items import ITEMS, ITEMS_BY_KEY, check_ring
 
 #: Bumped when the table layout changes; a newer database is refused, not guessed at.
 SCHEMA_VERSION = 1
@@ -79,8 +79,9 @@ def parse_time(text: str) -> str:
     try:
         return datetime.fromisoformat(text.strip()).isoformat()
     except ValueError:
+        shown = repr(text) if len(text) <= 40 else repr(text[:37] + "...")
         raise ValueError(
-            f"{text!r} is not an ISO 8601 time (expected e.g. 2024-03-05T10:30 or "
+            f"{shown} is not an ISO 8601 time (expected e.g. 2024-03-05T10:30 or "
             "2024-03-05 10:30:00+08:00)"
         ) from None
 
@@ -101,8 +102,7 @@ class RingMeasurement:
     remarks: str = ""
 
     def __post_init__(self) -> None:
-        if isinstance(self.ring, bool) or not isinstance(self.ring, int) or self.ring < 1:
-            raise ValueError(f"ring: got {self.ring!r}: expected a whole number >= 1")
+        check_ring(self.ring)
         object.__setattr__(self, "measured_at", parse_time(self.measured_at))
         unknown = sorted(set(self.values) - set(ITEMS_BY_KEY))
         if unknown:
@@ -118,9 +118,7 @@ class RingMeasurement:
             v = float(v)
             if not math.isfinite(v):
                 raise ValueError(f"{item.key}: got {v!r}: expected a finite number")
-            if not item.signed and v < 0:
-                raise ValueError(f"{item.key}: got {v!r}: expected a value >= 0 ({item.unit})")
-            clean[item.key] = v
+            clean[item.key] = item.check(v)
         object.__setattr__(self, "values", clean)
         for name in ("operator", "remarks"):
             object.__setattr__(self, name, str(getattr(self, name)).strip())
@@ -237,13 +235,17 @@ _RECORD_COLS = (
 
 
 def _row_to_record(row: sqlite3.Row) -> StoredRecord:
-    m = RingMeasurement(
-        ring=row["ring"],
-        measured_at=row["measured_at"],
-        values={i.key: row[i.key] for i in ITEMS},
-        operator=row["operator"],
-        remarks=row["remarks"],
-    )
+    try:
+        m = RingMeasurement(
+            ring=row["ring"],
+            measured_at=row["measured_at"],
+            values={i.key: row[i.key] for i in ITEMS},
+            operator=row["operator"],
+            remarks=row["remarks"],
+        )
+    except (ValueError, TypeError) as exc:
+        # Written around this software (the triggers only refuse UPDATE and DELETE).
+        raise StoreError(f"record #{row['id']} in the database is not valid: {exc}") from None
     return StoredRecord(
         record_id=row["id"],
         measurement=m,
@@ -413,8 +415,7 @@ class AcceptanceStore:
         controller ended. The ring need not be surveyed yet. Attaching again keeps the
         earlier plan in history; :meth:`latest_plan` returns the newest.
         """
-        if isinstance(ring, bool) or not isinstance(ring, int) or ring < 1:
-            raise ValueError(f"ring: got {ring!r}: expected a whole number >= 1")
+        check_ring(ring)
         plan_text = _json_text(plan, "plan")
         att_text = None if final_attitude is None else _json_text(final_attitude, "final_attitude")
         attached_at = _now_utc()

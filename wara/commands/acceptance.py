@@ -3,7 +3,7 @@
 Verbs::
 
     wara acceptance add RING --measured-at T --vertical-misalignment-mm V ... [--operator NAME]
-    wara acceptance import FILE.csv            # bad rows listed, valid rows in one transaction
+    wara acceptance import FILE.csv            # whole file in one transaction, or nothing
     wara acceptance report --out DIR [--from N --to M] [--json]
     wara acceptance list [--from N --to M] [--json]
     wara acceptance history RING [--json]
@@ -12,8 +12,8 @@ Verbs::
 
 Every verb takes ``--db PATH`` (default ``$WARA_DATA_DIR/acceptance.sqlite``, else
 ``./wara-data/acceptance.sqlite``); the judging verbs take ``--config YAML`` (default:
-the shipped project). Exit codes: 0 done, 1 rows rejected on import / nothing to report,
-2 bad arguments, unusable file or database.
+the shipped project). Exit codes: 0 done, 1 nothing to report, 2 bad arguments, rows
+rejected on import (nothing imported), unusable file or database.
 
 The logic lives in :mod:`ipc_app.acceptance`; this module only parses and prints.
 """
@@ -21,16 +21,19 @@ The logic lives in :mod:`ipc_app.acceptance`; this module only parses and prints
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import sys
+from collections.abc import Callable
 from datetime import datetime
 from pathlib import Path
 from typing import Any
 
 from config import default_project_path, load_project
-from ipc_app.acceptance.csv_import import CsvFileError, import_csv
+from config.files import InputFileError, read_input_file
+from ipc_app.acceptance.csv_import import CsvFileError, ImportResult, import_parsed, parse_csv
 from ipc_app.acceptance.example import example_csv_text
-from ipc_app.acceptance.items import ITEMS
+from ipc_app.acceptance.items import ITEMS, ControlItem, parse_ring
 from ipc_app.acceptance.judge import RingVerdict, Status, judge_ring, limits_from, summarize
 from ipc_app.acceptance.report import ReportMeta, report_dict, write_report
 from ipc_app.acceptance.store import (
@@ -39,7 +42,44 @@ from ipc_app.acceptance.store import (
     StoreError,
     default_db_path,
 )
-from wara.cli import EXIT_FAILED, EXIT_OK, UsageError
+from wara.cli import EXIT_FAILED, EXIT_OK, EXIT_USAGE, UsageError
+
+#: Largest plan or attitude JSON read.
+MAX_JSON_BYTES = 1024 * 1024
+
+
+def _ring_arg(text: str) -> int:
+    """argparse type of a ring number: the CSV's syntax (no ``1_0``, no other scripts)."""
+    try:
+        return parse_ring(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+
+
+def _value_arg(item: ControlItem) -> Callable[[str], float]:
+    """argparse type of an item's value: the CSV's number syntax and plausible range."""
+
+    def parse(text: str) -> float:
+        try:
+            return item.parse(text)
+        except ValueError as exc:
+            raise argparse.ArgumentTypeError(str(exc)) from None
+
+    parse.__name__ = item.key  # argparse names the type in its message
+    return parse
+
+
+def _guarded(verb: Callable[[argparse.Namespace], int]) -> Callable[[argparse.Namespace], int]:
+    """A database that turns out unusable while reading is a one-line error, exit 2."""
+
+    @functools.wraps(verb)
+    def run(args: argparse.Namespace) -> int:
+        try:
+            return verb(args)
+        except StoreError as exc:
+            raise UsageError(str(exc)) from None
+
+    return run
 
 
 def _add_db(p: argparse.ArgumentParser) -> None:
@@ -62,7 +102,7 @@ def _add_range(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--from",
         dest="ring_from",
-        type=int,
+        type=_ring_arg,
         default=None,
         metavar="N",
         help="first ring (default: the lowest recorded)",
@@ -70,7 +110,7 @@ def _add_range(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--to",
         dest="ring_to",
-        type=int,
+        type=_ring_arg,
         default=None,
         metavar="M",
         help="last ring (default: the highest recorded)",
@@ -83,7 +123,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     verbs.required = True
 
     a = verbs.add_parser("add", help="record one ring survey (re-recording keeps the history)")
-    a.add_argument("ring", type=int, help="ring number (>= 1)")
+    a.add_argument("ring", type=_ring_arg, help="ring number (>= 1)")
     a.add_argument(
         "--measured-at",
         default=None,
@@ -94,7 +134,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         a.add_argument(
             f"--{item.key.replace('_', '-')}",
             dest=item.key,
-            type=float,
+            type=_value_arg(item),
             required=item.required,
             metavar=item.unit.upper(),
             help=f"{item.label} ({item.unit}){'' if item.required else ', if measured'}",
@@ -103,17 +143,17 @@ def register(sub: argparse._SubParsersAction) -> None:
     a.add_argument("--remarks", default="", help="free text")
     _add_db(a)
     _add_config(a)
-    a.set_defaults(func=_add)
+    a.set_defaults(func=_guarded(_add))
 
     i = verbs.add_parser(
         "import",
-        help="import a survey CSV: bad rows listed with line numbers, valid rows written "
-        "in one transaction; exit 1 if any row was rejected",
+        help="import a survey CSV in one transaction; if any row is bad, each is listed with "
+        "its line number, nothing is written and the exit code is 2",
     )
     i.add_argument("file", help="CSV file (format: docs/acceptance.md)")
     i.add_argument("--json", action="store_true", help="print the outcome as JSON")
     _add_db(i)
-    i.set_defaults(func=_import)
+    i.set_defaults(func=_guarded(_import))
 
     r = verbs.add_parser(
         "report", help="pass/fail per ring and item, pass rates, PNG plots and an HTML page"
@@ -128,25 +168,25 @@ def register(sub: argparse._SubParsersAction) -> None:
     r.add_argument("--json", action="store_true", help="print the summary as JSON")
     _add_db(r)
     _add_config(r)
-    r.set_defaults(func=_report)
+    r.set_defaults(func=_guarded(_report))
 
     ls = verbs.add_parser("list", help="the current record of each ring, judged")
     _add_range(ls)
     ls.add_argument("--json", action="store_true", help="JSON output")
     _add_db(ls)
     _add_config(ls)
-    ls.set_defaults(func=_list)
+    ls.set_defaults(func=_guarded(_list))
 
     h = verbs.add_parser("history", help="every record of one ring and its attached plans")
-    h.add_argument("ring", type=int, help="ring number")
+    h.add_argument("ring", type=_ring_arg, help="ring number")
     h.add_argument("--json", action="store_true", help="JSON output")
     _add_db(h)
-    h.set_defaults(func=_history)
+    h.set_defaults(func=_guarded(_history))
 
     ap = verbs.add_parser(
         "attach-plan", help="attach the controller's plan (e.g. `wara plan --json`) to a ring"
     )
-    ap.add_argument("ring", type=int, help="ring number")
+    ap.add_argument("ring", type=_ring_arg, help="ring number")
     ap.add_argument("plan", help="JSON file with the plan object ('-' for stdin)")
     ap.add_argument(
         "--final-attitude",
@@ -155,7 +195,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="JSON file with the controller's final attitude",
     )
     _add_db(ap)
-    ap.set_defaults(func=_attach_plan)
+    ap.set_defaults(func=_guarded(_attach_plan))
 
     ex = verbs.add_parser("example", help="write the synthetic 50-ring example CSV")
     ex.add_argument("--out", default=None, metavar="FILE", help="file (default: stdout)")
@@ -190,13 +230,22 @@ def _fmt_value(v: float | None, unit: str) -> str:
 
 def _read_json_object(path: str, what: str) -> dict[str, Any]:
     try:
-        text = sys.stdin.read() if path == "-" else Path(path).read_text(encoding="utf-8")
-    except OSError as exc:
-        raise UsageError(f"{what} {path}: cannot read: {exc.strerror}") from None
+        if path == "-":
+            text = sys.stdin.read(MAX_JSON_BYTES + 1)
+            if len(text) > MAX_JSON_BYTES:
+                raise UsageError(f"{what} on stdin: longer than {MAX_JSON_BYTES} characters")
+        else:
+            text = read_input_file(path, MAX_JSON_BYTES).decode("utf-8")
+    except InputFileError as exc:
+        raise UsageError(f"{what} {exc}") from None
+    except UnicodeDecodeError as exc:
+        raise UsageError(f"{what} {path}: not UTF-8 text (byte {exc.start})") from None
     try:
         obj = json.loads(text)
     except json.JSONDecodeError as exc:
         raise UsageError(f"{what} {path}: not JSON: line {exc.lineno}: {exc.msg}") from None
+    except RecursionError:
+        raise UsageError(f"{what} {path}: not JSON this program reads: nested too deeply") from None
     if not isinstance(obj, dict):
         raise UsageError(f"{what} {path}: expected a JSON object, got {type(obj).__name__}")
     return obj
@@ -235,11 +284,15 @@ def _add(args: argparse.Namespace) -> int:
 
 
 def _import(args: argparse.Namespace) -> int:
-    with _open(args, create=True) as store:
-        try:
-            res = import_csv(store, args.file)
-        except CsvFileError as exc:
-            raise UsageError(f"{exc} (nothing imported)") from None
+    try:
+        parsed = parse_csv(args.file)  # before the database is opened (or created)
+    except CsvFileError as exc:
+        raise UsageError(f"{exc} (nothing imported)") from None
+    if parsed.errors:  # nothing will be written: no database to open or create
+        res = ImportResult(parsed.source, [], [], parsed.errors, None)
+    else:
+        with _open(args, create=True) as store:
+            res = import_parsed(store, parsed)
     if args.json:
         print(
             json.dumps(
@@ -255,15 +308,21 @@ def _import(args: argparse.Namespace) -> int:
             )
         )
     else:
-        batch = f" (import #{res.import_id})" if res.import_id is not None else ""
-        print(
-            f"{res.source}: {len(res.recorded)} row(s) recorded{batch}, "
-            f"{len(res.unchanged_lines)} unchanged (already recorded identically), "
-            f"{len(res.errors)} rejected"
-        )
         for err in res.errors:
             print(f"{res.source}: {err}", file=sys.stderr)
-    return EXIT_OK if res.ok else EXIT_FAILED
+        if res.errors:
+            print(
+                f"{res.source}: nothing imported: {len(res.errors)} row(s) rejected "
+                "(a file is imported whole or not at all)",
+                file=sys.stderr,
+            )
+        else:
+            batch = f" (import #{res.import_id})" if res.import_id is not None else ""
+            print(
+                f"{res.source}: {len(res.recorded)} row(s) recorded{batch}, "
+                f"{len(res.unchanged_lines)} unchanged (already recorded identically)"
+            )
+    return EXIT_OK if res.ok else EXIT_USAGE
 
 
 def _summary_for(args: argparse.Namespace, store: AcceptanceStore) -> Any:

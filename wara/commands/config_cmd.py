@@ -4,10 +4,13 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
+from pathlib import Path
 
 import yaml
 
-from config import load_project
+from config import ProjectConfig, load_project
+from config.loader import defaulted_sections, read_yaml, validate_data
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -24,7 +27,17 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def _validate(args: argparse.Namespace) -> int:
-    cfg = load_project(args.path)
+    data = read_yaml(Path(args.path))
+    cfg = validate_data(ProjectConfig, data, args.path)
+    defaulted = defaulted_sections(ProjectConfig, data)
+    if defaulted:
+        # Valid, but a whole section (safety limits, the bus) came from the defaults:
+        # say so, so that a forgotten section is a decision and not an accident.
+        print(
+            f"{args.path}: warning: section(s) not in the file, every key at its default "
+            f"(see `wara config show`): {', '.join(defaulted)}",
+            file=sys.stderr,
+        )
     print(
         f"{args.path}: OK ({cfg.project.name} {cfg.project.section}, "
         f"{len(cfg.cylinders)} cylinders)"

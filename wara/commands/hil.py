@@ -24,11 +24,9 @@ import threading
 import time
 from typing import Any
 
-import yaml
-
 from config import load_project
 from config.hil_scenario import EVENT_KINDS, HilScenario, load_hil_scenario
-from config.loader import validate_data
+from config.loader import parse_yaml_text, validate_data
 from hil_sim.simulator import HilSimulator
 from plc_bridge.errors import BridgeError
 from wara.cli import UsageError
@@ -87,7 +85,7 @@ def parse_fault(spec: str) -> dict[str, Any]:
         key, eq, value = item.partition("=")
         if not eq:
             raise UsageError(f"--fault {spec!r}: expected KEY=VALUE, got {item!r}")
-        event[key.strip()] = yaml.safe_load(value)
+        event[key.strip()] = parse_yaml_text(value, f"--fault {spec!r}")
     return event
 
 
