@@ -238,6 +238,10 @@ def test_fault_leads_to_safe_state(
     finally:
         summary = run.close()
     _record_is_complete(tmp_path / "run", run.cycles, summary, mode)
+    if interlocks:  # each latched cause is an event of its own, from the data
+        faults = [e for e in read_run(tmp_path / "run").events if e["kind"] == "fault"]
+        assert faults and faults[0]["interlock"] in {str(i) for i in interlocks}
+        assert len({(e["interlock"], e["where"]) for e in faults}) == len(faults)
 
 
 #: Cycles from the end of a stall to the motion going on: the first frame after a

@@ -36,7 +36,7 @@ from config.schema import ProjectConfig
 from ipc_app.control.attitude import AttitudeController
 from ipc_app.model.composition import check_attitude
 from ipc_app.model.kinematics import fit_layer
-from ipc_app.service.interlocks import Cause, Interlock
+from ipc_app.service.interlocks import Cause, Interlock, Latched
 from ipc_app.service.modes import SUSPENDABLE_MODES, Mode, ModeMachine, Transition
 from ipc_app.service.record import RunRecorder
 from ipc_app.service.worker import PlanResult
@@ -135,7 +135,9 @@ class ServiceCore:
         self._limits_of: tuple[object, list[bool] | None] = (None, None)
         self._present: list[Cause] = []  # interlock conditions present this cycle
         self.modes = ModeMachine(
-            active_causes=lambda: list(self._present), on_transition=self._on_transition
+            active_causes=lambda: list(self._present),
+            on_transition=self._on_transition,
+            on_fault=self._on_fault,
         )
         self._request_id = 0
         # ride-through: suspends and resumes so far, the suspension in progress
@@ -183,6 +185,10 @@ class ServiceCore:
                 to_mode=str(tr.to_mode),
                 reason=tr.reason,
             )
+
+    def _on_fault(self, latched: Latched) -> None:
+        if self.record is not None:  # each newly latched cause once, from the data
+            self.record.event(self._now, "fault", **latched.to_dict())
 
     # ------------------------------------------------------------------ operator side
 

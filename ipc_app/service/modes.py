@@ -116,8 +116,9 @@ class ModeMachine:
     still present (:class:`Cause` objects); a reset succeeds only when it
     returns nothing and the e-stop is released. ``clock`` is for the transition times.
     ``on_transition`` is called with each :class:`Transition` (e.g. to write it to the
-    run record or to systemd's STATUS=); it runs in the caller's thread under the
-    machine's re-entrant lock, so it must be quick and must not block.
+    run record or to systemd's STATUS=), ``on_fault`` with each newly latched cause; both
+    run in the caller's thread under the machine's re-entrant lock, so they must be
+    quick and must not block.
     """
 
     def __init__(
@@ -126,11 +127,13 @@ class ModeMachine:
         active_causes: Callable[[], Sequence[Cause]] = lambda: (),
         clock: Callable[[], float] = time.monotonic,
         on_transition: Callable[[Transition], None] | None = None,
+        on_fault: Callable[[Latched], None] | None = None,
         history: int = 100,
     ) -> None:
         self._active_causes = active_causes
         self._clock = clock
         self._on_transition = on_transition
+        self._on_fault = on_fault
         self._lock = threading.RLock()
         self._s = _State(since=clock())
         self._history: deque[Transition] = deque(maxlen=history)
@@ -269,6 +272,8 @@ class ModeMachine:
         with self._lock:
             s = self._s
             new = s.faults.add(cause, self._clock())
+            if new and self._on_fault is not None:
+                self._on_fault(s.faults.entries()[-1])
             if s.mode in (Mode.FAULT, Mode.ESTOP):
                 if new:
                     log.warning(
