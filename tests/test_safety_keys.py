@@ -23,7 +23,7 @@ from ipc_app.service.core import ServiceCore
 from ipc_app.service.interlocks import SPECS, Interlock
 from ipc_app.service.modes import Mode
 from plc_bridge import Fault
-from plc_bridge.link import IpcLink, LinkState, PlcLink, PlcStatus, Reading
+from plc_bridge.link import IpcLink, PlcLink, PlcStatus, Reading
 from tests.hil_helpers import make_bench
 
 _channels = itertools.count()
@@ -85,10 +85,7 @@ def pressure(cfg: ProjectConfig) -> Any:
     try:
         n = len(cfg.cylinders)
         p = np.full((n, 2), 20e6)
-        return {
-            c.interlock
-            for c in core._conditions(True, _STATUS, LinkState.OK, p, np.ones((n, 2), bool))
-        }
+        return {c.interlock for c in core._conditions(True, _STATUS, p, np.ones((n, 2), bool))}
     finally:
         core.link.close()
 

@@ -134,19 +134,18 @@ def test_silent_plc_faults_within_stated_cycles(
 def test_pressure_and_stroke_end_checks_name_the_cylinder(
     project: ProjectConfig, worker: PlannerWorker
 ) -> None:
-    from plc_bridge.link import LinkState
 
     core, _, _ = _setup(project, worker)
     status = PlcStatus(pump_running=True, drives_enabled=True)
     n = len(project.cylinders)
     p = np.full((n, 2), 10e6)
     valid = np.ones((n, 2), dtype=bool)
-    assert core._conditions(True, status, LinkState.OK, p, valid) == []
+    assert core._conditions(True, status, p, valid) == []
     i = core.active[5]
     p[i, 1] = core.max_pressure_pa + 1e6
     p[core.active[0], 0] = np.nan  # an invalid reading is never the peak
     valid[core.active[0], 0] = False
-    (cause,) = core._conditions(True, status, LinkState.OK, p, valid)
+    (cause,) = core._conditions(True, status, p, valid)
     assert cause.key == (Interlock.PRESSURE, project.cylinders_by_can_index[i].id)
     assert cause.value == pytest.approx(project.safety.max_pressure_mpa + 1.0)
     assert cause.limit == project.safety.max_pressure_mpa
@@ -170,7 +169,7 @@ def test_interlock_checks_match_their_former_numpy_form(
 ) -> None:
     """The pressure peak (one reduction) and the stroke-end check (plain floats, the switch
     mask once per word) give the messages of the former numpy definitions (kept here)."""
-    from plc_bridge.link import LimitSwitches, LinkState
+    from plc_bridge.link import LimitSwitches
 
     core, _, _ = _setup(project, worker)
     rng = np.random.default_rng(3)
@@ -191,7 +190,7 @@ def test_interlock_checks_match_their_former_numpy_form(
         p = rng.uniform(-1e6, lim * (1.1 if k % 2 else 0.99), (n, 2))
         p[rng.random((n, 2)) < (0.3 if k % 3 else 1.0)] = np.nan  # some or all invalid
         valid = ~np.isnan(p)
-        got = core._conditions(True, status, LinkState.OK, p, valid)
+        got = core._conditions(True, status, p, valid)
         want = former_pressure(p, valid)
         assert [c.key for c in got] == want
         hits += len(want)

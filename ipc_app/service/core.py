@@ -293,7 +293,7 @@ class ServiceCore:
         if status is not None:
             self.modes.estop(status.estop)
 
-        present = self._conditions(valid, status, lstate, prs.value, prs.valid, pos, now)
+        present = self._conditions(valid, status, prs.value, prs.valid, pos, now)
         self._present = present
         losses = self._losses(valid, status, now)
         if mode == Mode.BOOT:
@@ -355,7 +355,6 @@ class ServiceCore:
         self,
         positions_valid: bool,
         status: Any,
-        lstate: LinkState,
         p: np.ndarray,
         p_valid: np.ndarray,
         pos: Reading | None = None,
@@ -519,7 +518,7 @@ class ServiceCore:
             f"after {units.to_ms(suspended_s):.0f} ms"
         )
         self.resumes += 1
-        log.info("resumed", suspended_s=suspended_s, shift_s=shift, resumes=self.resumes)
+        log.warning("resumed", suspended_s=suspended_s, shift_s=shift, resumes=self.resumes)
         if self.record is not None:
             self.record.event(now, "resumed", suspended_s=suspended_s, shift_s=shift)
 
