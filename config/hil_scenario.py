@@ -129,6 +129,31 @@ class IgnoreCommands(_Timed):
 Direction = Literal["plc_to_ipc", "ipc_to_plc", "both"]
 
 
+class _Stall(_Timed):
+    @model_validator(mode="after")
+    def _bounded(self) -> _Stall:
+        if self.end_s is None:
+            raise ValueError("a stall needs end_s (a stall without end is plc_silent)")
+        return self
+
+
+class PlcStall(_Stall):
+    """The PLC's scan stops from ``start_s`` to ``end_s``: no scan, nothing read or sent;
+    the output card's watchdog centres the spools and closes the load-holding valves.
+    The plant goes on. Afterwards the PLC reads what queued up and scans again."""
+
+    kind: Literal["plc_stall"]
+
+
+class WireStall(_Stall):
+    """The wire holds frames (``direction``, ``messages`` as the wire faults) from
+    ``start_s`` to ``end_s`` and then delivers them, in order."""
+
+    kind: Literal["wire_stall"]
+    messages: tuple[str, ...] = ()
+    direction: Direction = "both"
+
+
 class _WireFault(_Timed):
     #: DBC message names or fnmatch patterns; empty: every message of the direction
     messages: tuple[str, ...] = ()
@@ -232,6 +257,8 @@ Event = Annotated[
     EStop
     | HmiTargetEvent
     | PlcSilent
+    | PlcStall
+    | WireStall
     | IgnoreCommands
     | DropFrames
     | DelayFrames
@@ -250,6 +277,8 @@ EVENT_KINDS: tuple[str, ...] = (
     "estop",
     "hmi_target",
     "plc_silent",
+    "plc_stall",
+    "wire_stall",
     "ignore_commands",
     "drop",
     "delay",

@@ -473,9 +473,15 @@ class Safety(Strict):
     max_tracking_error_mm: Annotated[Finite, Field(gt=0, le=1000)] = 10.0
     max_pressure_mpa: PressureMpa = 24.0
     stroke_end_margin_mm: Annotated[Finite, Field(ge=0, le=1000)] = 5.0
-    sensor_timeout_ms: TimeoutMs = 50.0
+    #: IPC: a rod position of the active group lost for longer latches FAULT (a shorter
+    #: loss suspends the motion and resumes it)
+    sensor_timeout_ms: TimeoutMs = 100.0
+    #: IPC: no valid PLC status for longer latches FAULT (the link is LOST)
     plc_heartbeat_timeout_ms: TimeoutMs = 100.0
+    #: PLC: stale commands centre the spools at once; lost for longer latches IPC_TIMEOUT
     command_timeout_ms: TimeoutMs = 100.0
+    #: IPC: a suspended motion that has not resumed within this latches FAULT
+    max_suspend_ms: TimeoutMs = 250.0
 
 
 # --------------------------------------------------------------------------- acceptance

@@ -36,6 +36,11 @@ def ms(value_ms: float) -> float:
     return value_ms * MS
 
 
+def to_ms(value_s: float) -> float:
+    """Seconds to milliseconds."""
+    return value_s / MS
+
+
 def um(value_um: float) -> float:
     """Micrometres to metres."""
     return value_um * UM

@@ -46,8 +46,10 @@ from config.hil_scenario import (
     Leakage,
     LoadStep,
     PlcSilent,
+    PlcStall,
     SensorFault,
     StuckValve,
+    WireStall,
 )
 from config.schema import N_CYLINDERS, ProjectConfig
 from hil_sim.rig import LayerTruth, Rig
@@ -71,7 +73,15 @@ FloatArray = NDArray[np.float64]
 
 #: Modes in which the PLC lets the valves move.
 MOTION_MODES = frozenset({Mode.MANUAL, Mode.ATTITUDE_ADJUST, Mode.WALK, Mode.HOMING})
-_WIRE_KINDS = {"drop", "delay", "bad_crc", "frozen_counter", "bus_off", "plc_silent"}
+_WIRE_KINDS = {
+    "drop",
+    "delay",
+    "bad_crc",
+    "frozen_counter",
+    "bus_off",
+    "plc_silent",
+    "wire_stall",
+}
 _QUANTITY_COLUMN = {"cap_pressure": 0, "rod_pressure": 1}
 
 
@@ -155,6 +165,10 @@ class HilSimulator:
         self._active: set[int] = set()
         self._held: dict[int, float] = {}
         self._hmi_seq = 0
+        self._hmi_issued: set[int] = set()  # hmi_target events sent (each once)
+        #: TargetSeq values issued so far (one per hmi_target event)
+        self.hmi_issued: list[int] = []
+        self._engaged = False  # drives were on at the last scan with fresh commands
         self.hmi_ack: tuple[int, TargetAck] | None = None
         self._latched = Fault.NONE
         self._drives = False
@@ -169,6 +183,7 @@ class HilSimulator:
         self._status_key: tuple[Any, ...] = ()
         self._sensor_fault = False
         self._limits: tuple[bytes, bytes] = (b"", b"")
+        self._stalled = False
 
     # ----------------------------------------------------------------- set-up
 
@@ -198,6 +213,15 @@ class HilSimulator:
                 )
             elif isinstance(ev, BusOff | PlcSilent):
                 self._wire_faults[k] = WireFault(kind=ev.kind, key=k)
+            elif isinstance(ev, WireStall):
+                assert ev.end_s is not None  # the schema requires it
+                self._wire_faults[k] = WireFault(
+                    kind=ev.kind,
+                    frame_ids=match_messages(self.catalog, ev.messages, where),
+                    direction=ev.direction,
+                    until_s=ev.end_s,
+                    key=k,
+                )
             elif (
                 isinstance(ev, SensorFault | Leakage | StuckValve | LoadStep)
                 and ev.cylinder is not None
@@ -277,6 +301,17 @@ class HilSimulator:
     def _scan(self) -> None:
         t = self.t_s
         self._switch_events(t)
+        if self._stalled:
+            # no scan: nothing sampled, read or sent; the output card's watchdog has the
+            # spools centred and the load-holding valves closed; the plant goes on
+            self.applied_command = np.zeros(N_CYLINDERS)
+            self.rig.command[:] = 0.0
+            if self.rig.load_holding_valves:
+                self.rig.ports_open[:] = 0.0
+            self.rig.advance(self.steps_per_cycle)
+            self._k += 1
+            self.t_s = self._k * self.cycle_s
+            return
         silent = self.wire.silent
         self._sample(self._k)
         self.wire.release_due(t)
@@ -291,15 +326,19 @@ class HilSimulator:
 
     def _switch_events(self, t: float) -> None:
         events = self.scenario.events
-        now_active = {k for k, ev in enumerate(events) if _is_active(ev, t)}
+        now_active = {
+            k for k, ev in enumerate(events) if k not in self._hmi_issued and _is_active(ev, t)
+        }
         started = now_active - self._active
         ended = self._active - now_active
         if not started and not ended:
             return
         for k in sorted(started):
             ev = events[k]
-            if isinstance(ev, HmiTargetEvent):
+            if isinstance(ev, HmiTargetEvent):  # one new TargetSeq, once
+                self._hmi_issued.add(k)
                 self._hmi_seq = (self._hmi_seq % 255) + 1
+                self.hmi_issued.append(self._hmi_seq)
                 req = TargetRequest.CANCEL if ev.request == "cancel" else TargetRequest.NEW_TARGET
                 self.plc.set_hmi_target(
                     HmiTarget(units.deg(ev.roll_deg), units.deg(ev.pitch_deg), req, self._hmi_seq)
@@ -317,6 +356,7 @@ class HilSimulator:
                 else:
                     self._held[k] = float(self._press_reading[i, _QUANTITY_COLUMN[ev.quantity]])
         self._active = {k for k in now_active if not isinstance(events[k], HmiTargetEvent)}
+        self._stalled = any(isinstance(events[k], PlcStall) for k in self._active)
         for k in ended:
             self._held.pop(k, None)
         # state-like faults: recomputed from everything active
@@ -402,7 +442,10 @@ class HilSimulator:
         dead = any(isinstance(e, PlcSilent) for e in active)
         ignore = any(isinstance(e, IgnoreCommands) for e in active)
         plc = self.plc
+        # Stale commands: spools centred at once; the fault is latched only when the
+        # loss lasts longer than safety.command_timeout_ms (fresh before: drive again).
         timeout = True if dead else plc.command_timeout(t)
+        lost = dead or plc.ipc_timeout(t)
         # the control word and the valve commands change only when frames arrive
         if dead:
             self._ctl = None
@@ -414,7 +457,7 @@ class HilSimulator:
         ctl = self._ctl
         if estop:
             self._latched = Fault.ESTOP
-        elif self._drives and timeout:
+        elif self._engaged and lost:
             self._latched = Fault.IPC_TIMEOUT
         if (
             self._latched is not Fault.NONE
@@ -444,6 +487,8 @@ class HilSimulator:
             if isinstance(ev, StuckValve):
                 u[self._cyl_of[k]] = self._held[k]
         self._drives = drives
+        if not timeout:
+            self._engaged = drives
         self.applied_command = u
         self.rig.command[:] = u
         if self.rig.load_holding_valves:

@@ -10,6 +10,8 @@ then, in simulated time, it
 - freezes the alive counter at its last value, CRC recomputed so that only the
   counter is wrong (the receiver counts ``counter_repeated``);
 - silences the PLC (nothing sent, nothing read);
+- stalls: holds frames (either direction) until the stall's end, then delivers them in
+  order, as a congested or stopped link would;
 - takes the bus off: no frame either way, and error frames on the bus report
   ``bus-off`` at the start and ``restarted`` at the end (linux/can/error.h), as a
   socketcan controller does.
@@ -55,10 +57,10 @@ IPC_TO_PLC = "ipc_to_plc"
 class WireFault:
     """One active fault on the wire.
 
-    ``kind``: ``drop``, ``delay``, ``bad_crc``, ``frozen_counter``, ``plc_silent`` or
-    ``bus_off``; ``frame_ids``: the frames it applies to (empty: all); ``direction``:
-    ``plc_to_ipc``, ``ipc_to_plc`` or ``both``; ``rate`` for drop/bad_crc;
-    ``delay_s`` for delay.
+    ``kind``: ``drop``, ``delay``, ``bad_crc``, ``frozen_counter``, ``plc_silent``,
+    ``bus_off`` or ``wire_stall``; ``frame_ids``: the frames it applies to (empty: all);
+    ``direction``: ``plc_to_ipc``, ``ipc_to_plc`` or ``both``; ``rate`` for
+    drop/bad_crc; ``delay_s`` for delay; ``until_s`` (simulated time) for a stall.
     """
 
     kind: str
@@ -66,6 +68,7 @@ class WireFault:
     direction: str = PLC_TO_IPC
     rate: float = 1.0
     delay_s: float = 0.0
+    until_s: float = 0.0
     key: int = 0  #: identifies the fault (frozen counters are kept per fault)
 
     def applies(self, frame_id: int, direction: str) -> bool:
@@ -117,6 +120,7 @@ class FaultyWire(can.BusABC):
         self._bus_off = False
         self._horizon: float | None = None
         self._early: can.Message | None = None  # received, arrived after the horizon
+        self._held_rx: collections.deque[can.Message] = collections.deque()  # stalled
         self.counts: Counter[tuple[str, str]] = Counter()
 
     # ----------------------------------------------------------------- control
@@ -161,8 +165,13 @@ class FaultyWire(can.BusABC):
             return
         spec = self.catalog.by_id(fid)
         delay = 0.0
+        release_at: float | None = None
         for f in self._faults:
             if not f.applies(fid, PLC_TO_IPC):
+                continue
+            if f.kind == "wire_stall":
+                release_at = f.until_s if release_at is None else max(release_at, f.until_s)
+                self.counts[("wire_stall", name)] += 1
                 continue
             if f.kind == "frozen_counter" and spec is not None:
                 key = (f.key, fid)
@@ -187,6 +196,9 @@ class FaultyWire(can.BusABC):
             f.kind == "frozen_counter" and f.applies(fid, PLC_TO_IPC) for f in self._faults
         ):
             self._last_counter[fid] = msg.data[1] & 0x0F
+        if release_at is not None:
+            self._delayed.append((max(release_at, self._clock() + delay), msg))
+            return
         if delay > 0.0 or self._delayed:
             # order is kept: a frame never overtakes one delayed before it
             self._delayed.append((self._clock() + delay, msg))
@@ -208,8 +220,18 @@ class FaultyWire(can.BusABC):
 
     # ----------------------------------------------------------------- receive
 
+    def _stalled_rx(self, fid: int | None = None) -> bool:
+        for f in self._faults:
+            if f.kind == "wire_stall" and (
+                f.direction in (IPC_TO_PLC, "both") if fid is None else f.applies(fid, IPC_TO_PLC)
+            ):
+                return True
+        return False
+
     def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
         while True:
+            if self._held_rx and not self._stalled_rx():
+                return self._held_rx.popleft(), False  # the stall is over: in order
             msg = self._early
             if msg is None:
                 msg = self.inner.recv(0.0)
@@ -229,6 +251,10 @@ class FaultyWire(can.BusABC):
                 self.counts[("bus_off" if self._bus_off else "plc_silent", name)] += 1
                 continue
             fid = msg.arbitration_id
+            if self._stalled_rx(fid):
+                self._held_rx.append(msg)
+                self.counts[("wire_stall_rx", name)] += 1
+                continue
             dropped = False
             for f in self._faults:
                 if not f.applies(fid, IPC_TO_PLC):

@@ -572,6 +572,13 @@ class IpcLink(_Side):
         self._limits_rec = self._rx_by_name["PLC_Limits"]
         self._ctl_codec = self._codec_by_name["IPC_Control"]
         self._update_critical()
+        spec = self.catalog.by_name("PLC_Status")
+        #: The status counts as stale (a short loss) after ``can.stale_cycles`` of its
+        #: cycle; the heartbeat timeout (``status()`` None, LOST) may be longer.
+        self.status_stale_s = min(
+            cfg.can.stale_cycles * spec.cycle_in_force_s(False, self._loop_period_s),
+            self._status_rec.timeout_s,
+        )
 
     def _periodic_tx(self) -> tuple[MessageSpec, ...]:
         return (self.catalog.by_name("IPC_Control"),)
@@ -769,6 +776,25 @@ class IpcLink(_Side):
         self._status_of = (v, st)
         return st
 
+    def status_age_s(self, now: float | None = None) -> float:
+        """Time since the last valid PLC status frame (inf: never)."""
+        return self._status_rec.age_s(self._clock() if now is None else now)
+
+    def failed_positions(self, indices: Iterable[int], now: float | None = None) -> list[int]:
+        """Of ``indices``, the cylinders whose position frame is fresh but whose sensor
+        reports a fault (SENSOR_FAULT value): a failed sensor, not a lost frame."""
+        if now is None:
+            now = self._clock()
+        want = set(indices)
+        out = []
+        for rec, slots in self._pos:
+            if not rec.fresh(now) or rec.values is None:
+                continue
+            for k, i in enumerate(slots):
+                if i in want and rec.values[k] != rec.values[k]:
+                    out.append(i)
+        return sorted(out)
+
     def hmi_target(self, now: float | None = None) -> HmiTarget | None:
         """The operator's current target request, or None when stale."""
         v = self._hmi_rec.latest(self._clock() if now is None else now)
@@ -822,7 +848,10 @@ class PlcLink(_Side):
     times (fast for the active group the IPC announces), supervises the IPC commands.
 
     Critical messages (LOST when stale): ``IPC_Control`` and the valve frames of the
-    active group. :meth:`command_timeout` is what a PLC acts on: spools to centre.
+    active group. A PLC acts on two things: :meth:`command_timeout` (commands stale:
+    spools to centre at once, drives again when fresh frames come back) and
+    :meth:`ipc_timeout` (the loss has lasted longer than ``safety.command_timeout_ms``:
+    latch IPC_TIMEOUT).
     """
 
     NODE = "PLC"
@@ -838,6 +867,7 @@ class PlcLink(_Side):
         super().__init__(cfg, bus, **kwargs)
         self._ctl_rec = self._rx_by_name["IPC_Control"]
         self._valve = [(self._rx_by_name[n], s) for n, s in _rows(self.catalog, "IPC_ValveCmd_")]
+        self._ipc_timeout_s = units.ms(cfg.safety.command_timeout_ms)
         self._update_critical()
 
     def _critical_rows(self) -> Sequence[tuple[RxRecord, Sequence[int]]]:
@@ -886,6 +916,16 @@ class PlcLink(_Side):
         if now is None:
             now = self._clock()
         return not (self._ctl_rec.fresh(now) and all(r.fresh(now) for r, _ in self._valve))
+
+    def ipc_timeout(self, now: float | None = None) -> bool:
+        """True when the control word or a valve frame has not been received for longer
+        than ``safety.command_timeout_ms``: the loss is no longer short (latch a fault)."""
+        if now is None:
+            now = self._clock()
+        limit = self._ipc_timeout_s
+        if self._ctl_rec.age_s(now) > limit:
+            return True
+        return any(r.age_s(now) > limit for r, _ in self._valve)
 
     # ----------------------------------------------------------------- outputs
 

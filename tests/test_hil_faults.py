@@ -318,6 +318,79 @@ def test_hmi_target_request_and_ack(bench_of: Any) -> None:
     assert b.sim.hmi_ack == (t.seq, TargetAck.ACCEPTED)
 
 
+def test_hmi_target_event_issues_one_target_seq_once(bench_of: Any) -> None:
+    """One event, one new TargetSeq: not a new one every PLC scan."""
+    b = bench_of(
+        {"kind": "hmi_target", "at_s": 0.1, "roll_deg": 2.0, "pitch_deg": -1.0},
+        {"kind": "hmi_target", "at_s": 1.0, "roll_deg": 1.0, "pitch_deg": 0.0},
+    )
+    seen: list[int] = []
+
+    def each(bench: Bench) -> None:
+        t = bench.ipc.new_hmi_request()
+        if t is not None:
+            seen.append(t.seq)
+
+    b.run(0.9, each=each)
+    assert b.sim.hmi_issued == [1] and seen == [1]
+    b.run(1.1, each=each)
+    assert b.sim.hmi_issued == [1, 2] and seen == [1, 2]
+
+
+@pytest.mark.parametrize("ms", [10, 50])
+def test_plc_stall_no_frames_spools_centred_then_drives_again(bench_of: Any, ms: int) -> None:
+    """The PLC's scan stops: nothing sent or read, the outputs centred; afterwards it
+    reads what queued up and drives again (a stall is not an IPC timeout)."""
+    b = bench_of({"kind": "plc_stall", "start_s": 0.2, "end_s": 0.2 + ms / 1000})
+    b.run(0.2, U_UPPER)
+    before = b.sim.plc.tx_counts["tx_frames"]
+    b.run(ms / 1000, U_UPPER)
+    assert b.sim.plc.tx_counts["tx_frames"] == before  # not a frame while stalled
+    assert not b.sim.truth().applied_command.any()
+    b.run(0.02, U_UPPER)
+    tr = b.sim.truth()
+    assert tr.status.fault is Fault.NONE and tr.status.drives_enabled
+    assert tr.applied_command[8] == pytest.approx(0.3, abs=1e-3)
+
+
+def test_wire_stall_holds_frames_and_delivers_them_in_order(bench_of: Any) -> None:
+    b = bench_of({"kind": "wire_stall", "start_s": 0.2, "end_s": 0.25, "direction": "plc_to_ipc"})
+    b.run(0.2, U_UPPER)
+
+    def from_plc() -> int:
+        return sum(1 for _, name in b.log if plc_sent(b, name))
+
+    n = from_plc()
+    b.run(0.045, U_UPPER)
+    assert from_plc() == n  # held
+    held = b.sim.wire.total("wire_stall")
+    assert held > 0
+    b.run(0.015, U_UPPER)  # released at end_s, read by the IPC's next poll
+    assert from_plc() - n >= held  # all delivered
+    rx = b.ipc.health()["rx"]
+    assert rx.get("crc_error", 0) == 0 and rx.get("counter_wrong_sequence", 0) == 0
+    assert b.ipc.positions_m().all_valid(b.ipc.active_cylinders)
+
+
+@pytest.mark.parametrize(("ms", "latched"), [(50, False), (150, True)])
+def test_commands_held_centre_at_once_and_latch_only_after_the_timeout(
+    bench_of: Any, ms: int, latched: bool
+) -> None:
+    """Commands held on the wire: the PLC centres the spools at once; it latches
+    IPC_TIMEOUT only when the loss is longer than safety.command_timeout_ms (100 ms),
+    else it drives again when the frames are back."""
+    end = 0.2 + ms / 1000
+    b = bench_of({"kind": "wire_stall", "start_s": 0.2, "end_s": end, "direction": "ipc_to_plc"})
+    b.run(0.2, U_UPPER)
+    b.run(0.02, U_UPPER)
+    tr = b.sim.truth()
+    assert tr.status.command_timeout and not tr.applied_command.any()
+    b.run(ms / 1000, U_UPPER)
+    tr = b.sim.truth()
+    assert (tr.status.fault is Fault.IPC_TIMEOUT) is latched
+    assert tr.status.drives_enabled is not latched
+
+
 def test_unknown_cylinder_and_message_are_refused(project: ProjectConfig) -> None:
     with pytest.raises(ValueError, match="unknown cylinder 'upper_9'"):
         make_bench(project, [{"kind": "stuck_valve", "cylinder": "upper_9"}])

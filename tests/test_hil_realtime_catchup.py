@@ -83,9 +83,11 @@ def test_catching_up_scans_see_frames_by_arrival(project: ProjectConfig) -> None
 
 
 def test_without_the_horizon_the_stall_looks_like_a_silent_ipc(project: ProjectConfig) -> None:
+    """The catching-up scans see the commands stale and centre the spools; a loss of
+    40 ms is shorter than safety.command_timeout_ms, so nothing is latched."""
     timeouts, fault = _stall_then_catch_up(project, horizon=False)
     assert any(timeouts)
-    assert fault == Fault.IPC_TIMEOUT
+    assert fault == Fault.NONE
 
 
 def test_frames_on_another_clock_are_never_held_back(project: ProjectConfig) -> None:

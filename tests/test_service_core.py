@@ -7,6 +7,7 @@ from __future__ import annotations
 import itertools
 import time
 from collections.abc import Iterator
+from typing import Any
 
 import can
 import numpy as np
@@ -16,6 +17,7 @@ from config import ProjectConfig
 from hil_sim.hydraulics import CylinderBank, CylinderParams
 from ipc_app.model import MachineStatics
 from ipc_app.service.core import ServiceCore
+from ipc_app.service.interlocks import Cause, Interlock
 from ipc_app.service.modes import Mode
 from ipc_app.service.worker import PlannerWorker
 from plc_bridge.link import IpcLink, PlcLink, PlcStatus
@@ -113,11 +115,14 @@ def test_silent_plc_faults_within_stated_cycles(
     _run(core, rig, clock, 0.5)
     assert core.modes.mode == Mode.IDLE
     rig.silent = True
-    # heartbeat timeout (safety.plc_heartbeat_timeout_ms) plus one cycle
-    limit = int(project.safety.plc_heartbeat_timeout_ms / 1e3 / core.period_s) + 2
+    # the shorter of the positions' and the status' timeout plus two cycles
+    s = project.safety
+    limit = int(min(s.sensor_timeout_ms, s.plc_heartbeat_timeout_ms) / 1e3 / core.period_s) + 2
     k = _run(core, rig, clock, 1.0, until=Mode.FAULT)
     assert core.modes.mode == Mode.FAULT and k <= limit, (k, limit)
-    assert any("plc heartbeat" in r for r in core.modes.fault_reasons)
+    assert core.modes.fault_interlocks[0] in (Interlock.SENSOR_TIMEOUT, Interlock.PLC_HEARTBEAT)
+    _run(core, rig, clock, 0.1)
+    assert {Interlock.SENSOR_TIMEOUT, Interlock.PLC_HEARTBEAT} <= set(core.modes.fault_interlocks)
     # reset is refused while the cause is present
     assert not core.modes.reset().accepted
     rig.silent = False
@@ -129,22 +134,23 @@ def test_silent_plc_faults_within_stated_cycles(
 def test_pressure_and_stroke_end_checks_name_the_cylinder(
     project: ProjectConfig, worker: PlannerWorker
 ) -> None:
-    from plc_bridge.link import LinkState
 
     core, _, _ = _setup(project, worker)
     status = PlcStatus(pump_running=True, drives_enabled=True)
     n = len(project.cylinders)
     p = np.full((n, 2), 10e6)
     valid = np.ones((n, 2), dtype=bool)
-    assert core._conditions(True, status, LinkState.OK, p, valid) == []
+    assert core._conditions(True, status, p, valid) == []
     i = core.active[5]
     p[i, 1] = core.max_pressure_pa + 1e6
     p[core.active[0], 0] = np.nan  # an invalid reading is never the peak
     valid[core.active[0], 0] = False
-    (msg,) = core._conditions(True, status, LinkState.OK, p, valid)
-    assert msg.startswith(f"pressure: {project.cylinders_by_can_index[i].id} ")
+    (cause,) = core._conditions(True, status, p, valid)
+    assert cause.key == (Interlock.PRESSURE, project.cylinders_by_can_index[i].id)
+    assert cause.value == pytest.approx(project.safety.max_pressure_mpa + 1.0)
+    assert cause.limit == project.safety.max_pressure_mpa
 
-    faults: list[str] = []
+    faults: list[Cause] = []
     core.modes.fault = faults.append  # type: ignore[method-assign,assignment]
     x = core.stroke / 2
     core._motion_checks(x)
@@ -153,7 +159,9 @@ def test_pressure_and_stroke_end_checks_name_the_cylinder(
     x = x.copy()
     x[j] = core.stroke[j] - core.end_margin_m / 2
     core._motion_checks(x)
-    assert faults == [f"stroke end: {project.cylinders_by_can_index[j].id} at {x[j] * 1e3:.1f} mm"]
+    (cause,) = faults
+    assert cause.key == (Interlock.STROKE_END, project.cylinders_by_can_index[j].id)
+    assert cause.value == pytest.approx(project.safety.stroke_end_margin_mm / 2)
 
 
 def test_interlock_checks_match_their_former_numpy_form(
@@ -161,7 +169,7 @@ def test_interlock_checks_match_their_former_numpy_form(
 ) -> None:
     """The pressure peak (one reduction) and the stroke-end check (plain floats, the switch
     mask once per word) give the messages of the former numpy definitions (kept here)."""
-    from plc_bridge.link import LimitSwitches, LinkState
+    from plc_bridge.link import LimitSwitches
 
     core, _, _ = _setup(project, worker)
     rng = np.random.default_rng(3)
@@ -169,12 +177,12 @@ def test_interlock_checks_match_their_former_numpy_form(
     n = len(project.cylinders)
     lim = core.max_pressure_pa
 
-    def former_pressure(p: np.ndarray, valid: np.ndarray) -> list[str]:
+    def former_pressure(p: np.ndarray, valid: np.ndarray) -> list[tuple[Interlock, str]]:
         if valid.any():
             pv = np.where(valid, p, 0.0)
             if float(pv.max()) > lim:
                 i = int(np.argmax(pv.max(axis=1)))
-                return [f"pressure: {project.cylinders_by_can_index[i].id} "]
+                return [(Interlock.PRESSURE, project.cylinders_by_can_index[i].id)]
         return []
 
     hits = 0
@@ -182,28 +190,28 @@ def test_interlock_checks_match_their_former_numpy_form(
         p = rng.uniform(-1e6, lim * (1.1 if k % 2 else 0.99), (n, 2))
         p[rng.random((n, 2)) < (0.3 if k % 3 else 1.0)] = np.nan  # some or all invalid
         valid = ~np.isnan(p)
-        got = core._conditions(True, status, LinkState.OK, p, valid)
+        got = core._conditions(True, status, p, valid)
         want = former_pressure(p, valid)
-        assert len(got) == len(want) and all(
-            g.startswith(w) for g, w in zip(got, want, strict=True)
-        )
+        assert [c.key for c in got] == want
         hits += len(want)
     assert 50 < hits < 350  # both outcomes exercised
 
     idx = core.active
-    faults: list[str] = []
+    faults: list[Cause] = []
     core.modes.fault = faults.append  # type: ignore[method-assign,assignment]
     switches: list[LimitSwitches | None] = [None]
     core.link.limit_switches = lambda now=None: switches[0]  # type: ignore[method-assign]
 
-    def former_stroke(x: np.ndarray, limits: LimitSwitches | None) -> list[str]:
+    def former_stroke(x: np.ndarray, limits: LimitSwitches | None) -> list[tuple[Any, ...]]:
         xa = x[core._active_arr]
         near = (xa < core.end_margin_m) | (xa > core._stroke_hi)
         if limits is not None:
             near |= limits.retracted[core._active_arr] | limits.extended[core._active_arr]
         if near.any():
-            cid = project.cylinders_by_can_index[idx[int(np.argmax(near))]].id
-            return [f"stroke end: {cid} at {float(x[idx][near][0]) * 1e3:.1f} mm"]
+            i = idx[int(np.argmax(near))]
+            cid = project.cylinders_by_can_index[i].id
+            v = float(x[i])
+            return [(Interlock.STROKE_END, cid, min(v, core.stroke[i] - v) * 1e3)]
         return []
 
     core.attitude.metrics = {}  # only the stroke-end part
@@ -218,6 +226,7 @@ def test_interlock_checks_match_their_former_numpy_form(
             switches[0] = None
         faults.clear()
         core._motion_checks(x)
-        assert faults == former_stroke(x, switches[0]), k
+        got = [(c.interlock, c.where, pytest.approx(c.value)) for c in faults]
+        assert got == former_stroke(x, switches[0]), k
         hits += len(faults)
     assert 50 < hits < 350

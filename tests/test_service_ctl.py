@@ -24,6 +24,7 @@ from ipc_app.service.ctl import (
     default_socket_path,
     request,
 )
+from ipc_app.service.interlocks import Cause, Interlock
 from ipc_app.service.modes import ModeMachine
 from ipc_app.service.sdnotify import SystemdNotifier
 from wara.cli import main
@@ -33,7 +34,7 @@ class FakeService:
     """The mode machine behind the handlers, as the real service will wire it."""
 
     def __init__(self) -> None:
-        self.causes: list[str] = []
+        self.causes: list[Cause] = []
         self.modes = ModeMachine(active_causes=lambda: list(self.causes))
         self.modes.boot_complete()
         self.calls: list[tuple[str, Any]] = []
@@ -108,10 +109,11 @@ def test_commands_round_trip(served: tuple[FakeService, Path]) -> None:
     assert r["ok"] and r["mode"] == "PLANNING"
     assert svc.calls == [("adjust", (-3.0, 2.0))]
     assert request("stop", socket_path=path)["mode"] == "IDLE"
-    svc.modes.fault("plc heartbeat lost")
-    svc.causes.append("plc heartbeat lost")
+    hb = Cause(Interlock.PLC_HEARTBEAT, detail="PLC status lost")
+    svc.modes.fault(hb)
+    svc.causes.append(hb)
     r = request("reset", socket_path=path)
-    assert not r["ok"] and r["code"] == "refused" and "heartbeat" in r["error"]
+    assert not r["ok"] and r["code"] == "refused" and hb.text() in r["error"]
     svc.causes.clear()
     assert request("reset", socket_path=path)["mode"] == "IDLE"
 
@@ -223,7 +225,7 @@ def test_wara_ctl_refused_and_infeasible(
     code = main(["ctl", "--socket", str(path), "adjust", "--roll-deg", "30", "--pitch-deg", "0"])
     err = capsys.readouterr().err
     assert code == 3 and "target not reachable" in err and "upper_1 beyond" in err
-    svc.modes.fault("twist above limit")
+    svc.modes.fault(Cause(Interlock.TWIST, "upper", 2.0, 1.5))
     code = main(["ctl", "--socket", str(path), "adjust", "--roll-deg", "1", "--pitch-deg", "0"])
     assert code == 1 and "refused in FAULT" in capsys.readouterr().err
     assert main(["ctl", "--socket", str(path), "stop"]) == 0

@@ -3,14 +3,17 @@
 from __future__ import annotations
 
 import itertools
+import json
+import random
 
 import pytest
 from structlog.testing import capture_logs
 
+from ipc_app.service.interlocks import Cause, FaultLatch, Interlock
 from ipc_app.service.modes import Mode, ModeMachine
 
 
-def fresh(causes: list[str] | None = None) -> ModeMachine:
+def fresh(causes: list[Cause] | None = None) -> ModeMachine:
     active = causes if causes is not None else []
     ticks = itertools.count()
     m = ModeMachine(active_causes=lambda: list(active), clock=lambda: float(next(ticks)))
@@ -79,23 +82,27 @@ def test_fault_latches_from_every_mode_and_closes_valves(mode_path: str) -> None
     events = [lambda: m.request_adjust(1.0, 0.0), m.plan_ready, m.motion_done][:steps]
     for e in events:
         e()
-    out = m.fault("twist 0.8 mm above 0.5 mm")
+    out = m.fault(Cause(Interlock.TWIST, "upper", 0.8, 0.5))
     assert out.accepted and m.mode is Mode.FAULT and not m.valves_enabled
+    assert m.fault_interlocks == (Interlock.TWIST,)
     # latched: stop does not clear it, adjust is refused with the reason and the cure
     assert m.stop().mode is Mode.FAULT
     refused = m.request_adjust(0.0, 0.0)
     assert not refused.accepted
-    assert "FAULT" in refused.message and "twist" in refused.message
+    assert "FAULT" in refused.message and Cause(Interlock.TWIST, "upper", 0.8, 0.5).text() in (
+        refused.message
+    )
     assert "reset" in refused.message
 
 
 def test_reset_only_when_cause_gone() -> None:
-    causes = ["plc heartbeat lost"]
+    hb = Cause(Interlock.PLC_HEARTBEAT, detail="PLC status lost")
+    causes = [hb]
     m = fresh(causes)
-    m.fault("plc heartbeat lost")
+    m.fault(hb)
     out = m.reset()
     assert not out.accepted and m.mode is Mode.FAULT
-    assert "plc heartbeat lost" in out.message
+    assert hb.text() in out.message
     causes.clear()
     out = m.reset()
     assert out.accepted and m.mode is Mode.IDLE
@@ -105,10 +112,75 @@ def test_reset_only_when_cause_gone() -> None:
 
 def test_second_fault_adds_reason() -> None:
     m = fresh()
-    m.fault("pressure 25 MPa above 24 MPa")
-    m.fault("stroke end upper_2")
-    assert m.fault_reasons == ("pressure 25 MPa above 24 MPa", "stroke end upper_2")
+    m.fault(Cause(Interlock.PRESSURE, "upper_2", 25.0, 24.0))
+    m.fault(Cause(Interlock.STROKE_END, "upper_2", 3.0, 5.0))
+    assert m.fault_interlocks == (Interlock.PRESSURE, Interlock.STROKE_END)
+    assert [f.where for f in m.faults] == ["upper_2", "upper_2"]
     assert m.snapshot()["fault_reasons"] == list(m.fault_reasons)
+    assert [f["interlock"] for f in m.snapshot()["faults"]] == ["pressure", "stroke end"]
+
+
+def test_a_lasting_condition_is_one_entry_with_first_worst_and_count() -> None:
+    """Latched by (interlock, where): a noisy value seen every cycle is one entry, logged
+    once; the first and the worst value and the count are kept; the status stays small."""
+    m = fresh()
+    rng = random.Random(1)
+    values = [24.5 + rng.random() for _ in range(2000)]
+    with capture_logs() as logs:
+        for v in values:
+            m.fault(Cause(Interlock.PRESSURE, "main_leg_1", v, 24.0))
+    (f,) = m.faults
+    assert (f.interlock, f.where, f.count) == (Interlock.PRESSURE, "main_leg_1", 2000)
+    assert f.first == values[0] and f.worst == max(values)
+    assert len([e for e in logs if e["event"] in ("fault", "mode")]) == 1
+    # a stroke end is worse the closer the rod gets to the end
+    m.fault(Cause(Interlock.STROKE_END, "upper_1", 4.0, 5.0))
+    m.fault(Cause(Interlock.STROKE_END, "upper_1", 1.0, 5.0))
+    m.fault(Cause(Interlock.STROKE_END, "upper_1", 3.0, 5.0))
+    assert m.faults[1].worst == 1.0 and m.faults[1].first == 4.0
+    # bounded: every cylinder of every interlock
+    for il in Interlock:
+        for k in range(40):
+            m.fault(Cause(il, f"c{k}", 1.0, 0.5))
+    assert len(m.faults) == FaultLatch.MAX_ENTRIES
+    assert m.snapshot()["faults_dropped"] > 0
+    assert len(json.dumps(m.snapshot())) < 16_000
+
+
+def test_suspend_and_resume_return_to_the_mode_suspended_from() -> None:
+    for before in ("adjusting", "holding"):
+        m = fresh()
+        m.request_adjust(1.0, 0.0)
+        m.plan_ready()
+        if before == "holding":
+            m.motion_done()
+        was = m.mode
+        assert m.suspend("rod positions stale").mode is Mode.SUSPENDED
+        assert not m.valves_enabled
+        assert not m.request_adjust(0.0, 0.0).accepted  # not while suspended
+        assert m.resume("fresh again").mode is was
+    m = fresh()
+    assert not m.suspend("stale").accepted  # IDLE: nothing to suspend
+    m.request_adjust(1.0, 0.0)
+    m.plan_ready()
+    m.suspend("stale")
+    assert m.fault(Cause(Interlock.SENSOR_TIMEOUT, "upper_1", 60.0, 50.0)).mode is Mode.FAULT
+    assert not m.resume("late").accepted
+    m = fresh()
+    m.request_adjust(1.0, 0.0)
+    m.plan_ready()
+    m.suspend("stale")
+    assert m.stop().mode is Mode.IDLE
+
+
+def test_hmi_seq_belongs_to_the_request_being_served() -> None:
+    m = fresh()
+    assert m.request_adjust(1.0, 0.0, hmi_seq=7).accepted and m.hmi_seq == 7
+    assert not m.request_adjust(2.0, 0.0, hmi_seq=8).accepted  # refused: 7 kept
+    assert m.hmi_seq == 7
+    m.plan_ready()
+    m.motion_done()
+    assert m.request_adjust(3.0, 0.0).accepted and m.hmi_seq == 0  # a local request
 
 
 def test_estop_overrides_fault_and_needs_release_and_reset() -> None:
@@ -116,7 +188,7 @@ def test_estop_overrides_fault_and_needs_release_and_reset() -> None:
     m.request_adjust(1.0, 0.0)
     m.plan_ready()
     assert m.estop(True).mode is Mode.ESTOP and not m.valves_enabled
-    assert m.fault("late fault").mode is Mode.ESTOP  # noted, ESTOP kept
+    assert m.fault(Cause(Interlock.PLANNER, detail="late")).mode is Mode.ESTOP  # noted
     out = m.reset()
     assert not out.accepted and "e-stop still pressed" in out.message
     m.estop(False)
@@ -127,10 +199,11 @@ def test_estop_overrides_fault_and_needs_release_and_reset() -> None:
 def test_transitions_and_refusals_are_logged_with_reason() -> None:
     with capture_logs() as logs:
         m = fresh()
-        m.fault("sensor data stale")
+        cause = Cause(Interlock.SENSOR, "upper_2")
+        m.fault(cause)
         m.request_adjust(1.0, 1.0)
     modes = [e for e in logs if e["event"] == "mode"]
-    assert modes[-1]["mode"] == "FAULT" and modes[-1]["reason"] == "sensor data stale"
+    assert modes[-1]["mode"] == "FAULT" and modes[-1]["reason"] == cause.text()
     refused = [e for e in logs if e["event"] == "refused"]
     assert refused and refused[0]["event_name"] == "request_adjust"
     assert refused[0]["log_level"] == "warning"
@@ -142,5 +215,5 @@ def test_on_transition_listener_sees_every_change() -> None:
     m.boot_complete()
     m.request_adjust(1.0, 0.0)
     m.request_adjust(2.0, 0.0)  # refused: no transition, no call
-    m.fault("planner: timeout")
+    m.fault(Cause(Interlock.PLANNER, detail="timeout"))
     assert seen == [("boot_complete", "IDLE"), ("request_adjust", "PLANNING"), ("fault", "FAULT")]

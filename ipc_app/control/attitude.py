@@ -97,6 +97,15 @@ class AttitudeController:
         self.trajectory = None
         self.hold_ref = np.array(x_ref_rod_m, dtype=float)
 
+    def resume(self, x_rod_m: FloatArray, shift_s: float) -> None:
+        """Go on after a suspension: the trajectory shifted ``shift_s`` later in time (it
+        continues from the reference where it stopped) and every controller reset at its
+        measurement with a zero command (bumpless, as :meth:`engage`)."""
+        self.t_start += shift_s
+        x = np.asarray(x_rod_m, dtype=float)
+        for name, idx in self.layers.items():
+            self.groups[name].reset(x[idx])
+
     def motion_done(self, t_now: float) -> bool:
         return self.trajectory is None or t_now - self.t_start >= self.trajectory.duration_s
 

@@ -28,7 +28,7 @@ Suggested wiring (the loop thread only calls non-blocking methods)::
 
     def step(k, t):                    # in wara-loop
         frame = bus.read()             # read
-        # interlocks -> modes.fault(reason) ; result = worker.poll() -> plan_ready /
+        # interlocks -> modes.fault(cause) ; result = worker.poll() -> plan_ready /
         # plan_failed / fault ; references from result.reference(t - t_motion_start)
         # controllers only if modes.valves_enabled, else valves closed
         bus.write(commands)            # write

@@ -7,28 +7,23 @@ bounded: drain the CAN receive queue, a fixed set of checks, one trajectory samp
 controller updates, two CAN sends. Planning runs in the worker process; the control
 channel's threads only call the (thread-safe) mode machine and read the last snapshot.
 
-Interlocks and their reaction (a controlled stop: valves closed, load held, FAULT
-latched until ``reset``, the reason logged and shown by ``wara ctl status``):
+Interlocks are data (:mod:`ipc_app.service.interlocks`: which one, its config key, when
+it applies); a tripped check is a :class:`~ipc_app.service.interlocks.Cause` and the
+reaction a controlled stop: valves closed, load held, FAULT latched until ``reset``.
 
-==================  ===========================================================
-``plc heartbeat``   PLC status stale or the link LOST
-``sensor``          a rod position of the active group stale, corrupt or missing
-``pressure``        a valid chamber pressure above ``safety.max_pressure_mpa``
-``plc fault``       the PLC reports a fault code (other than e-stop)
-``twist``           a layer's measured twist above ``safety.max_twist_mm`` (moving)
-``sync error``      a group's synchronization error above ``safety.max_sync_error_mm``
-``tracking error``  an active rod further than ``safety.max_tracking_error_mm`` from
-                    its reference (moving: commands ignored, valves stuck)
-``stroke end``      an active rod within ``stroke_end_margin_mm`` of an end, or its
-                    limit switch (moving)
-``planner``         the planner process crashed or timed out
-==================  ===========================================================
+A short loss of the link (the active group's rod positions or the PLC status stale, or
+the PLC reporting the IPC's commands stale) suspends a motion instead (SUSPENDED: valves
+closed, the trajectory clock stopped). Once fresh frames are back for
+:attr:`ServiceCore.RESUME_FRESH_CYCLES` cycles and the rods are within the sync band of
+where they stopped, the motion resumes by itself with the trajectory shifted in time; a
+loss longer than its timeout latches the fault.
 
 E-stop from the PLC takes the machine to ESTOP (valves closed) until released and reset.
 """
 
 from __future__ import annotations
 
+import math
 import threading
 from dataclasses import dataclass
 from typing import Any, NamedTuple, Protocol
@@ -41,10 +36,11 @@ from config.schema import ProjectConfig
 from ipc_app.control.attitude import AttitudeController
 from ipc_app.model.composition import check_attitude
 from ipc_app.model.kinematics import fit_layer
-from ipc_app.service.modes import Mode, ModeMachine, Transition
+from ipc_app.service.interlocks import Cause, Interlock, Latched
+from ipc_app.service.modes import SUSPENDABLE_MODES, Mode, ModeMachine, Transition
 from ipc_app.service.record import RunRecorder
 from ipc_app.service.worker import PlanResult
-from plc_bridge.link import Fault, IpcLink, LinkState, TargetAck, TargetRequest
+from plc_bridge.link import Fault, IpcLink, LinkState, Reading, TargetAck, TargetRequest
 from plc_bridge.link import Mode as PlcMode
 
 log = structlog.get_logger("wara.service")
@@ -92,6 +88,7 @@ class _Published(NamedTuple):
     metrics: dict[str, Any]
     motion: MotionStats
     loop: dict[str, Any]
+    ride: tuple[int, int]
 
 
 class ServiceCore:
@@ -99,6 +96,8 @@ class ServiceCore:
 
     #: Cycles of HOLDING before the standstill figures are taken (let the hold settle).
     HOLD_SETTLE_S = 1.0
+    #: Cycles of fresh frames before a suspended motion is checked and resumed.
+    RESUME_FRESH_CYCLES = 3
 
     def __init__(
         self,
@@ -127,17 +126,27 @@ class ServiceCore:
         self.max_tracking_m = units.mm(s.max_tracking_error_mm)
         self.max_pressure_pa = units.mpa(s.max_pressure_mpa)
         self.end_margin_m = units.mm(s.stroke_end_margin_mm)
+        self.sensor_timeout_s = units.ms(s.sensor_timeout_ms)
+        self.max_suspend_s = units.ms(s.max_suspend_ms)
         self._active_arr = np.array(self.active, dtype=np.intp)
         self._stroke_hi = self.stroke[self._active_arr] - self.end_margin_m
         self._stroke_hi_list: list[float] = self._stroke_hi.tolist()
         # the last limit-switch word and its per-active-cylinder mask (_motion_checks)
         self._limits_of: tuple[object, list[bool] | None] = (None, None)
-        self._present: list[str] = []  # interlock conditions present this cycle
+        self._present: list[Cause] = []  # interlock conditions present this cycle
         self.modes = ModeMachine(
-            active_causes=lambda: list(self._present), on_transition=self._on_transition
+            active_causes=lambda: list(self._present),
+            on_transition=self._on_transition,
+            on_fault=self._on_fault,
         )
         self._request_id = 0
-        self._hmi_seq = 0  # sequence number of the HMI request being served (0: none)
+        # ride-through: suspends and resumes so far, the suspension in progress
+        self.suspends = 0
+        self.resumes = 0
+        self._suspended_at = 0.0
+        self._fresh_cycles = 0
+        self._last_drive_t: float | None = None
+        self._stop_ref: np.ndarray | None = None
         self._reset_requested = False
         self._reset_until: float | None = None
         self._reset_outcome: dict[str, Any] | None = None
@@ -177,6 +186,10 @@ class ServiceCore:
                 reason=tr.reason,
             )
 
+    def _on_fault(self, latched: Latched) -> None:
+        if self.record is not None:  # each newly latched cause once, from the data
+            self.record.event(self._now, "fault", **latched.to_dict())
+
     # ------------------------------------------------------------------ operator side
 
     #: How long ``fault_reset`` is held in the control word for the PLC to clear a fault.
@@ -205,7 +218,7 @@ class ServiceCore:
             self.link.set_control(fault_reset=True)
         if self._reset_until is None:
             return
-        plc_fault = any(c.startswith("plc fault") for c in self._present)
+        plc_fault = any(c.interlock is Interlock.PLC_FAULT for c in self._present)
         if not plc_fault or now >= self._reset_until:
             self.link.set_control(fault_reset=False)
             self._reset_until = None
@@ -215,12 +228,14 @@ class ServiceCore:
                 self._outcome_cv.notify_all()
 
     def request_adjust(
-        self, roll_deg: float, pitch_deg: float, wait_s: float = 0.0
+        self, roll_deg: float, pitch_deg: float, wait_s: float = 0.0, hmi_seq: int = 0
     ) -> dict[str, Any]:
-        """Ask for an adjustment; with ``wait_s`` > 0 wait for the planner's verdict."""
+        """Ask for an adjustment; with ``wait_s`` > 0 wait for the planner's verdict.
+        ``hmi_seq``: the HMI's TargetSeq (0 for a local request: nothing is acknowledged
+        to the PLC)."""
         with self._outcome_cv:
             self._outcome = None
-        out = self.modes.request_adjust(roll_deg, pitch_deg)
+        out = self.modes.request_adjust(roll_deg, pitch_deg, hmi_seq)
         if not out.accepted:
             return {"ok": False, "code": "refused", "error": out.message, "mode": str(out.mode)}
         if wait_s <= 0:
@@ -255,6 +270,7 @@ class ServiceCore:
             motion=self._motion_dict(pub.motion, x),
             link_health={"state": pub.link.name},
             loop=pub.loop,
+            ride_through={"suspends": pub.ride[0], "resumes": pub.ride[1]},
         )
         return snap
 
@@ -277,23 +293,24 @@ class ServiceCore:
         if status is not None:
             self.modes.estop(status.estop)
 
-        present = self._conditions(valid, status, lstate, prs.value, prs.valid)
+        present = self._conditions(valid, status, prs.value, prs.valid, pos, now)
         self._present = present
+        losses = self._losses(valid, status, now)
         if mode == Mode.BOOT:
             if self._boot_since is None:
                 self._boot_since = now
-            if not present:
+            # every input fresh, and the PLC hearing our commands
+            if not present and not losses:
                 self.modes.boot_complete()
             elif now - self._boot_since > self.boot_timeout_s:
                 for cause in present:  # no valid PLC data within the start-up time
                     self.modes.fault(cause)
         else:
-            latched = self.modes.fault_reasons
-            for cause in present:
-                if cause not in latched:
-                    self.modes.fault(cause)
+            for cause in present:  # latched by (interlock, where): repeats only counted
+                self.modes.fault(cause)
 
         self._reset_step(now)
+        self._ride_through(now, losses, x, prs.valid)
         moving = self.modes.valves_enabled
         if moving and valid:
             self._motion_checks(x)
@@ -301,10 +318,11 @@ class ServiceCore:
         hmi = link.new_hmi_request(now)
         if hmi is not None:
             if hmi.request == TargetRequest.NEW_TARGET:
-                out = self.request_adjust(units.to_deg(hmi.roll_rad), units.to_deg(hmi.pitch_rad))
-                self._hmi_seq = hmi.seq
-                if not out.get("ok"):
-                    self._hmi_ack(TargetAck.REJECTED)
+                out = self.request_adjust(
+                    units.to_deg(hmi.roll_rad), units.to_deg(hmi.pitch_rad), hmi_seq=hmi.seq
+                )
+                if not out.get("ok"):  # refused: its own seq; the running one's is kept
+                    self._hmi_ack(TargetAck.REJECTED, hmi.seq)
             elif hmi.request == TargetRequest.CANCEL:
                 self.modes.stop("HMI cancel")
                 self._hmi_ack(TargetAck.NONE, hmi.seq)
@@ -314,8 +332,7 @@ class ServiceCore:
         mode = self.modes.mode
         if mode == Mode.ADJUSTING and self.attitude.motion_done(now):
             self.modes.motion_done()
-            if self._hmi_seq:
-                self._hmi_ack(TargetAck.COMPLETED)
+            self._hmi_ack(TargetAck.COMPLETED)
             self.attitude.hold(self.attitude.final_references())
             self.motion.duration_s = now - self.motion.started_s
         u = np.zeros(len(self.cfg.cylinders))
@@ -323,6 +340,7 @@ class ServiceCore:
         if self.modes.valves_enabled and valid:
             u = self.attitude.update(now, x)
             ref = self.attitude.last_references  # this cycle's, for the run record
+            self._last_drive_t = now
             self._motion_figures(now)
         link.set_control(
             mode=PlcMode.ATTITUDE_ADJUST if self.modes.valves_enabled else PlcMode.IDLE,
@@ -337,57 +355,193 @@ class ServiceCore:
         self,
         positions_valid: bool,
         status: Any,
-        lstate: LinkState,
         p: np.ndarray,
         p_valid: np.ndarray,
-    ) -> list[str]:
+        pos: Reading | None = None,
+        now: float = 0.0,
+    ) -> list[Cause]:
         """Interlock conditions present now (each also blocks a reset)."""
-        out: list[str] = []
-        if status is None or lstate == LinkState.LOST:
-            out.append("plc heartbeat: PLC status lost (stale or link LOST)")
-        if not positions_valid:
-            out.append("sensor: rod position of the active group stale, corrupt or missing")
+        out: list[Cause] = []
+        if status is None or not self.link.bus_health.can_send():
+            age = self.link.status_age_s(now)
+            out.append(
+                Cause(
+                    Interlock.PLC_HEARTBEAT,
+                    detail="PLC status lost" if status is None else "bus off or down",
+                )
+                if math.isinf(age)
+                else Cause(
+                    Interlock.PLC_HEARTBEAT,
+                    value=units.to_ms(age),
+                    limit=self.cfg.safety.plc_heartbeat_timeout_ms,
+                    detail="since the last PLC status" if status is None else "bus off or down",
+                )
+            )
+        if not positions_valid and pos is not None:
+            out.extend(self._position_causes(pos, now))
         if status is not None and status.fault not in (Fault.NONE, Fault.ESTOP):
             name = (
                 Fault(status.fault).name
                 if status.fault in Fault._value2member_map_
-                else status.fault
+                else str(status.fault)
             )
-            out.append(f"plc fault: {name}")
+            out.append(Cause(Interlock.PLC_FAULT, where=name))
         # The largest valid pressure (NaN where not valid, so fmax skips them; NaN when
-        # none is), against the limit (positive, so the zeros the former np.where put
-        # in for invalid values never mattered).
+        # none is), against the limit (positive, so the zeros for invalid values below
+        # never matter).
         if float(np.fmax.reduce(p, axis=None)) > self.max_pressure_pa:
             pv = np.where(p_valid, p, 0.0)  # rare: then find whose it is
             i = int(np.argmax(pv.max(axis=1)))
             peak = float(pv[i].max())
-            cid = self._by_index[i].id
             out.append(
-                f"pressure: {cid} {units.to_mpa(peak):.2f} MPa above the limit "
-                f"{units.to_mpa(self.max_pressure_pa):.2f} MPa"
+                Cause(
+                    Interlock.PRESSURE,
+                    where=self._by_index[i].id,
+                    value=units.to_mpa(peak),
+                    limit=units.to_mpa(self.max_pressure_pa),
+                )
             )
         return out
 
+    def _position_causes(self, pos: Reading, now: float) -> list[Cause]:
+        """Rare path (an active position not valid): a sensor reporting a fault, or the
+        first active cylinder whose position is older than ``safety.sensor_timeout_ms``."""
+        out: list[Cause] = []
+        failed = set(self.link.failed_positions(self.active, now))
+        for i in self.active:
+            if i in failed:
+                out.append(Cause(Interlock.SENSOR, where=self._by_index[i].id))
+        ages = pos.age_s.tolist()
+        for i in self.active:
+            age = ages[i]
+            if i not in failed and not pos.valid[i] and age > self.sensor_timeout_s:
+                out.append(
+                    Cause(
+                        Interlock.SENSOR_TIMEOUT,
+                        where=self._by_index[i].id,
+                        value=None if math.isinf(age) else units.to_ms(age),
+                        limit=self.cfg.safety.sensor_timeout_ms,
+                        detail="never received" if math.isinf(age) else "",
+                    )
+                )
+                break
+        return out
+
+    def _losses(self, positions_valid: bool, status: Any, now: float) -> list[str]:
+        """Why the link counts as dropped out now (empty: fresh): what suspends a motion."""
+        out: list[str] = []
+        if not positions_valid:
+            out.append("rod positions of the active group stale")
+        if status is None or self.link.status_age_s(now) > self.link.status_stale_s:
+            out.append("PLC status stale")
+        elif status.command_timeout:
+            out.append("the PLC reports the IPC's commands stale")
+        return out
+
+    # ------------------------------------------------------------------ ride-through
+
+    def _ride_through(
+        self, now: float, losses: list[str], x: np.ndarray, p_valid: np.ndarray
+    ) -> None:
+        """Suspend a motion on a loss of the link; resume it once fresh and checked."""
+        mode = self.modes.mode
+        if mode in SUSPENDABLE_MODES:
+            if losses:
+                self._suspend(now, losses, mode)
+            return
+        if mode != Mode.SUSPENDED:
+            return
+        held = now - self._suspended_at
+        if held > self.max_suspend_s:
+            self.modes.fault(
+                Cause(
+                    Interlock.SUSPEND_TIMEOUT,
+                    value=units.to_ms(held),
+                    limit=self.cfg.safety.max_suspend_ms,
+                    detail="; ".join(losses),
+                )
+            )
+            return
+        if losses:
+            self._fresh_cycles = 0
+            return
+        self._fresh_cycles += 1
+        if self._fresh_cycles < self.RESUME_FRESH_CYCLES:
+            return
+        cause = self._resume_check(x, p_valid)
+        if cause is not None:
+            self.modes.fault(cause)
+        else:
+            self._resume(now, x)
+
+    def _suspend(self, now: float, losses: list[str], mode: Mode) -> None:
+        reason = "; ".join(losses)
+        ref = self.attitude.last_references
+        self._stop_ref = (ref if ref is not None else self.attitude.references(now)).copy()
+        self._suspended_at = now
+        self._fresh_cycles = 0
+        if not self.modes.suspend(reason).accepted:
+            return
+        self.suspends += 1
+        log.warning("suspended", reason=reason, from_mode=str(mode), suspends=self.suspends)
+        if self.record is not None:
+            self.record.event(now, "suspended", reason=reason, from_mode=str(mode))
+
+    def _resume_check(self, x: np.ndarray, p_valid: np.ndarray) -> Cause | None:
+        """Every active rod within the sync band of where it stopped, its pressures valid."""
+        ref = self._stop_ref
+        xs = x.tolist()
+        refs = ref.tolist() if ref is not None else xs
+        lim = self.max_sync_m
+        for i in self.active:
+            dev = abs(xs[i] - refs[i])
+            if not dev <= lim:  # NaN too
+                return Cause(
+                    Interlock.RESUME_CHECK,
+                    where=self._by_index[i].id,
+                    value=units.to_mm(dev),
+                    limit=units.to_mm(lim),
+                    detail="from where the motion stopped",
+                )
+        if not bool(p_valid[self._active_arr].all()):
+            return Cause(Interlock.RESUME_CHECK, where="pressures", detail="not valid")
+        return None
+
+    def _resume(self, now: float, x: np.ndarray) -> None:
+        last = self._last_drive_t if self._last_drive_t is not None else self._suspended_at
+        shift = max(0.0, now - last - self.period_s)  # the next reference follows the last
+        suspended_s = now - self._suspended_at
+        self.attitude.resume(x, shift)
+        self.motion.started_s += shift
+        self.modes.resume(
+            f"frames fresh for {self.RESUME_FRESH_CYCLES} cycles, rods within the sync band "
+            f"after {units.to_ms(suspended_s):.0f} ms"
+        )
+        self.resumes += 1
+        log.warning("resumed", suspended_s=suspended_s, shift_s=shift, resumes=self.resumes)
+        if self.record is not None:
+            self.record.event(now, "resumed", suspended_s=suspended_s, shift_s=shift)
+
     def _hmi_ack(self, status: TargetAck, seq: int | None = None) -> None:
-        """Answer the HMI request in the control word (the PLC shows it to the operator)."""
-        self.link.set_control(ack_seq=self._hmi_seq if seq is None else seq, ack_status=status)
+        """Answer an HMI request in the control word (the PLC shows it to the operator):
+        ``seq``, else the request being served; a local request (seq 0) is not answered."""
+        seq = self.modes.hmi_seq if seq is None else seq
+        if seq:
+            self.link.set_control(ack_seq=seq, ack_status=status)
 
     def _motion_checks(self, x: np.ndarray) -> None:
         for name, m in self.attitude.metrics.items():
             if m.twist_m > self.max_twist_m:
-                self.modes.fault(
-                    f"twist: {name} layer {units.to_mm(m.twist_m):.2f} mm above the limit "
-                    f"{units.to_mm(self.max_twist_m):.2f} mm"
-                )
+                self.modes.fault(self._over(Interlock.TWIST, name, m.twist_m, self.max_twist_m))
             if m.tracking_error_m > self.max_tracking_m:
                 self.modes.fault(
-                    f"tracking error: {name} group {units.to_mm(m.tracking_error_m):.2f} mm "
-                    f"above the limit {units.to_mm(self.max_tracking_m):.2f} mm"
+                    self._over(
+                        Interlock.TRACKING_ERROR, name, m.tracking_error_m, self.max_tracking_m
+                    )
                 )
             if m.sync_error_m > self.max_sync_m:
                 self.modes.fault(
-                    f"sync error: {name} group {units.to_mm(m.sync_error_m):.2f} mm above the "
-                    f"limit {units.to_mm(self.max_sync_m):.2f} mm"
+                    self._over(Interlock.SYNC_ERROR, name, m.sync_error_m, self.max_sync_m)
                 )
         # Plain floats: the first active rod within the margin of an end or at a limit
         # switch (the mask of the switches is worked out once per received word).
@@ -404,9 +558,21 @@ class ServiceCore:
         for k, (i, hi) in enumerate(zip(self.active, self._stroke_hi_list, strict=True)):
             v = xs[i]
             if v < lo or v > hi or (at_limit is not None and at_limit[k]):
-                cid = self._by_index[i].id
-                self.modes.fault(f"stroke end: {cid} at {units.to_mm(v):.1f} mm")
+                to_end = min(v, self.stroke[i] - v)
+                self.modes.fault(
+                    Cause(
+                        Interlock.STROKE_END,
+                        where=self._by_index[i].id,
+                        value=units.to_mm(to_end),
+                        limit=units.to_mm(self.end_margin_m),
+                        detail="(limit switch)" if to_end >= lo else "",
+                    )
+                )
                 break
+
+    @staticmethod
+    def _over(il: Interlock, where: str, value_m: float, limit_m: float) -> Cause:
+        return Cause(il, where=where, value=units.to_mm(value_m), limit=units.to_mm(limit_m))
 
     def _planning(self, x: np.ndarray, valid: bool, now: float) -> None:
         mode = self.modes.mode
@@ -424,16 +590,17 @@ class ServiceCore:
                     start_lower_m=tuple((x[lo] - half[lo]).tolist()),
                 )
                 self._submitted = ok
+        if not valid:
+            return  # a plan is taken only with valid positions (it engages at them)
         res = self.planner.poll()
         if res is None or res.request_id != self._request_id:
             return
         self._submitted = False
         if self.modes.mode != Mode.PLANNING:
             return  # stopped or faulted meanwhile: the plan is dropped
-        if self._hmi_seq:
-            self._hmi_ack(TargetAck.ACCEPTED if res.ok and res.feasible else TargetAck.REJECTED)
+        self._hmi_ack(TargetAck.ACCEPTED if res.ok and res.feasible else TargetAck.REJECTED)
         if not res.ok:
-            self.modes.fault(f"planner: {res.error}")
+            self.modes.fault(Cause(Interlock.PLANNER, detail=str(res.error)))
             verdict: dict[str, Any] = {"ok": False, "code": "planner", "error": res.error}
         elif not res.feasible or res.trajectory is None:
             self.modes.plan_failed(list(res.reasons))
@@ -513,6 +680,7 @@ class ServiceCore:
             metrics=dict(self.attitude.metrics),
             motion=MotionStats(**vars(self.motion)),  # a copy (copy.copy: 4x the time)
             loop=self.loop_stats,
+            ride=(self.suspends, self.resumes),
         )
         if self.record is not None:
             # The row on plain floats (the values numpy's indexing gave, without an

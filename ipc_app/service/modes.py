@@ -6,12 +6,15 @@
       ADJUSTING --motion_done--> HOLDING --stop / release--> IDLE
       PLANNING --plan_failed (target infeasible)--> IDLE
       HOLDING --request_adjust--> PLANNING           (next adjustment from the held pose)
-      any --fault(reason)--> FAULT                   (latched; not from ESTOP)
+      ADJUSTING / HOLDING --suspend(reason)--> SUSPENDED --resume--> back where it was
+      any --fault(cause)--> FAULT                    (latched; not from ESTOP)
       any --estop(True)--> ESTOP                     (latched even after estop(False))
       FAULT / ESTOP --reset()--> IDLE                (only when every cause is gone)
 
 Valves may be driven only in ADJUSTING and HOLDING (:attr:`ModeMachine.valves_enabled`);
 every other mode is a controlled stop: valves closed, the load held by the closed valves.
+SUSPENDED is the short stop of a link that dropped out (PackML's Suspended): the core
+resumes the motion by itself when the frames are back and its checks pass, or faults.
 Nothing is persisted: a new :class:`ModeMachine` (a restart of the service) is always in
 BOOT, and :meth:`~ModeMachine.boot_complete` takes it to IDLE with the valves closed.
 
@@ -23,7 +26,11 @@ transition and every refusal is logged with structlog (``event="mode"``).
 
 Planner failures: an *infeasible target* is the operator's problem, ``plan_failed``
 returns to IDLE with the planner's reasons; a *planner crash or timeout* is an interlock,
-the service calls ``fault("planner: ...")``.
+the service calls ``fault(Cause(Interlock.PLANNER, ...))``.
+
+Faults are :class:`~ipc_app.service.interlocks.Cause` objects, latched by interlock and
+place in a :class:`~ipc_app.service.interlocks.FaultLatch` (first and worst value, count):
+a lasting condition is one entry, and only a new entry is logged.
 
 The machine is thread-safe (one short re-entrant lock): the control channel thread calls the
 operator requests while the loop thread calls the rest.
@@ -41,6 +48,8 @@ from typing import Any
 
 import structlog
 
+from ipc_app.service.interlocks import Cause, FaultLatch, Interlock, Latched
+
 log = structlog.get_logger("wara.service.modes")
 
 
@@ -50,6 +59,7 @@ class Mode(StrEnum):
     PLANNING = "PLANNING"
     ADJUSTING = "ADJUSTING"
     HOLDING = "HOLDING"
+    SUSPENDED = "SUSPENDED"
     FAULT = "FAULT"
     ESTOP = "ESTOP"
 
@@ -57,7 +67,9 @@ class Mode(StrEnum):
 #: Modes in which the control loop may drive the valves.
 VALVE_MODES = frozenset({Mode.ADJUSTING, Mode.HOLDING})
 #: Modes in which an axis is moving or being planned; ``stop`` brings them to IDLE.
-ACTIVE_MODES = frozenset({Mode.PLANNING, Mode.ADJUSTING, Mode.HOLDING})
+ACTIVE_MODES = frozenset({Mode.PLANNING, Mode.ADJUSTING, Mode.HOLDING, Mode.SUSPENDED})
+#: Modes a short loss of the link suspends (and :meth:`ModeMachine.resume` returns to).
+SUSPENDABLE_MODES = frozenset({Mode.ADJUSTING, Mode.HOLDING})
 
 
 @dataclass(frozen=True)
@@ -88,9 +100,12 @@ class Outcome:
 class _State:
     mode: Mode = Mode.BOOT
     since: float = 0.0
-    fault_reasons: list[str] = field(default_factory=list)
+    faults: FaultLatch = field(default_factory=FaultLatch)
     estop_active: bool = False
     target_deg: tuple[float, float] | None = None
+    #: TargetSeq of the HMI request being served (0: a local request, or none)
+    hmi_seq: int = 0
+    resume_to: Mode | None = None
     last_message: str = "booting"
 
 
@@ -98,24 +113,27 @@ class ModeMachine:
     """The operator-visible modes; see the module docstring for the transitions.
 
     ``active_causes`` is asked by :meth:`reset` for the interlock conditions that are
-    still present (e.g. ``["plc heartbeat lost"]``); a reset succeeds only when it
+    still present (:class:`Cause` objects); a reset succeeds only when it
     returns nothing and the e-stop is released. ``clock`` is for the transition times.
     ``on_transition`` is called with each :class:`Transition` (e.g. to write it to the
-    run record or to systemd's STATUS=); it runs in the caller's thread under the
-    machine's re-entrant lock, so it must be quick and must not block.
+    run record or to systemd's STATUS=), ``on_fault`` with each newly latched cause; both
+    run in the caller's thread under the machine's re-entrant lock, so they must be
+    quick and must not block.
     """
 
     def __init__(
         self,
         *,
-        active_causes: Callable[[], Sequence[str]] = lambda: (),
+        active_causes: Callable[[], Sequence[Cause]] = lambda: (),
         clock: Callable[[], float] = time.monotonic,
         on_transition: Callable[[Transition], None] | None = None,
+        on_fault: Callable[[Latched], None] | None = None,
         history: int = 100,
     ) -> None:
         self._active_causes = active_causes
         self._clock = clock
         self._on_transition = on_transition
+        self._on_fault = on_fault
         self._lock = threading.RLock()
         self._s = _State(since=clock())
         self._history: deque[Transition] = deque(maxlen=history)
@@ -133,7 +151,25 @@ class ModeMachine:
 
     @property
     def fault_reasons(self) -> tuple[str, ...]:
-        return tuple(self._s.fault_reasons)
+        """The latched causes as text (for people; code uses :attr:`faults`)."""
+        with self._lock:
+            return tuple(e.text() for e in self._s.faults.entries())
+
+    @property
+    def faults(self) -> tuple[Latched, ...]:
+        """The latched causes, in the order they were first latched."""
+        with self._lock:
+            return self._s.faults.entries()
+
+    @property
+    def fault_interlocks(self) -> tuple[Interlock, ...]:
+        with self._lock:
+            return self._s.faults.interlocks()
+
+    @property
+    def hmi_seq(self) -> int:
+        """TargetSeq of the HMI request being planned or run (0: a local request)."""
+        return self._s.hmi_seq
 
     @property
     def target_deg(self) -> tuple[float, float] | None:
@@ -152,7 +188,9 @@ class ModeMachine:
                 "mode": str(s.mode),
                 "since_s": s.since,
                 "valves_enabled": s.mode in VALVE_MODES,
-                "fault_reasons": list(s.fault_reasons),
+                "fault_reasons": [e.text() for e in s.faults.entries()],
+                "faults": [e.to_dict() for e in s.faults.entries()],
+                "faults_dropped": s.faults.dropped,
                 "estop_active": s.estop_active,
                 "target_deg": list(s.target_deg) if s.target_deg else None,
                 "message": s.last_message,
@@ -163,8 +201,9 @@ class ModeMachine:
         """BOOT -> IDLE once the service is wired (valves closed)."""
         return self._go("boot_complete", {Mode.BOOT}, Mode.IDLE, "start-up complete")
 
-    def request_adjust(self, roll_deg: float, pitch_deg: float) -> Outcome:
-        """IDLE or HOLDING -> PLANNING for target (roll, pitch)."""
+    def request_adjust(self, roll_deg: float, pitch_deg: float, hmi_seq: int = 0) -> Outcome:
+        """IDLE or HOLDING -> PLANNING for target (roll, pitch); ``hmi_seq`` is the HMI's
+        TargetSeq of the request (0: a local one). A refused request changes nothing."""
         with self._lock:
             out = self._go_locked(
                 "request_adjust",
@@ -174,6 +213,7 @@ class ModeMachine:
             )
             if out.accepted:
                 self._s.target_deg = (roll_deg, pitch_deg)
+                self._s.hmi_seq = hmi_seq
             return out
 
     def plan_ready(self) -> Outcome:
@@ -193,6 +233,24 @@ class ModeMachine:
         """ADJUSTING -> HOLDING: the trajectory ended and the target is reached."""
         return self._go("motion_done", {Mode.ADJUSTING}, Mode.HOLDING, "target reached")
 
+    def suspend(self, reason: str) -> Outcome:
+        """ADJUSTING/HOLDING -> SUSPENDED: the link dropped out; valves closed, held."""
+        with self._lock:
+            was = self._s.mode
+            out = self._go_locked("suspend", SUSPENDABLE_MODES, Mode.SUSPENDED, reason)
+            if out.accepted:
+                self._s.resume_to = was
+            return out
+
+    def resume(self, reason: str) -> Outcome:
+        """SUSPENDED -> the mode it was suspended from."""
+        with self._lock:
+            to = self._s.resume_to or Mode.HOLDING
+            out = self._go_locked("resume", {Mode.SUSPENDED}, to, reason)
+            if out.accepted:
+                self._s.resume_to = None
+            return out
+
     def stop(self, reason: str = "operator stop") -> Outcome:
         """Controlled stop: PLANNING/ADJUSTING/HOLDING -> IDLE, valves closed.
 
@@ -207,16 +265,27 @@ class ModeMachine:
             msg = f"stop: already stopped in {self._s.mode}"
             return Outcome(True, self._s.mode, msg)
 
-    def fault(self, reason: str) -> Outcome:
-        """Any mode -> FAULT, latched. In FAULT the reason is added; in ESTOP it is noted."""
+    def fault(self, cause: Cause) -> Outcome:
+        """Any mode -> FAULT, latched by (interlock, where). In FAULT or ESTOP a new
+        cause is added and logged once; a known one only updates its worst value and
+        count (nothing logged)."""
         with self._lock:
             s = self._s
-            if reason not in s.fault_reasons:
-                s.fault_reasons.append(reason)
+            new = s.faults.add(cause, self._clock())
+            if new and self._on_fault is not None:
+                self._on_fault(s.faults.entries()[-1])
             if s.mode in (Mode.FAULT, Mode.ESTOP):
-                log.warning("fault", mode=str(s.mode), reason=reason, latched=True)
-                return Outcome(True, s.mode, f"{s.mode} kept; fault noted: {reason}")
-            return self._transition("fault", Mode.FAULT, reason)
+                if new:
+                    log.warning(
+                        "fault",
+                        mode=str(s.mode),
+                        interlock=str(cause.interlock),
+                        where=cause.where,
+                        reason=cause.text(),
+                        latched=True,
+                    )
+                return Outcome(True, s.mode, f"{s.mode} kept; fault noted: {cause.text()}")
+            return self._transition("fault", Mode.FAULT, cause.text())
 
     def estop(self, active: bool) -> Outcome:
         """E-stop input. Pressed: any mode -> ESTOP. Released: stays ESTOP until reset."""
@@ -237,17 +306,19 @@ class ModeMachine:
             s = self._s
             if s.mode not in (Mode.FAULT, Mode.ESTOP):
                 return self._refuse("reset", f"nothing to reset: mode is {s.mode}")
-            blocking = list(self._active_causes())
+            blocking = [c.text() for c in self._active_causes()]
             if s.estop_active:
                 blocking.insert(0, "e-stop still pressed")
             if blocking:
                 return self._refuse(
                     "reset", "reset refused, cause still present: " + "; ".join(blocking)
                 )
-            cleared = "; ".join(s.fault_reasons) or str(s.mode)
+            cleared = "; ".join(e.text() for e in s.faults.entries()) or str(s.mode)
             out = self._transition("reset", Mode.IDLE, f"reset after: {cleared}")
-            s.fault_reasons.clear()
+            s.faults.clear()
             s.target_deg = None
+            s.hmi_seq = 0
+            s.resume_to = None
             return out
 
     # ------------------------------------------------------------------ internals
@@ -264,7 +335,7 @@ class ModeMachine:
             names = "/".join(sorted(str(m) for m in allowed))
             hint = ""
             if self._s.mode in (Mode.FAULT, Mode.ESTOP):
-                why = "; ".join(self._s.fault_reasons) or "e-stop"
+                why = "; ".join(e.text() for e in self._s.faults.entries()) or "e-stop"
                 hint = f" (latched: {why}; `wara ctl reset` once the cause is gone)"
             return self._refuse(
                 event, f"{event} refused in {self._s.mode}: only allowed in {names}{hint}"

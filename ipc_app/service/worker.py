@@ -33,7 +33,7 @@ Example::
     ...                                      # every cycle:
     result = worker.poll()
     if result is not None and result.request_id == 7:
-        if not result.ok: modes.fault(f"planner: {result.error}")
+        if not result.ok: modes.fault(Cause(Interlock.PLANNER, detail=result.error))
         elif not result.feasible: modes.plan_failed(result.reasons)
         else: modes.plan_ready()
 """

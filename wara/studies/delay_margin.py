@@ -51,6 +51,8 @@ class DelayRun:
     hold_sync_error_mm: dict[str, float] = field(default_factory=dict)
     mode: str = ""
     faults: list[str] = field(default_factory=list)
+    #: (interlock, where) of each latched cause, for code (``faults`` is for people)
+    fault_keys: list[tuple[str, str]] = field(default_factory=list)
     stable: bool = False
 
 
@@ -93,6 +95,7 @@ def run_one(
             }
         out.mode = demo.core.modes.mode.name
         out.faults = list(demo.core.modes.fault_reasons)
+        out.fault_keys = [(str(f.interlock), f.where) for f in demo.core.modes.faults]
     finally:
         demo.close()
     out.stable = (
