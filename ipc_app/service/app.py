@@ -31,6 +31,7 @@ import structlog
 from config import load_project
 from ipc_app.service.core import ServiceCore
 from ipc_app.service.ctl import CtlError, CtlHandlers, CtlServer
+from ipc_app.service.interlocks import Cause, Interlock
 from ipc_app.service.logs import configure_logging
 from ipc_app.service.loop import FixedRateLoop
 from ipc_app.service.record import RunRecorder, new_run_dir
@@ -103,7 +104,7 @@ class CtlWatch:
     stalled thread, a failed restart): the service then stops.
     """
 
-    def __init__(self, ctl: CtlServer, fault: Callable[[str], object]) -> None:
+    def __init__(self, ctl: CtlServer, fault: Callable[[Cause], object]) -> None:
         self.ctl = ctl
         self.fault = fault
         self.outages = 0
@@ -118,9 +119,8 @@ class CtlWatch:
             self._down = True
             self.outages += 1
             why = self.ctl.last_error or "no error recorded"
-            reason = f"control channel: server {state.replace('_', ' ')} ({why})"
-            log.error("ctl_unhealthy", state=state, reason=reason)
-            self.fault(reason)
+            log.error("ctl_unhealthy", state=state, reason=why)
+            self.fault(Cause(Interlock.CONTROL_CHANNEL, where=state, detail=why))
         if state == "stalled":
             return False
         if not self.ctl.restart():

@@ -44,6 +44,7 @@ class Interlock(StrEnum):
     SUSPEND_TIMEOUT = "suspend timeout"
     RESUME_CHECK = "resume check"
     PLANNER = "planner"
+    CONTROL_CHANNEL = "control channel"
 
 
 @dataclass(frozen=True)
@@ -125,6 +126,13 @@ SPECS: dict[Interlock, Spec] = {
         "the motion stopped, or an active pressure is not valid",
     ),
     Interlock.PLANNER: Spec(None, Applies.EVENT, "", "the planner process crashed or timed out"),
+    Interlock.CONTROL_CHANNEL: Spec(
+        None,
+        Applies.ALWAYS,
+        "",
+        "the control socket's server thread ended or stalled, or its socket file is gone "
+        "(where: the server's state; the service binds it again)",
+    ),
 }
 
 
