@@ -117,7 +117,10 @@ class CtlWatch:
         if not self._down:
             self._down = True
             self.outages += 1
-            why = self.ctl.last_error or "no error recorded"
+            why = {
+                "socket_gone": f"{self.ctl.path} removed or replaced",
+                "stalled": f"no turn for over {self.ctl.stall_s:g} s",
+            }.get(state, self.ctl.last_error or "no error recorded")
             reason = f"control channel: server {state.replace('_', ' ')} ({why})"
             log.error("ctl_unhealthy", state=state, reason=reason)
             self.fault(reason)
