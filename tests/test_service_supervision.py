@@ -43,6 +43,11 @@ def test_a_removed_socket_is_a_fault_and_the_channel_comes_back() -> None:
             sock.unlink()
             st = _wait_status(sock, 10)  # bound again by the service's supervision
             assert st["ctl"]["restarts"] == 1 and st["ctl"]["state"] == "ok"
+            for _ in range(100):  # the status is the last cycle's: wait for one more
+                if any(f["interlock"] == "control channel" for f in st["faults"]):
+                    break
+                time.sleep(0.05)
+                st = _wait_status(sock, 10)
             assert st["mode"] == "FAULT"
             assert ("control channel", "socket_gone") in [
                 (f["interlock"], f["where"]) for f in st["faults"]

@@ -118,7 +118,10 @@ class CtlWatch:
         if not self._down:
             self._down = True
             self.outages += 1
-            why = self.ctl.last_error or "no error recorded"
+            why = {
+                "socket_gone": f"{self.ctl.path} removed or replaced",
+                "stalled": f"no turn for over {self.ctl.stall_s:g} s",
+            }.get(state, self.ctl.last_error or "no error recorded")
             log.error("ctl_unhealthy", state=state, reason=why)
             self.fault(Cause(Interlock.CONTROL_CHANNEL, where=state, detail=why))
         if state == "stalled":

@@ -11,8 +11,9 @@ installed IPC, see :func:`ipc_app.service.ctl.default_socket_path`); it is owner
 so run as the service user (``sudo -u wara wara ctl status``).
 
 Exit codes: 0 accepted; 1 refused by the service (e.g. adjust while FAULT, reset while
-the cause is still present); 3 infeasible target (the planner's reasons are printed);
-2 bad arguments or no service listening (one line on stderr).
+the cause is still present, or ``busy`` after the retries); 3 infeasible target (the
+planner's reasons are printed); 2 bad arguments or no service listening (one line on
+stderr). A full listen queue and a ``busy`` answer are retried for up to 5 s.
 """
 
 from __future__ import annotations
