@@ -72,7 +72,7 @@ def _write_text(tmp_path: Path, text: str, name: str = "project.yaml") -> Path:
         ("  mass_kg: 36350\n", "  mass_kg: 3.6e9\n", "workpiece.mass_kg"),
         ("  supply_pressure_mpa: 16.0", "  supply_pressure_mpa: 160", "hydraulics"),
         ("  max_pressure_mpa: 24.0", "  max_pressure_mpa: 240", "safety.max_pressure_mpa"),
-        ("  sensor_timeout_ms: 50", "  sensor_timeout_ms: 5e9", "safety.sensor_timeout_ms"),
+        ("  sensor_timeout_ms: 100", "  sensor_timeout_ms: 5e9", "safety.sensor_timeout_ms"),
     ],
 )
 def test_non_finite_and_implausible_numbers_refused(
