@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import itertools
 import math
+import os
 import sys
 import threading
 import time
@@ -32,10 +33,10 @@ import numpy as np
 
 from config import load_project, units
 from config.hil_scenario import HilScenario
-from config.schema import ProjectConfig
+from config.schema import ProjectConfig, Realtime
 from hil_sim.simulator import HilSimulator
 from ipc_app.service.core import ServiceCore
-from ipc_app.service.loop import FixedRateLoop, freeze_startup_heap
+from ipc_app.service.loop import FixedRateLoop, OsApi, RealtimeReport, freeze_startup_heap
 from ipc_app.service.modes import Mode
 from ipc_app.service.record import RunRecorder
 from ipc_app.service.worker import PlannerWorker
@@ -50,6 +51,11 @@ SYNC_TOL_MM = 0.07
 
 #: Standstill after the motion over which the sync error at standstill is taken.
 HOLD_MEASURE_S = 3.0
+
+#: SCHED_FIFO priority of the real-time demo's two threads (loop and simulator), when the
+#: system grants it: a busy machine's other processes then wait for them, not they for
+#: those (docs/service.md, "The one-process demo's timing").
+DEMO_RT_PRIORITY = 10
 
 #: The interpreter's thread switch interval while the real-time demo runs (default 5 ms).
 SWITCH_INTERVAL_S = 0.0005
@@ -175,8 +181,10 @@ class Demo:
         scenario: HilScenario | None = None,
         record: RunRecorder | None = None,
         planner: PlannerWorker | None = None,
+        os_api: OsApi | None = None,
     ) -> None:
-        """``planner``: a running worker to share (tests); else one is started and owned."""
+        """``planner``: a running worker to share (tests); else one is started and owned.
+        ``os_api``: the real-time system calls (a fake in tests)."""
         if mode not in ("realtime", "lockstep"):
             raise ValueError(f"mode must be 'realtime' or 'lockstep', got {mode!r}")
         self.cfg = cfg
@@ -197,6 +205,8 @@ class Demo:
         self.period = cfg.control.period_s
         self._k = 0
         self._switch_interval: float | None = None
+        self._os_api = os_api
+        self.threads_realtime = RealtimeReport()
         self.loop: FixedRateLoop | None = None
         self._sim_thread: threading.Thread | None = None
         self._stop = threading.Event()
@@ -215,18 +225,34 @@ class Demo:
         # service's default) it holds the GIL for up to a few hundred ms, which here
         # would also stop the simulated PLC and rightly trip the heartbeat interlock.
         freeze_startup_heap()
+        # Every thread of the interpreter shares the GIL with the loop: one preempted by
+        # another process while holding it stops the loop too. So all of them (main,
+        # log writer, planner supervisor; the loop and simulator threads inherit it) ask
+        # for SCHED_FIFO, not only the loop's; the planner process is left as it is.
+        self.threads_realtime = fifo_all_threads(self._realtime().priority)
         # The loop thread must get the GIL soon after its deadline: by default a waiting
         # thread asks for it only after 5 ms (the whole period). Restored in close().
         self._switch_interval = sys.getswitchinterval()
         sys.setswitchinterval(SWITCH_INTERVAL_S)
 
         self.loop = FixedRateLoop(
-            self.core.step, self.period, realtime=self.cfg.control.realtime, freeze_heap=False
+            self.core.step,
+            self.period,
+            realtime=self._realtime(),
+            os_api=self._os_api,
+            freeze_heap=False,
         )
 
         self.loop.start()
         self._sim_thread = threading.Thread(target=self._run_sim, name="hil-sim", daemon=True)
         self._sim_thread.start()
+
+    def _realtime(self) -> Realtime:
+        """The project's ``control.realtime`` with at least :data:`DEMO_RT_PRIORITY`:
+        the demo's threads ask for SCHED_FIFO (granted to root or with CAP_SYS_NICE /
+        an RLIMIT_RTPRIO; refused and reported otherwise, and the demo runs anyway)."""
+        rt = self.cfg.control.realtime
+        return rt.model_copy(update={"priority": max(rt.priority, DEMO_RT_PRIORITY)})
 
     def _run_sim(self) -> None:
         """The simulator thread: one control period of PLC scans per wake-up, paced by
@@ -402,6 +428,10 @@ def run_demo(
             "cycles": stats.get("cycles"),
             "period_ms": demo.period * 1e3,
         },
+        "realtime": {
+            "loop": demo.loop.realtime_report.to_dict() if demo.loop is not None else None,
+            "threads": demo.threads_realtime.to_dict(),
+        },
         "final_mode": str(demo.core.modes.mode),
         "fault_reasons": list(demo.core.modes.fault_reasons),
         "ride_through": ride_through(demo.core.snapshot()),
@@ -419,6 +449,27 @@ def run_demo(
     if plot_dir is not None:
         summary["plots"] = [str(p) for p in plot_trace(demo.trace, plot_dir)]
     return summary
+
+
+def fifo_all_threads(priority: int) -> RealtimeReport:
+    """SCHED_FIFO at ``priority`` for every thread of this process (Linux: by thread id);
+    what was applied or refused. Threads started later inherit the policy."""
+    if priority <= 0 or not hasattr(os, "sched_setscheduler"):
+        return RealtimeReport()
+    applied: list[str] = []
+    refused: list[str] = []
+    try:
+        tids = [int(t) for t in os.listdir("/proc/self/task")]
+    except OSError as exc:
+        return RealtimeReport((), (f"threads: {exc}",))
+    for tid in tids:
+        try:
+            os.sched_setscheduler(tid, os.SCHED_FIFO, os.sched_param(priority))
+        except OSError as exc:
+            refused.append(f"SCHED_FIFO {priority} for thread {tid}: {exc.strerror or exc}")
+    if len(refused) < len(tids):
+        applied.append(f"SCHED_FIFO priority {priority} for {len(tids) - len(refused)} threads")
+    return RealtimeReport(tuple(applied), tuple(refused[:1]))
 
 
 def ride_through(status: dict[str, Any]) -> dict[str, int]:
