@@ -112,3 +112,38 @@ def test_trace_keeps_every_sample_in_arrays(n: int) -> None:
         assert tr.x_mm[-1, 0] == pytest.approx(stroke_mm[demo.core.active[0]] / 2, abs=1.0)
     finally:
         demo.close()
+
+
+def test_fifo_for_every_thread_of_a_process_or_the_refusal() -> None:
+    from wara.demo import fifo_all_threads
+
+    child = subprocess.Popen(
+        [
+            sys.executable,
+            "-c",
+            "import threading, time\n"
+            "threading.Thread(target=time.sleep, args=(60,), daemon=True).start()\n"
+            "time.sleep(60)\n",
+        ]
+    )
+    try:
+        import time
+
+        deadline = time.monotonic() + 10
+        tasks = Path(f"/proc/{child.pid}/task")
+        while len(list(tasks.iterdir())) < 2 and time.monotonic() < deadline:
+            time.sleep(0.05)
+        tids = [int(t.name) for t in tasks.iterdir()]
+        rep = fifo_all_threads(10, child.pid)
+        if rep.applied:
+            assert rep.applied == (f"SCHED_FIFO priority 10 for {len(tids)} threads",)
+            assert all(os.sched_getscheduler(t) == os.SCHED_FIFO for t in tids)
+            back = fifo_all_threads(0, child.pid)
+            assert back.applied and not back.refused
+            assert all(os.sched_getscheduler(t) == os.SCHED_OTHER for t in tids)
+        else:  # not allowed here: said so, one line, and nothing changed
+            assert len(rep.refused) == 1 and "SCHED_FIFO 10 for thread" in rep.refused[0]
+            assert all(os.sched_getscheduler(t) == os.SCHED_OTHER for t in tids)
+    finally:
+        child.kill()
+        child.wait()

@@ -340,6 +340,9 @@ class Demo:
         if self._switch_interval is not None:
             sys.setswitchinterval(self._switch_interval)
             self._switch_interval = None
+        if self.threads_realtime.applied:  # back to the normal scheduler
+            fifo_all_threads(0)
+            self.threads_realtime = RealtimeReport()
         if self._own_worker:
             self.worker.close()
         self.link.close()
@@ -451,20 +454,22 @@ def run_demo(
     return summary
 
 
-def fifo_all_threads(priority: int) -> RealtimeReport:
-    """SCHED_FIFO at ``priority`` for every thread of this process (Linux: by thread id);
-    what was applied or refused. Threads started later inherit the policy."""
-    if priority <= 0 or not hasattr(os, "sched_setscheduler"):
+def fifo_all_threads(priority: int, pid: int | None = None) -> RealtimeReport:
+    """SCHED_FIFO at ``priority`` for every thread of process ``pid`` (this one by
+    default; Linux: by thread id); what was applied or refused. Threads started later
+    by one of them inherit the policy. ``priority`` 0: back to SCHED_OTHER."""
+    if not hasattr(os, "sched_setscheduler"):
         return RealtimeReport()
+    policy = os.SCHED_FIFO if priority > 0 else os.SCHED_OTHER
     applied: list[str] = []
     refused: list[str] = []
     try:
-        tids = [int(t) for t in os.listdir("/proc/self/task")]
+        tids = [int(t) for t in os.listdir(f"/proc/{'self' if pid is None else pid}/task")]
     except OSError as exc:
         return RealtimeReport((), (f"threads: {exc}",))
     for tid in tids:
         try:
-            os.sched_setscheduler(tid, os.SCHED_FIFO, os.sched_param(priority))
+            os.sched_setscheduler(tid, policy, os.sched_param(priority))
         except OSError as exc:
             refused.append(f"SCHED_FIFO {priority} for thread {tid}: {exc.strerror or exc}")
     if len(refused) < len(tids):

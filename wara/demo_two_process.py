@@ -500,6 +500,14 @@ def _sim_realtime_factor(log_text: str) -> float | None:
     return float(found[-1]) if found else None
 
 
+def _fifo(child: _Child) -> dict[str, list[str]]:
+    """Every thread of ``child`` at the demo's SCHED_FIFO priority where the system grants
+    it (as the one-process demo does; docs/service.md), else refused and reported."""
+    from wara.demo import DEMO_RT_PRIORITY, fifo_all_threads
+
+    return fifo_all_threads(DEMO_RT_PRIORITY, child.proc.pid).to_dict()
+
+
 @contextlib.contextmanager
 def service_and_simulator(
     workdir: Path, config_path: str, say: Progress, codes: dict[str, int]
@@ -514,7 +522,7 @@ def service_and_simulator(
     wara = [sys.executable, "-m", "wara"]
     say(f"simulator and service on {cfg.can.interface} {cfg.can.channel}:{cfg.can.udp_port}")
     sim_cpus = simulator_cpus(cfg, sorted(os.sched_getaffinity(0)))
-    placement = {
+    placement: dict[str, Any] = {
         "service_loop_cpus": list(cfg.control.realtime.cpu_affinity),
         "simulator_cpus": sim_cpus,
     }
@@ -531,6 +539,7 @@ def service_and_simulator(
         # service's start-up window would rightly end in a FAULT.
         say("waiting for the simulator to run")
         _wait_running(sim, SIM_START_TIMEOUT_S)
+        placement["realtime"] = {"simulator": _fifo(sim)}
         svc_child = _Child(
             "service",
             [
@@ -547,6 +556,7 @@ def service_and_simulator(
         )
         svc = _Service(svc_child, sock)
         _wait_socket(svc_child, sock, 60.0)
+        placement["realtime"]["service"] = _fifo(svc_child)
         say("waiting for the service to be IDLE")
         st = svc.wait(lambda s: s.get("mode") in ("IDLE", "FAULT", "ESTOP"), 60.0)
         if st is None or st.get("mode") != "IDLE":
