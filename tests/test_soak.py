@@ -75,3 +75,16 @@ def test_a_short_soak() -> None:
     assert "wara soak: move 1 to" in proc.stderr
     assert out["latched_faults"] == [], (out["latched_faults"], proc.stderr[-2000:])
     assert proc.returncode == 0
+
+
+def test_the_next_target_starts_where_the_rods_are() -> None:
+    cfg = load_project()
+    by_id = {c.id: c for c in cfg.cylinders}
+    d = TargetDrawer(cfg, seed=0)
+    ids = list(cfg.layers.lower.cylinders) + list(cfg.layers.upper.cylinders)
+    pos = {i: by_id[i].stroke_mm / 2 + 10.0 * k for k, i in enumerate(ids)}
+    d.start_from({"positions_mm": pos})
+    np.testing.assert_allclose(d.lower, [0.0, 0.01, 0.02, 0.03], atol=1e-12)
+    np.testing.assert_allclose(d.upper, [0.04, 0.05, 0.06, 0.07], atol=1e-12)
+    d.start_from({"positions_mm": {**pos, ids[0]: None}})  # an invalid reading: kept
+    np.testing.assert_allclose(d.lower, [0.0, 0.01, 0.02, 0.03], atol=1e-12)

@@ -44,6 +44,7 @@ import signal
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import asdict
@@ -245,8 +246,62 @@ def run_in_netns(
             str(work / "project.yaml"),
         ]
         script = f"{NETNS_SETUP} && exec {' '.join(_quote(a) for a in inner)}"
-        proc = subprocess.run([*UNSHARE, "sh", "-c", script], env=_env(), check=False)
-        return proc.returncode
+        proc = subprocess.Popen([*UNSHARE, "sh", "-c", script], env=_env())
+        stop = threading.Event()
+        promoter = threading.Thread(target=_promote, args=(proc.pid, stop), daemon=True)
+        promoter.start()
+        try:
+            return proc.wait()
+        finally:
+            stop.set()
+            promoter.join(5.0)
+
+
+#: The processes of the pair (by their ``wara`` verb) that get SCHED_FIFO.
+_PAIR_VERBS = (b"hil", b"serve")
+
+
+def _promote(root_pid: int, stop: threading.Event) -> None:
+    """From outside the namespace (inside it the user namespace has no CAP_SYS_NICE):
+    every thread of the simulator and the service processes under ``root_pid`` at the
+    demo's SCHED_FIFO priority, as the one-process demo does (docs/service.md), checked
+    every 0.5 s for new threads; not the planner processes. Refused: said once, on
+    stderr, and the run goes on under the normal scheduler."""
+    from wara.demo import DEMO_RT_PRIORITY, fifo_all_threads
+
+    told = False
+    while not stop.wait(0.5):
+        for pid in _descendants(root_pid):
+            try:
+                argv = Path(f"/proc/{pid}/cmdline").read_bytes().split(b"\0")
+            except OSError:
+                continue
+            if argv[1:4] != [b"-m", b"wara", argv[3]] or argv[3] not in _PAIR_VERBS:
+                continue
+            rep = fifo_all_threads(DEMO_RT_PRIORITY, pid)
+            if rep.refused and not told:
+                told = True
+                print(f"wara: SCHED_FIFO refused: {rep.refused[0]}", file=sys.stderr)
+
+
+def _descendants(root_pid: int) -> list[int]:
+    children: dict[int, list[int]] = {}
+    for entry in Path("/proc").iterdir():
+        if not entry.name.isdigit():
+            continue
+        try:
+            stat = (entry / "stat").read_text()
+        except OSError:
+            continue
+        ppid = int(stat.rsplit(")", 1)[1].split()[1])
+        children.setdefault(ppid, []).append(int(entry.name))
+    out: list[int] = []
+    todo = [root_pid]
+    while todo:
+        for c in children.get(todo.pop(), []):
+            out.append(c)
+            todo.append(c)
+    return out
 
 
 def _quote(arg: str) -> str:
@@ -500,14 +555,6 @@ def _sim_realtime_factor(log_text: str) -> float | None:
     return float(found[-1]) if found else None
 
 
-def _fifo(child: _Child) -> dict[str, list[str]]:
-    """Every thread of ``child`` at the demo's SCHED_FIFO priority where the system grants
-    it (as the one-process demo does; docs/service.md), else refused and reported."""
-    from wara.demo import DEMO_RT_PRIORITY, fifo_all_threads
-
-    return fifo_all_threads(DEMO_RT_PRIORITY, child.proc.pid).to_dict()
-
-
 @contextlib.contextmanager
 def service_and_simulator(
     workdir: Path, config_path: str, say: Progress, codes: dict[str, int]
@@ -539,7 +586,6 @@ def service_and_simulator(
         # service's start-up window would rightly end in a FAULT.
         say("waiting for the simulator to run")
         _wait_running(sim, SIM_START_TIMEOUT_S)
-        placement["realtime"] = {"simulator": _fifo(sim)}
         svc_child = _Child(
             "service",
             [
@@ -556,7 +602,6 @@ def service_and_simulator(
         )
         svc = _Service(svc_child, sock)
         _wait_socket(svc_child, sock, 60.0)
-        placement["realtime"]["service"] = _fifo(svc_child)
         say("waiting for the service to be IDLE")
         st = svc.wait(lambda s: s.get("mode") in ("IDLE", "FAULT", "ESTOP"), 60.0)
         if st is None or st.get("mode") != "IDLE":

@@ -38,6 +38,7 @@ from typing import Any
 
 import numpy as np
 
+from config import units
 from wara.cli import EXIT_FAILED, EXIT_OK, EXIT_USAGE, UsageError
 
 #: The workspace the targets are drawn from (the planner bench's), degrees.
@@ -51,6 +52,8 @@ PROGRESS_EVERY_S = 10.0
 MAX_DRAWS = 50
 #: After a latched fault the soak resets the service and goes on; it ends at this many.
 MAX_FAULTS = 5
+#: Targets the service may refuse (infeasible from where it measures) before the end.
+MAX_REFUSED = 10
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -93,7 +96,7 @@ def _run(args: argparse.Namespace) -> int:
             return EXIT_USAGE
     try:
         summary = soak(Path(args.inside_netns), args.config, args.minutes * 60.0, args.seed)
-    except (d2.TwoProcessError, d2.CtlError) as exc:
+    except (d2.TwoProcessError, d2.CtlError, NoTarget) as exc:
         print(f"wara soak: failed: {exc}", file=sys.stderr)
         if args.json:
             print(json.dumps({"passed": False, "error": str(exc)}))
@@ -106,6 +109,10 @@ def _say(text: str) -> None:
     print(f"wara soak: {text}", file=sys.stderr, flush=True)
 
 
+class NoTarget(Exception):
+    """The planner found no feasible target in :data:`MAX_DRAWS` draws."""
+
+
 class TargetDrawer:
     """Random targets the planner finds feasible from where the previous one ends."""
 
@@ -115,6 +122,22 @@ class TargetDrawer:
         self.upper: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 0.0)
         self.lower: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 0.0)
         self.infeasible = 0
+
+    def start_from(self, status: dict[str, Any]) -> None:
+        """The next target is planned from the rods' measured positions (the service's
+        status, mm from the retracted end), where the service plans it from too."""
+        pos = status.get("positions_mm") or {}
+        by_id = {c.id: c for c in self.cfg.cylinders}
+
+        def layer(ids: Any) -> tuple[float, float, float, float] | None:
+            if len(ids) != 4 or any(pos.get(i) is None for i in ids):
+                return None
+            d = [units.mm(float(pos[i])) - by_id[i].stroke_m / 2 for i in ids]
+            return (d[0], d[1], d[2], d[3])
+
+        up, lo = layer(self.cfg.layers.upper.cylinders), layer(self.cfg.layers.lower.cylinders)
+        if up is not None and lo is not None:
+            self.upper, self.lower = up, lo
 
     def next(self) -> tuple[float, float]:
         from ipc_app.planner import plan
@@ -128,7 +151,7 @@ class TargetDrawer:
                 self.lower = tuple(p.lower.displacement_m)  # type: ignore[assignment]
                 return roll, pitch
             self.infeasible += 1
-        raise RuntimeError(f"no feasible target in {MAX_DRAWS} draws")
+        raise NoTarget(f"no feasible target in {MAX_DRAWS} draws")
 
 
 def latency_ms(t_s: np.ndarray, period_s: float) -> np.ndarray:
@@ -215,6 +238,8 @@ def soak(workdir: Path, config_path: str, duration_s: float, seed: int) -> dict[
             svc.call("reset")
             back = svc.wait(lambda s: s.get("mode") in ("IDLE", "HOLDING"), 10.0)
             _say(f"reset: {'back in ' + back['mode'] if back else 'the service stays faulted'}")
+            if back is not None:
+                drawer.start_from(back)
             return back is not None
 
         while time.monotonic() < end:
@@ -223,11 +248,16 @@ def soak(workdir: Path, config_path: str, duration_s: float, seed: int) -> dict[
             reply = svc.call("adjust", roll_deg=roll, pitch_deg=pitch)
             if not reply.get("ok"):
                 st = svc.status()
+                drawer.start_from(st)
                 if st.get("mode") in ("FAULT", "ESTOP"):
                     if not latch(st, "refused in FAULT"):
                         break
                     continue
-                refused.append(f"({roll:+.2f}, {pitch:+.2f}): {reply.get('error')}")
+                why = reply.get("error") or reply.get("reasons") or reply.get("code")
+                refused.append(f"({roll:+.2f}, {pitch:+.2f}): {why}")
+                _say(f"target ({roll:+.2f}, {pitch:+.2f}) refused: {why}")
+                if len(refused) >= MAX_REFUSED:
+                    break
                 continue
 
             def settled(st: dict[str, Any], r: float = roll, p: float = pitch) -> bool:
@@ -245,6 +275,7 @@ def soak(workdir: Path, config_path: str, duration_s: float, seed: int) -> dict[
                 if not latch(done, f"move ended in {mode}"):
                     break
                 continue
+            drawer.start_from(done)
             m = done.get("motion") or {}
             moves.append(
                 {
