@@ -13,7 +13,13 @@ import numpy as np
 import pytest
 
 from config import load_project
-from wara.commands.soak import PITCH_DEG, ROLL_DEG, TargetDrawer, latency_ms
+from wara.commands.soak import (
+    PITCH_DEG,
+    ROLL_DEG,
+    TargetDrawer,
+    jitter_figures,
+    latency_ms,
+)
 from wara.demo_two_process import netns_problem
 
 REPO = Path(__file__).resolve().parents[1]
@@ -26,6 +32,15 @@ def test_latency_on_the_deadline_grid() -> None:
     t = np.array([0.0, P + 0.0001, 2 * P + 0.0003, 5 * P + 0.0002, 6 * P + 0.004])
     lat = latency_ms(t, P)
     np.testing.assert_allclose(lat, [0.0, 0.1, 0.3, 0.2, 4.0], atol=1e-6)
+
+
+def test_jitter_max_takes_the_loop_reports_too() -> None:
+    lat = np.linspace(0.0, 4.0, 1001)
+    p999, mx = jitter_figures(lat, 19.0)
+    assert p999 == pytest.approx(3.996) and mx == 19.0
+    assert jitter_figures(lat, None)[1] == 4.0
+    assert jitter_figures(lat, 1.0)[1] == 4.0
+    assert jitter_figures(np.zeros(0), None) == (None, None)
 
 
 def test_targets_are_feasible_and_seeded() -> None:
