@@ -276,7 +276,7 @@ def _promote(root_pid: int, stop: threading.Event) -> None:
                 argv = Path(f"/proc/{pid}/cmdline").read_bytes().split(b"\0")
             except OSError:
                 continue
-            if argv[1:4] != [b"-m", b"wara", argv[3]] or argv[3] not in _PAIR_VERBS:
+            if len(argv) < 4 or argv[1:3] != [b"-m", b"wara"] or argv[3] not in _PAIR_VERBS:
                 continue
             rep = fifo_all_threads(DEMO_RT_PRIORITY, pid)
             if rep.refused and not told:
