@@ -30,6 +30,7 @@ COMMANDS: tuple[str, ...] = (
     "ctl",
     "serve",
     "demo",
+    "soak",
     "hil",
 )
 

@@ -44,8 +44,9 @@ import signal
 import subprocess
 import sys
 import tempfile
+import threading
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import asdict
 from pathlib import Path
 from typing import IO, Any
@@ -196,6 +197,34 @@ def run_two_process(
     The inner run prints the table / JSON on this process's stdout. Raises
     :class:`NetnsUnavailable` when the namespace cannot be made.
     """
+    inner = [
+        "demo",
+        "--two-process",
+        "--settle-s",
+        repr(settle_s),
+        "--examples",
+        str(examples),
+        "--min-run-s",
+        repr(min_run_s),
+    ]
+    if json_out:
+        inner.append("--json")
+    return run_in_netns(inner, config_path, keep_dir=keep_dir, transport=transport, pin=pin)
+
+
+def run_in_netns(
+    wara_args: Sequence[str],
+    config_path: str | None,
+    *,
+    keep_dir: Path | None = None,
+    transport: str = DEFAULT_TRANSPORT,
+    pin: bool = True,
+) -> int:
+    """Re-run ``wara <wara_args> --inside-netns DIR --config DIR/project.yaml`` in a
+    private network namespace (the project YAML copied with the bus on ``transport``,
+    see :func:`multicast_config`); its exit code. The inner run prints on this
+    process's stdout. Raises :class:`NetnsUnavailable` when the namespace cannot be made.
+    """
     problem = netns_problem()
     if problem is not None:
         raise NetnsUnavailable(problem)
@@ -210,24 +239,69 @@ def run_two_process(
             sys.executable,
             "-m",
             "wara",
-            "demo",
-            "--two-process",
+            *wara_args,
             "--inside-netns",
             str(work),
             "--config",
             str(work / "project.yaml"),
-            "--settle-s",
-            repr(settle_s),
-            "--examples",
-            str(examples),
-            "--min-run-s",
-            repr(min_run_s),
         ]
-        if json_out:
-            inner.append("--json")
         script = f"{NETNS_SETUP} && exec {' '.join(_quote(a) for a in inner)}"
-        proc = subprocess.run([*UNSHARE, "sh", "-c", script], env=_env(), check=False)
-        return proc.returncode
+        proc = subprocess.Popen([*UNSHARE, "sh", "-c", script], env=_env())
+        stop = threading.Event()
+        promoter = threading.Thread(target=_promote, args=(proc.pid, stop), daemon=True)
+        promoter.start()
+        try:
+            return proc.wait()
+        finally:
+            stop.set()
+            promoter.join(5.0)
+
+
+#: The processes of the pair (by their ``wara`` verb) that get SCHED_FIFO.
+_PAIR_VERBS = (b"hil", b"serve")
+
+
+def _promote(root_pid: int, stop: threading.Event) -> None:
+    """From outside the namespace (inside it the user namespace has no CAP_SYS_NICE):
+    every thread of the simulator and the service processes under ``root_pid`` at the
+    demo's SCHED_FIFO priority, as the one-process demo does (docs/service.md), checked
+    every 0.5 s for new threads; not the planner processes. Refused: said once, on
+    stderr, and the run goes on under the normal scheduler."""
+    from wara.demo import DEMO_RT_PRIORITY, fifo_all_threads
+
+    told = False
+    while not stop.wait(0.5):
+        for pid in _descendants(root_pid):
+            try:
+                argv = Path(f"/proc/{pid}/cmdline").read_bytes().split(b"\0")
+            except OSError:
+                continue
+            if len(argv) < 4 or argv[1:3] != [b"-m", b"wara"] or argv[3] not in _PAIR_VERBS:
+                continue
+            rep = fifo_all_threads(DEMO_RT_PRIORITY, pid)
+            if rep.refused and not told:
+                told = True
+                print(f"wara: SCHED_FIFO refused: {rep.refused[0]}", file=sys.stderr)
+
+
+def _descendants(root_pid: int) -> list[int]:
+    children: dict[int, list[int]] = {}
+    for entry in Path("/proc").iterdir():
+        if not entry.name.isdigit():
+            continue
+        try:
+            stat = (entry / "stat").read_text()
+        except OSError:
+            continue
+        ppid = int(stat.rsplit(")", 1)[1].split()[1])
+        children.setdefault(ppid, []).append(int(entry.name))
+    out: list[int] = []
+    todo = [root_pid]
+    while todo:
+        for c in children.get(todo.pop(), []):
+            out.append(c)
+            todo.append(c)
+    return out
 
 
 def _quote(arg: str) -> str:
@@ -481,28 +555,21 @@ def _sim_realtime_factor(log_text: str) -> float | None:
     return float(found[-1]) if found else None
 
 
-def run_inside_netns(
-    workdir: Path,
-    config_path: str,
-    *,
-    settle_s: float = DEFAULT_SETTLE_S,
-    examples: Sequence[tuple[float, float]] = EXAMPLES,
-    min_run_s: float = MIN_RUN_S,
-    progress: Progress | None = None,
-) -> dict[str, Any]:
-    """Simulator + service as two processes; the JSON-ready summary (``passed``)."""
-    say = progress or (lambda _s: None)
+@contextlib.contextmanager
+def service_and_simulator(
+    workdir: Path, config_path: str, say: Progress, codes: dict[str, int]
+) -> Iterator[tuple[_Service, _Child, dict[str, Any]]]:
+    """Start the simulator, then the service (once the simulated PLC runs), wait for the
+    service's IDLE; yields (service, simulator, placement). On exit both are stopped
+    with SIGTERM and their exit codes are put into ``codes``."""
     cfg = load_project(config_path)
     if cfg.can.interface not in TRANSPORTS:
         raise TwoProcessError(f"{config_path}: can.interface must be one of {TRANSPORTS}")
-    period = cfg.control.period_s
     sock = workdir / "ctl.sock"
     wara = [sys.executable, "-m", "wara"]
-    results: list[ExampleResult] = []
-    watch = _LoopWatch()
     say(f"simulator and service on {cfg.can.interface} {cfg.can.channel}:{cfg.can.udp_port}")
     sim_cpus = simulator_cpus(cfg, sorted(os.sched_getaffinity(0)))
-    placement = {
+    placement: dict[str, Any] = {
         "service_loop_cpus": list(cfg.control.realtime.cpu_affinity),
         "simulator_cpus": sim_cpus,
     }
@@ -513,7 +580,6 @@ def run_inside_netns(
         sim_argv += ["--cpus", ",".join(map(str, sim_cpus))]
     sim = _Child("simulator", sim_argv, workdir / "hil.log")
     svc_child: _Child | None = None
-    codes: dict[str, int] = {}
     try:
         # The simulator compiles its plant on first use (numba; tens of seconds on a fresh
         # machine): start the service only once the simulated PLC is on the wire, or the
@@ -543,6 +609,31 @@ def run_inside_netns(
                 f"service did not come up: {st and (st.get('mode'), st.get('fault_reasons'))}"
             )
         say("IDLE; waiting for the first loop report (end of start-up)")
+        yield svc, sim, placement
+    finally:
+        if svc_child is not None:
+            codes["service"] = svc_child.stop()
+        codes["simulator"] = sim.stop()
+        say(f"stopped: service exit {codes.get('service')}, simulator exit {codes['simulator']}")
+
+
+def run_inside_netns(
+    workdir: Path,
+    config_path: str,
+    *,
+    settle_s: float = DEFAULT_SETTLE_S,
+    examples: Sequence[tuple[float, float]] = EXAMPLES,
+    min_run_s: float = MIN_RUN_S,
+    progress: Progress | None = None,
+) -> dict[str, Any]:
+    """Simulator + service as two processes; the JSON-ready summary (``passed``)."""
+    say = progress or (lambda _s: None)
+    cfg = load_project(config_path)
+    period = cfg.control.period_s
+    results: list[ExampleResult] = []
+    watch = _LoopWatch()
+    codes: dict[str, int] = {}
+    with service_and_simulator(workdir, config_path, say, codes) as (svc, sim, placement):
 
         def first_report(s: dict[str, Any]) -> bool:
             watch.see(s)
@@ -578,11 +669,6 @@ def run_inside_netns(
                 f"loop reports stopped: {watch.measured_s(period):.1f} s measured"
             )
         final = svc.status()
-    finally:
-        if svc_child is not None:
-            codes["service"] = svc_child.stop()
-        codes["simulator"] = sim.stop()
-    say(f"stopped: service exit {codes.get('service')}, simulator exit {codes.get('simulator')}")
     loop = watch.summary(period)
     frac = loop["compute_p99_fraction"]
     loop_ok = (

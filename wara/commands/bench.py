@@ -21,6 +21,7 @@ BENCHES: dict[str, str] = {
     "hil": "wara.benches.hil:run",
     "transport": "wara.benches.transport:run",
     "step": "wara.benches.step:run",
+    "demo": "wara.benches.demo:run",
 }
 
 
@@ -30,10 +31,22 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--config", default=None, help="project YAML (default: shipped project)")
     p.add_argument("--json", action="store_true", help="JSON output (the only format)")
     p.add_argument("--quick", action="store_true", help="smaller run, for smoke tests")
+    p.add_argument(
+        "--runs", type=int, default=None, metavar="N", help="demo: how many runs (default 5)"
+    )
+    p.add_argument(
+        "--cpu-hog",
+        action="store_true",
+        help="demo: a CPU-bound process pinned to one CPU beside the runs",
+    )
     p.set_defaults(func=_run)
 
 
 def _run(args: argparse.Namespace) -> int:
+    if args.name != "demo" and (args.runs is not None or args.cpu_hog):
+        from wara.cli import UsageError
+
+        raise UsageError("--runs and --cpu-hog go with `wara bench demo`")
     module_name, func_name = BENCHES[args.name].split(":")
     func = getattr(importlib.import_module(module_name), func_name)
     result: dict[str, Any] = func(args)

@@ -56,8 +56,14 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="--two-process: seconds each target is held before its figures are read "
         "(default 4; the standstill sync error is taken after the first 1 s)",
     )
+    p.add_argument(
+        "--examples",
+        type=int,
+        default=None,
+        metavar="N",
+        help="run only the first N examples (a shorter run)",
+    )
     # Hidden: for tests and the re-execution inside the namespace.
-    p.add_argument("--examples", type=int, default=None, help=argparse.SUPPRESS)
     p.add_argument("--min-run-s", type=float, default=None, help=argparse.SUPPRESS)
     p.add_argument("--inside-netns", default=None, metavar="DIR", help=argparse.SUPPRESS)
     p.add_argument("--keep-dir", default=None, metavar="DIR", help=argparse.SUPPRESS)
@@ -69,11 +75,13 @@ def _run(args: argparse.Namespace) -> int:
         return _run_two_process(args)
     if args.no_pin:
         raise UsageError("--no-pin goes with --two-process")
-    for opt in ("settle_s", "examples", "min_run_s", "inside_netns", "keep_dir", "transport"):
+    for opt in ("settle_s", "min_run_s", "inside_netns", "keep_dir", "transport"):
         if getattr(args, opt) is not None:
             raise UsageError(f"--{opt.replace('_', '-')} goes with --two-process")
     from ipc_app.service.logs import configure_logging
-    from wara.demo import render_table, run_demo, stderr_progress
+    from wara.demo import EXAMPLES, failure_reason, render_table, run_demo, stderr_progress
+
+    n = _examples(args.examples, len(EXAMPLES))
 
     # The service's log goes to stderr as JSON lines (warnings and faults only; the
     # progress lines tell the rest), never into the table or the JSON on stdout.
@@ -82,13 +90,24 @@ def _run(args: argparse.Namespace) -> int:
         summary = run_demo(
             args.config,
             mode="lockstep" if args.lockstep else "realtime",
+            examples=EXAMPLES[:n],
             plot_dir=Path(args.plot) if args.plot else None,
             progress=stderr_progress,
         )
     finally:
         logs.stop()
+    if not summary["passed"]:
+        stderr_progress(f"FAILED: {failure_reason(summary)}")
     print(json.dumps(summary, indent=2) if args.json else render_table(summary))
     return EXIT_OK if summary["passed"] else EXIT_FAILED
+
+
+def _examples(n: int | None, available: int) -> int:
+    if n is None:
+        return available
+    if not 1 <= n <= available:
+        raise UsageError(f"--examples must be 1..{available}")
+    return n
 
 
 def _run_two_process(args: argparse.Namespace) -> int:
@@ -106,9 +125,7 @@ def _run_two_process(args: argparse.Namespace) -> int:
             f"--settle-s must be above {d2.ServiceCore.HOLD_SETTLE_S:g} s (the hold settles "
             "first, then the standstill sync error is measured)"
         )
-    n = len(EXAMPLES) if args.examples is None else args.examples
-    if not 1 <= n <= len(EXAMPLES):
-        raise UsageError(f"--examples must be 1..{len(EXAMPLES)}")
+    n = _examples(args.examples, len(EXAMPLES))
     min_run = d2.MIN_RUN_S if args.min_run_s is None else args.min_run_s
     if args.inside_netns is None:
         try:
