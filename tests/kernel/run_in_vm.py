@@ -50,7 +50,12 @@ APT_PACKAGES = ("qemu-system-x86", "linux-image-amd64", "can-utils", "busybox-st
 #: Every test module with ``kernel`` tests (tests/test_kernel_vm.py keeps it complete);
 #: naming them spares the guest importing the whole suite (slow on an emulated CPU).
 KERNEL_TEST_PATHS = ("tests/kernel", "tests/test_plc_link.py")
-DEFAULT_COMMAND = ("{python}", "-m", "pytest", "-m", "kernel", *KERNEL_TEST_PATHS)
+#: The tests' files (logs, candump) stay in out/kernel-tests/ of the repository after
+#: the run, for a look at a failure.
+DEFAULT_COMMAND = (
+    "{python}", "-m", "pytest", "-m", "kernel", "-rs", "--basetemp=out/kernel-tests",
+    *KERNEL_TEST_PATHS,
+)  # fmt: skip
 MARKER = "booted"
 
 
@@ -221,6 +226,7 @@ def boot(command: list[str], args: argparse.Namespace) -> int:
         marker = Path(tmp) / MARKER
         wheelhouse = Path(tmp) / "wheels"
         build_wheelhouse(wheelhouse)
+        (REPO / "out").mkdir(exist_ok=True)  # pytest's --basetemp needs its parent
         scripts = sysconfig.get_path("scripts")
         env = {**os.environ, "PATH": f"{scripts}:{os.environ.get('PATH', '/usr/bin:/bin')}"}
         vng = [

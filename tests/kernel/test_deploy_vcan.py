@@ -111,7 +111,11 @@ def offline_pip_env(prefix: Path = Path("/opt/wara")) -> dict[str, str]:
     subprocess.run([sys.executable, "-m", "venv", "--without-pip", str(venv)], check=True)
     ver = f"python{sys.version_info.major}.{sys.version_info.minor}"
     (venv / "lib" / ver / "site-packages" / "wara_vm_deps.pth").write_text(f"{deps}\n")
-    return {"PIP_NO_INDEX": "1", "PIP_FIND_LINKS": os.environ.get("WARA_VM_WHEELHOUSE", "")}
+    return {
+        "PIP_NO_INDEX": "1",
+        "PIP_FIND_LINKS": os.environ.get("WARA_VM_WHEELHOUSE", ""),
+        "PIP_NO_CACHE_DIR": "1",  # the guest's home is on the read-only root
+    }
 
 
 def test_install_runs_every_step_up_to_systemctl(

@@ -23,6 +23,7 @@ import shutil
 import signal
 import subprocess
 import sys
+import tempfile
 import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
@@ -46,11 +47,17 @@ TARGET = (2.0, 1.0)  # Example 1, deg
 STRANGER_ID = 0x191  # no node of the DBC sends it (PLC_HmiTarget is 0x190)
 
 #: The project, slowed down for an emulated CPU: the control loop at 50 Hz instead of
-#: 200 Hz, and supervision timeouts that a scheduling gap of the emulator does not trip
-#: (PLC heartbeat and command timeout 1 s, stale after 10 cycles).
+#: 200 Hz, supervision timeouts that a scheduling gap of the emulator does not trip
+#: (PLC heartbeat and command timeout 1 s, stale after 10 cycles), and a tracking-error
+#: interlock at 30 mm instead of 10 mm (the simulated rig may fall behind the wall clock
+#: that the service's trajectory runs on).
 SLOW: dict[str, dict[str, Any]] = {
     "control": {"loop_rate_hz": 50.0},
-    "safety": {"plc_heartbeat_timeout_ms": 1000.0, "command_timeout_ms": 1000.0},
+    "safety": {
+        "plc_heartbeat_timeout_ms": 1000.0,
+        "command_timeout_ms": 1000.0,
+        "max_tracking_error_mm": 30.0,
+    },
     "can": {"interface": "socketcan", "channel": "vcan0", "stale_cycles": 10.0},
 }
 #: The simulator's plant at its coarsest allowed step and PLC scan.
@@ -188,7 +195,7 @@ def hil_run(tmp_path_factory: pytest.TempPathFactory) -> Iterator[HilRun]:
     _write_slow_config(cfg)
     scenario = d / "scenario.yaml"
     scenario.write_text(yaml.safe_dump(SCENARIO), encoding="utf-8")
-    sock = d / "ctl.sock"
+    sock = Path(tempfile.mkdtemp(prefix="wara-ctl-")) / "ctl.sock"  # not on a 9p share
     procs: dict[str, subprocess.Popen[bytes]] = {}
     files: list[IO[bytes]] = []
 
