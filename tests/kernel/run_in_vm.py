@@ -195,6 +195,8 @@ def guest_script(command: list[str], marker: Path, wheelhouse: Path) -> str:
             f"cd {shlex.quote(str(REPO))}",
             *forwarded_env(),
             "export WARA_KERNEL_VM=1 PYTHONUNBUFFERED=1",
+            # the guest's home is read-only: matplotlib's font cache, built once, kept here
+            f"export MPLCONFIGDIR={shlex.quote(str(REPO / 'out' / 'mplconfig'))}",
             f"export WARA_VM_WHEELHOUSE={shlex.quote(str(wheelhouse))}",
             f"export PATH={shlex.quote(str(Path(sys.executable).parent))}:$PATH",
             f"exec {shlex.join(command)}",

@@ -48,17 +48,18 @@ STRANGER_ID = 0x191  # no node of the DBC sends it (PLC_HmiTarget is 0x190)
 
 #: The project, slowed down for an emulated CPU: the control loop at 50 Hz instead of
 #: 200 Hz, supervision timeouts that a scheduling gap of the emulator does not trip
-#: (PLC heartbeat and command timeout 1 s, stale after 10 cycles), and a tracking-error
+#: (PLC heartbeat and command timeout 3 s, stale after 100 cycles = 2 s: with 10 cycles,
+#: 200 ms, the service's start-up alone starved the loop into a FAULT), and a tracking-error
 #: interlock at 30 mm instead of 10 mm (the simulated rig may fall behind the wall clock
 #: that the service's trajectory runs on).
 SLOW: dict[str, dict[str, Any]] = {
     "control": {"loop_rate_hz": 50.0},
     "safety": {
-        "plc_heartbeat_timeout_ms": 1000.0,
-        "command_timeout_ms": 1000.0,
+        "plc_heartbeat_timeout_ms": 3000.0,
+        "command_timeout_ms": 3000.0,
         "max_tracking_error_mm": 30.0,
     },
-    "can": {"interface": "socketcan", "channel": "vcan0", "stale_cycles": 10.0},
+    "can": {"interface": "socketcan", "channel": "vcan0", "stale_cycles": 100.0},
 }
 #: The simulator's plant at its coarsest allowed step and PLC scan.
 SCENARIO = {"name": "kernel-vm", "plant": {"step_ms": 0.5, "plc_cycle_ms": 2.0}}
