@@ -78,9 +78,6 @@ def run_service(
             **stats,
             mode=snap.get("mode"),
             link=snap.get("link"),
-            # every received frame's outcome so far (accepted, crc_error, ...): the
-            # link's counters, copied in the loop thread that owns them
-            link_rx=dict(link.rx_outcomes),
             sync_error_mm=snap.get("sync_error_mm"),
             twist_mm=snap.get("twist_mm"),
         )
