@@ -1,7 +1,8 @@
 """IPC side against PLC side, and the supervision rules, under a simulated clock.
 
 ``TestBackToBackVirtual`` runs both sides on python-can's ``virtual`` bus;
-``TestBackToBackSocketcan`` re-runs the same class on ``vcan0`` where the kernel has it.
+``TestBackToBackSocketcan`` re-runs the same class on ``vcan0`` through the kernel (marked
+``kernel``: in the VM of ``python3 tests/kernel/run_in_vm.py`` where this kernel has no CAN).
 The supervision tests feed hand-made frames through a queue-backed fake bus.
 """
 
@@ -10,6 +11,7 @@ from __future__ import annotations
 import errno
 import logging
 import math
+import os
 import uuid
 from collections.abc import Iterator
 from typing import Any
@@ -34,7 +36,8 @@ from plc_bridge import (
     TargetRequest,
     load_catalog,
 )
-from plc_bridge.bus import CAN_ERR_BUSOFF, CAN_ERR_CRTL, CAN_ERR_RESTARTED, socketcan_available
+from plc_bridge.bus import CAN_ERR_BUSOFF, CAN_ERR_CRTL, CAN_ERR_RESTARTED
+from tests.kernel import vcan_skip_reason
 from tests.plc_fakes import Clock, QueueBus, frame
 
 DT = 0.005
@@ -195,25 +198,113 @@ class TestBackToBackVirtual(BackToBack):
         return can.Bus(interface="virtual", channel=ch), can.Bus(interface="virtual", channel=ch)
 
 
-_NO_VCAN = socketcan_available("vcan0")
+_NO_VCAN = vcan_skip_reason("vcan0")
 
 
-@pytest.mark.skipif(_NO_VCAN is not None, reason=f"socketcan: {_NO_VCAN}")
+@pytest.mark.kernel
+@pytest.mark.skipif(_NO_VCAN is not None, reason=str(_NO_VCAN))
 class TestBackToBackSocketcan(BackToBack):
-    """The same tests through the kernel (vcan0), with kernel receive filters."""
+    """The same tests through the kernel (vcan0), with kernel receive filters, plus what
+    only a kernel bus has: the filters themselves, error frames, the interface going
+    down. In the kernel VM (``python3 tests/kernel/run_in_vm.py``) where not here."""
 
     def buses(self, cfg: ProjectConfig) -> tuple[can.BusABC, can.BusABC]:
         from plc_bridge import open_bus
 
-        link = cfg.can.model_copy(update={"interface": "socketcan", "channel": "vcan0"})
+        link = self.vcan(cfg)
         a = open_bus(link, [m.frame_id for m in CAT.sent_by("PLC")])
         b = open_bus(link, [m.frame_id for m in CAT.sent_by("IPC")])
         return a, b
+
+    @staticmethod
+    def vcan(cfg: ProjectConfig) -> Any:
+        return cfg.can.model_copy(update={"interface": "socketcan", "channel": "vcan0"})
 
     def settle(self) -> None:
         import time
 
         time.sleep(0.0005)
+
+    def test_kernel_filters_keep_other_ids_and_extended_frames_out(self, pair: Any) -> None:
+        ipc, plc, clock = pair
+        with can.Bus(interface="socketcan", channel="vcan0") as stranger:
+            for arb, ext in ((0x191, False), (0x7FF, False), (0x090, True), (0x110, True)):
+                stranger.send(can.Message(arbitration_id=arb, is_extended_id=ext, data=bytes(8)))
+            self.run(ipc, plc, clock, 0.3)
+        # On the virtual bus these would reach the links as unknown_id / not_classic;
+        # the kernel drops them before either side reads, and nobody sees its own frames.
+        for side in (ipc, plc):
+            rx = side.health()["rx"]
+            assert rx.keys() <= {"accepted", "initial"}, rx
+        assert ipc.state() is LinkState.OK and plc.state() is LinkState.OK
+
+    def test_bus_off_error_frame_from_the_kernel_stops_sending_until_restarted(
+        self, pair: Any
+    ) -> None:
+        ipc, plc, clock = pair
+        self.run(ipc, plc, clock, 0.2)
+        assert ipc.state() is LinkState.OK
+        # A third socket on vcan0 puts controller error frames on the interface, as a
+        # CAN driver does (linux/can/error.h); the kernel hands them only to sockets
+        # with an error mask, which open_bus sets.
+        with can.Bus(interface="socketcan", channel="vcan0") as ctrl:
+            ctrl.send(
+                can.Message(arbitration_id=CAN_ERR_BUSOFF, is_error_frame=True, data=bytes(8))
+            )
+            self.settle()
+            ipc.poll()
+            assert ipc.bus_health.state is BusState.BUS_OFF and ipc.state() is LinkState.LOST
+            sent = ipc.tx_counts["tx_frames"]
+            ipc.send_valve_commands(U)
+            assert ipc.tx_counts["tx_frames"] == sent and ipc.tx_counts["tx_suppressed"] >= 1
+            ctrl.send(
+                can.Message(arbitration_id=CAN_ERR_RESTARTED, is_error_frame=True, data=bytes(8))
+            )
+            self.settle()
+            ipc.poll()
+            assert ipc.bus_health.state is BusState.ACTIVE
+            passive = bytearray(8)
+            passive[1] = 0x20  # CAN_ERR_CRTL_TX_PASSIVE
+            ctrl.send(
+                can.Message(arbitration_id=CAN_ERR_CRTL, is_error_frame=True, data=bytes(passive))
+            )
+            self.settle()
+            ipc.poll()
+            assert ipc.bus_health.state is BusState.PASSIVE
+        assert ipc.health()["rx"]["error_frame"] == 3
+        assert ipc.health()["bus"]["error_frames"] == 3
+        # The PLC side got the same frames (both sockets have the error mask).
+        plc.poll()
+        assert plc.health()["rx"]["error_frame"] == 3
+
+    @pytest.mark.skipif(os.geteuid() != 0, reason="ip link set vcan0 down needs root")
+    def test_interface_down_then_up_is_reopened(self, project: ProjectConfig) -> None:
+        import subprocess
+        import time
+
+        cfg = project.model_copy(update={"can": self.vcan(project)})
+        clock = Clock()
+        ipc = IpcLink.from_config(cfg, clock=clock)
+        plc = PlcLink.from_config(cfg, clock=clock)
+        plc.set_positions_m(X)
+        plc.set_status(PlcStatus(pump_running=True))
+        try:
+            self.run(ipc, plc, clock, 0.2)
+            assert ipc.state() is LinkState.OK
+            subprocess.run(["ip", "link", "set", "vcan0", "down"], check=True)
+            try:
+                self.run(ipc, plc, clock, 0.05)
+                assert ipc.bus_health.state is BusState.DOWN and ipc.state() is LinkState.LOST
+            finally:
+                subprocess.run(["ip", "link", "set", "vcan0", "up"], check=True)
+            time.sleep(0.05)
+            self.run(ipc, plc, clock, 1.5)  # the first retry (0.1 s back-off), then frames
+            assert ipc.bus_health.state is BusState.ACTIVE
+            assert ipc.bus_health.counters["reopen_attempts"] >= 1
+            assert ipc.state() is not LinkState.LOST and ipc.positions_m().all_valid()
+        finally:
+            ipc.close()
+            plc.close()
 
 
 # --------------------------------------------------------------------------- supervision
