@@ -270,3 +270,28 @@ def test_reference_on_plain_floats_equals_the_numpy_form_bit_for_bit(
             assert all(np.array_equal(a, b) for a, b in zip(tr.reference(t), old, strict=True))
             pl, pu = tr.positions(t)
             assert (pl, pu) == (new[0], new[1])
+
+
+def test_a_plan_starts_from_rods_a_sensor_noise_beyond_the_limit(project: ProjectConfig) -> None:
+    """A plan that ends at the planning limit leaves the rods there within micrometres;
+    the next plan starts from there. Further out (1 mm), the start is refused."""
+    first = plan(project, 0.19, 3.6)
+    second = plan(
+        project,
+        -5.69,
+        3.59,
+        start_upper_m=first.upper.displacement_m,
+        start_lower_m=first.lower.displacement_m,
+    )
+    lim = project.layers.upper.extension_limit_m
+    end = np.asarray(second.upper.displacement_m, dtype=float)
+    at_limit = np.isclose(np.abs(end), lim, rtol=0, atol=1e-9)
+    assert second.feasible and at_limit.any()
+    for beyond_m, feasible in ((5e-6, True), (1e-3, False)):
+        start = np.where(at_limit, end + np.sign(end) * beyond_m, end)
+        nxt = plan(
+            project, 0.5, 0.5, start_upper_m=start, start_lower_m=second.lower.displacement_m
+        )
+        assert nxt.feasible is feasible, nxt.reasons
+        if not feasible:
+            assert any(r.startswith("stroke:") or "stroke:" in r for r in nxt.reasons)

@@ -36,6 +36,22 @@ UNSOLVABLE = 1e3
 FEASIBILITY_TOLERANCE = 1e-12
 
 
+#: A measured start at most this far beyond the planning limit (stroke/2 - reserve) is
+#: taken as at the limit. A plan that ends at the limit leaves the rods there within the
+#: sensors' noise and the hold's residual (micrometres), and the next plan must be able to
+#: start from there; the stroke reserve behind the limit is not touched. A start further
+#: out stays as measured, and the plan is refused with the stroke reason.
+START_TOLERANCE_M = 1e-4
+
+
+def start_at_limit(start: ArrayLike, limit_m: float) -> np.ndarray:
+    """The four measured start extensions (m), those within :data:`START_TOLERANCE_M`
+    beyond ±``limit_m`` moved onto the limit."""
+    d = np.asarray(start, dtype=float).reshape(4)
+    over = np.abs(d) - limit_m
+    return np.where((over > 0) & (over <= START_TOLERANCE_M), np.sign(d) * limit_m, d)
+
+
 @dataclass(frozen=True)
 class Evaluation:
     """Everything the planner knows about a batch of candidates (leading shape ``(...)``)."""
@@ -86,8 +102,8 @@ class PlanningProblem:
         self.limit_lower = lo.extension_limit_m
         self.area_upper = np.array([cfg.cylinder(c).cap_area_m2 for c in up.cylinders])
         self.area_lower = np.array([cfg.cylinder(c).cap_area_m2 for c in lo.cylinders])
-        self.start_upper = np.asarray(start_upper, dtype=float).reshape(4)
-        self.start_lower = np.asarray(start_lower, dtype=float).reshape(4)
+        self.start_upper = start_at_limit(start_upper, self.limit_upper)
+        self.start_lower = start_at_limit(start_lower, self.limit_lower)
         self.f_min = cfg.planner.min_rod_force_n
         self.p_rated = cfg.hydraulics.rated_pressure_pa
         self.dp_margin = cfg.hydraulics.load_sensing_margin_pa
