@@ -65,3 +65,16 @@ def read_input_file(path: str | Path, max_bytes: int) -> bytes:
     if size > max_bytes:
         raise InputFileError(f"{p}: longer than {max_bytes} bytes, the limit for this file")
     return b"".join(chunks)
+
+
+def read_text_file(
+    path: str | Path, max_bytes: int, encoding: str = "utf-8", hint: str = ""
+) -> str:
+    """:func:`read_input_file`, decoded; text that is not UTF-8 is an :class:`InputFileError`
+    naming the first bad byte (and ``hint``, what the user can do about it)."""
+    data = read_input_file(path, max_bytes)
+    try:
+        return data.decode(encoding)
+    except UnicodeDecodeError as exc:
+        tail = f"; {hint}" if hint else ""
+        raise InputFileError(f"{Path(path)}: not UTF-8 text (byte {exc.start}){tail}") from None

@@ -13,7 +13,7 @@ from typing import Any, TypeVar
 import yaml
 from pydantic import BaseModel, ValidationError
 
-from config.files import InputFileError, read_input_file
+from config.files import InputFileError, read_text_file
 from config.schema import ProjectConfig
 
 M = TypeVar("M", bound=BaseModel)
@@ -122,13 +122,9 @@ def parse_yaml_text(text: str, source: str) -> Any:
 def read_yaml(path: Path) -> Any:
     """Read and parse a YAML file (regular file, UTF-8, at most MAX_YAML_BYTES)."""
     try:
-        data = read_input_file(path, MAX_YAML_BYTES)
+        text = read_text_file(path, MAX_YAML_BYTES)
     except InputFileError as exc:
         raise ConfigError(str(exc)) from None
-    try:
-        text = data.decode("utf-8")
-    except UnicodeDecodeError as exc:
-        raise ConfigError(f"{path}: not UTF-8 text (byte {exc.start})") from None
     return parse_yaml_text(text, str(path))
 
 

@@ -35,7 +35,7 @@ import io
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from config.files import InputFileError, read_input_file
+from config.files import InputFileError, read_text_file
 from ipc_app.acceptance.items import ITEM_KEYS, ITEMS, REQUIRED_KEYS, parse_ring
 from ipc_app.acceptance.store import AcceptanceStore, RingMeasurement, StoredRecord
 
@@ -226,15 +226,9 @@ def parse_csv(path: str | Path) -> ParsedCsv:
     """Read and check a survey CSV file."""
     p = Path(path)
     try:
-        data = read_input_file(p, MAX_CSV_BYTES)
+        text = read_text_file(p, MAX_CSV_BYTES, "utf-8-sig", "export the survey as 'CSV UTF-8'")
     except InputFileError as exc:
         raise CsvFileError(str(exc)) from None
-    try:
-        text = data.decode("utf-8-sig")
-    except UnicodeDecodeError as exc:
-        raise CsvFileError(
-            f"{p}: not UTF-8 text (byte {exc.start}); export the survey as 'CSV UTF-8'"
-        ) from None
     return parse_csv_text(text, str(p))
 
 
