@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import re
+from dataclasses import replace
 from pathlib import Path
 
 from config import load_project
@@ -64,7 +65,8 @@ def test_a_lasting_overpressure_under_sensor_noise_is_latched_once_per_cylinder(
         d.advance(0.5)
         assert d.core.modes.mode is Mode.IDLE
         peak = float(d.link.pressures_pa().value[d.core.active].max())
-        d.core.max_pressure_pa = peak - 50e3  # what safety.max_pressure_mpa sets
+        # what safety.max_pressure_mpa sets
+        d.core.limits = replace(d.core.limits, max_pressure_pa=peak - 50e3)
         d.advance(10.0)
         assert d.core.modes.mode is Mode.FAULT
         faults = d.core.modes.faults

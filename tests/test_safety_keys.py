@@ -20,11 +20,12 @@ from config import ProjectConfig, load_project
 from config.schema import Safety
 from ipc_app.control.attitude import LayerMetrics
 from ipc_app.service.core import ServiceCore
-from ipc_app.service.interlocks import SPECS, Interlock
+from ipc_app.service.interlocks import SPECS, Interlock, Limits, motion_causes, present_causes
 from ipc_app.service.modes import Mode
 from plc_bridge import Fault
 from plc_bridge.link import IpcLink, PlcLink, PlcStatus, Reading
 from tests.hil_helpers import make_bench
+from tests.machine_inputs import machine_inputs
 
 _channels = itertools.count()
 _STATUS = PlcStatus(pump_running=True, drives_enabled=True)
@@ -47,16 +48,15 @@ def _core(cfg: ProjectConfig) -> ServiceCore:
     return ServiceCore(cfg, IpcLink(cfg, bus, clock=lambda: 0.0), _NoPlanner())
 
 
+def _limits(cfg: ProjectConfig) -> Limits:
+    layers = (cfg.layers.lower.cylinders, cfg.layers.upper.cylinders)
+    return Limits.from_config(cfg, [cfg.cylinder(c).can_index for ids in layers for c in ids])
+
+
 def _motion_faults(cfg: ProjectConfig, metrics: LayerMetrics, x: np.ndarray | None = None) -> Any:
-    core = _core(cfg)
-    try:
-        got: list[Any] = []
-        core.modes.fault = got.append  # type: ignore[method-assign,assignment]
-        core.attitude.metrics = {"lower": metrics, "upper": LayerMetrics(0.0, 0.0, 0.0)}
-        core._motion_checks(core.stroke / 2 if x is None else x)
-        return {c.interlock for c in got}
-    finally:
-        core.link.close()
+    metrics_of = {"lower": metrics, "upper": LayerMetrics(0.0, 0.0, 0.0)}
+    got = motion_causes(machine_inputs(cfg, x=x), metrics_of, _limits(cfg))
+    return {c.interlock for c in got}
 
 
 def twist(cfg: ProjectConfig) -> Any:
@@ -72,33 +72,22 @@ def tracking(cfg: ProjectConfig) -> Any:
 
 
 def stroke_end(cfg: ProjectConfig) -> Any:
-    core = _core(cfg)
-    x = core.stroke / 2
-    i = core.active[0]
-    x[i] = 3e-3  # 3 mm from the retracted end
-    core.link.close()
+    x = np.array([c.stroke_m / 2 for c in cfg.cylinders_by_can_index])
+    x[_limits(cfg).active[0]] = 3e-3  # 3 mm from the retracted end
     return _motion_faults(cfg, LayerMetrics(0.0, 0.0, 0.0), x)
 
 
 def pressure(cfg: ProjectConfig) -> Any:
-    core = _core(cfg)
-    try:
-        n = len(cfg.cylinders)
-        p = np.full((n, 2), 20e6)
-        return {c.interlock for c in core._conditions(True, _STATUS, p, np.ones((n, 2), bool))}
-    finally:
-        core.link.close()
+    p = np.full((len(cfg.cylinders), 2), 20e6)
+    return {c.interlock for c in present_causes(machine_inputs(cfg, p=p), _limits(cfg))}
 
 
 def sensor_timeout(cfg: ProjectConfig) -> Any:
     """The active group's positions 80 ms old."""
-    core = _core(cfg)
-    try:
-        n = len(cfg.cylinders)
-        pos = Reading(np.full(n, np.nan), np.zeros(n, bool), np.full(n, 0.08))
-        return {c.interlock for c in core._position_causes(pos, 1.0)}
-    finally:
-        core.link.close()
+    n = len(cfg.cylinders)
+    pos = Reading(np.full(n, np.nan), np.zeros(n, bool), np.full(n, 0.08))
+    inp = machine_inputs(cfg, positions=pos)
+    return {c.interlock for c in present_causes(inp, _limits(cfg))}
 
 
 def heartbeat(cfg: ProjectConfig) -> Any:
@@ -145,11 +134,9 @@ def max_suspend(cfg: ProjectConfig) -> Any:
         core.modes.boot_complete()
         core.modes.request_adjust(1.0, 0.0)
         core.modes.plan_ready()
-        x = core.stroke / 2
-        p_valid = np.ones((len(cfg.cylinders), 2), bool)
-        core._ride_through(0.0, ["stale"], x, p_valid)
+        core._ride_through(0.0, ["stale"], machine_inputs(cfg, t=0.0))
         assert core.modes.mode is Mode.SUSPENDED
-        core._ride_through(0.2, ["stale"], x, p_valid)
+        core._ride_through(0.2, ["stale"], machine_inputs(cfg, t=0.2))
         return core.modes.mode, core.modes.fault_interlocks
     finally:
         core.link.close()

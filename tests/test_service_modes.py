@@ -173,16 +173,6 @@ def test_suspend_and_resume_return_to_the_mode_suspended_from() -> None:
     assert m.stop().mode is Mode.IDLE
 
 
-def test_hmi_seq_belongs_to_the_request_being_served() -> None:
-    m = fresh()
-    assert m.request_adjust(1.0, 0.0, hmi_seq=7).accepted and m.hmi_seq == 7
-    assert not m.request_adjust(2.0, 0.0, hmi_seq=8).accepted  # refused: 7 kept
-    assert m.hmi_seq == 7
-    m.plan_ready()
-    m.motion_done()
-    assert m.request_adjust(3.0, 0.0).accepted and m.hmi_seq == 0  # a local request
-
-
 def test_estop_overrides_fault_and_needs_release_and_reset() -> None:
     m = fresh()
     m.request_adjust(1.0, 0.0)

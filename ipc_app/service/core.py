@@ -23,7 +23,6 @@ E-stop from the PLC takes the machine to ESTOP (valves closed) until released an
 
 from __future__ import annotations
 
-import math
 import threading
 from dataclasses import dataclass
 from typing import Any, NamedTuple, Protocol
@@ -36,11 +35,21 @@ from config.schema import ProjectConfig
 from ipc_app.control.attitude import AttitudeController
 from ipc_app.model.composition import check_attitude
 from ipc_app.model.kinematics import fit_layer
-from ipc_app.service.interlocks import Cause, Interlock, Latched
+from ipc_app.service.interlocks import (
+    Cause,
+    Interlock,
+    Latched,
+    Limits,
+    link_losses,
+    motion_causes,
+    present_causes,
+    resume_cause,
+)
+from ipc_app.service.machine_io import Handshake, MachineInputs, MachineOutputs, Reader, write
 from ipc_app.service.modes import SUSPENDABLE_MODES, Mode, ModeMachine, Transition
 from ipc_app.service.record import RunRecorder
 from ipc_app.service.worker import PlanResult
-from plc_bridge.link import Fault, IpcLink, LinkState, Reading, TargetAck, TargetRequest
+from plc_bridge.link import IpcLink, LinkState, TargetAck, TargetRequest
 from plc_bridge.link import Mode as PlcMode
 
 log = structlog.get_logger("wara.service")
@@ -120,19 +129,11 @@ class ServiceCore:
         self._by_index = cfg.cylinders_by_can_index  # a property that sorts: once here
         self._active_ids = [(i, self._by_index[i].id) for i in self.active]
         self.stroke = np.array([c.stroke_m for c in self._by_index])
-        s = cfg.safety
-        self.max_twist_m = units.mm(s.max_twist_mm)
-        self.max_sync_m = units.mm(s.max_sync_error_mm)
-        self.max_tracking_m = units.mm(s.max_tracking_error_mm)
-        self.max_pressure_pa = units.mpa(s.max_pressure_mpa)
-        self.end_margin_m = units.mm(s.stroke_end_margin_mm)
-        self.sensor_timeout_s = units.ms(s.sensor_timeout_ms)
-        self.max_suspend_s = units.ms(s.max_suspend_ms)
-        self._active_arr = np.array(self.active, dtype=np.intp)
-        self._stroke_hi = self.stroke[self._active_arr] - self.end_margin_m
-        self._stroke_hi_list: list[float] = self._stroke_hi.tolist()
-        # the last limit-switch word and its per-active-cylinder mask (_motion_checks)
-        self._limits_of: tuple[object, list[bool] | None] = (None, None)
+        self.limits = Limits.from_config(cfg, self.active)
+        self.max_suspend_s = units.ms(cfg.safety.max_suspend_ms)
+        self.reader = Reader(link, self.active)
+        self.handshake = Handshake(link.control)
+        self._inputs: MachineInputs | None = None
         self._present: list[Cause] = []  # interlock conditions present this cycle
         self.modes = ModeMachine(
             active_causes=lambda: list(self._present),
@@ -147,8 +148,6 @@ class ServiceCore:
         self._fresh_cycles = 0
         self._last_drive_t: float | None = None
         self._stop_ref: np.ndarray | None = None
-        self._reset_requested = False
-        self._reset_until: float | None = None
         self._reset_outcome: dict[str, Any] | None = None
         self._submitted = False
         self._boot_since: float | None = None
@@ -176,6 +175,8 @@ class ServiceCore:
         )
 
     def _on_transition(self, tr: Transition) -> None:
+        if tr.event == "reset":
+            self.handshake.cleared()
         if self.record is not None:
             self.record.event(
                 self._now,
@@ -192,36 +193,27 @@ class ServiceCore:
 
     # ------------------------------------------------------------------ operator side
 
-    #: How long ``fault_reset`` is held in the control word for the PLC to clear a fault.
-    RESET_PULSE_S = 0.5
-
     def request_reset(self, wait_s: float = 0.0) -> dict[str, Any]:
         """Reset after a FAULT or E-STOP: the PLC is asked to clear its own latched fault
-        (``fault_reset`` in the control word for :attr:`RESET_PULSE_S`), then the modes
-        are reset once no cause is present. With ``wait_s`` > 0 wait for the outcome."""
+        (``fault_reset`` in the control word, :class:`Handshake`), then the modes are
+        reset once no cause is present. With ``wait_s`` > 0 wait for the outcome."""
         if self.modes.mode not in (Mode.FAULT, Mode.ESTOP):
             return self.modes.reset().to_dict()  # refused, with its message
         with self._outcome_cv:
             self._reset_outcome = None
-            self._reset_requested = True
+            self.handshake.request_reset()
             if wait_s <= 0:
                 return {"ok": True, "mode": str(self.modes.mode), "note": "resetting"}
             self._outcome_cv.wait_for(lambda: self._reset_outcome is not None, timeout=wait_s)
             out = self._reset_outcome
         return out if out is not None else self.modes.reset().to_dict()
 
-    def _reset_step(self, now: float) -> None:
+    def _reset_step(self, now: float, present: list[Cause]) -> None:
         """Drive a requested reset (loop thread)."""
-        if self._reset_requested and self._reset_until is None:
-            self._reset_requested = False
-            self._reset_until = now + self.RESET_PULSE_S
-            self.link.set_control(fault_reset=True)
-        if self._reset_until is None:
+        if not self.handshake.resetting:
             return
-        plc_fault = any(c.interlock is Interlock.PLC_FAULT for c in self._present)
-        if not plc_fault or now >= self._reset_until:
-            self.link.set_control(fault_reset=False)
-            self._reset_until = None
+        plc_fault = any(c.interlock is Interlock.PLC_FAULT for c in present)
+        if self.handshake.reset_step(now, plc_fault):
             out = self.modes.reset().to_dict()
             with self._outcome_cv:
                 self._reset_outcome = out
@@ -235,8 +227,10 @@ class ServiceCore:
         to the PLC)."""
         with self._outcome_cv:
             self._outcome = None
-        out = self.modes.request_adjust(roll_deg, pitch_deg, hmi_seq)
-        if not out.accepted:
+        out = self.modes.request_adjust(roll_deg, pitch_deg)
+        if out.accepted:
+            self.handshake.serve(hmi_seq)
+        else:
             return {"ok": False, "code": "refused", "error": out.message, "mode": str(out.mode)}
         if wait_s <= 0:
             return {"ok": True, "mode": str(Mode.PLANNING)}
@@ -277,26 +271,36 @@ class ServiceCore:
     # ------------------------------------------------------------------ the step
 
     def step(self, cycle: int, now: float) -> None:
+        """One cycle: read the machine, update the modes and controllers, write."""
         self._now = now
         self.cycles += 1
-        link = self.link
-        link.poll(now)
-        pos = link.positions_m(now)
-        prs = link.pressures_pa(now)
-        status = link.status(now)
-        lstate = link.state(now)
-        x = pos.value
-        valid = bool(pos.valid[self._active_arr].all())  # Reading.all_valid(self.active)
-        mode = self.modes.mode
+        inp = self.reader.read(now)
+        self._inputs = inp
+        u, ref = self.update(inp)
+        hs = self.handshake
+        enabled = self.modes.valves_enabled
+        words = hs.finish(PlcMode.ATTITUDE_ADJUST if enabled else PlcMode.IDLE, enabled)
+        write(self.link, MachineOutputs(words, u, now))
+        self._publish(now, inp.positions.value, u, inp.link_state, ref)
+
+    def update(self, inp: MachineInputs) -> tuple[np.ndarray, np.ndarray | None]:
+        """The cycle's decisions from its inputs: interlocks, modes, planner hand-off,
+        the controllers. Returns the spool commands and this cycle's references (None
+        when the valves are closed); the control-word edits go to :attr:`handshake`."""
+        now = inp.t
+        x = inp.positions.value
+        valid = inp.positions_valid
+        status = inp.status
+        self.handshake.begin()
 
         # E-stop first: it needs nothing else to be valid.
         if status is not None:
             self.modes.estop(status.estop)
 
-        present = self._conditions(valid, status, prs.value, prs.valid, pos, now)
+        present = present_causes(inp, self.limits)
         self._present = present
-        losses = self._losses(valid, status, now)
-        if mode == Mode.BOOT:
+        losses = link_losses(inp)
+        if self.modes.mode == Mode.BOOT:
             if self._boot_since is None:
                 self._boot_since = now
             # every input fresh, and the PLC hearing our commands
@@ -309,30 +313,29 @@ class ServiceCore:
             for cause in present:  # latched by (interlock, where): repeats only counted
                 self.modes.fault(cause)
 
-        self._reset_step(now)
-        self._ride_through(now, losses, x, prs.valid)
-        moving = self.modes.valves_enabled
-        if moving and valid:
-            self._motion_checks(x)
+        self._reset_step(now, present)
+        self._ride_through(now, losses, inp)
+        if self.modes.valves_enabled and valid:
+            for cause in motion_causes(inp, self.attitude.metrics, self.limits):
+                self.modes.fault(cause)
 
-        hmi = link.new_hmi_request(now)
+        hmi = inp.hmi
         if hmi is not None:
             if hmi.request == TargetRequest.NEW_TARGET:
                 out = self.request_adjust(
                     units.to_deg(hmi.roll_rad), units.to_deg(hmi.pitch_rad), hmi_seq=hmi.seq
                 )
                 if not out.get("ok"):  # refused: its own seq; the running one's is kept
-                    self._hmi_ack(TargetAck.REJECTED, hmi.seq)
+                    self.handshake.ack(TargetAck.REJECTED, hmi.seq)
             elif hmi.request == TargetRequest.CANCEL:
                 self.modes.stop("HMI cancel")
-                self._hmi_ack(TargetAck.NONE, hmi.seq)
+                self.handshake.ack(TargetAck.NONE, hmi.seq)
 
         self._planning(x, valid, now)
 
-        mode = self.modes.mode
-        if mode == Mode.ADJUSTING and self.attitude.motion_done(now):
+        if self.modes.mode == Mode.ADJUSTING and self.attitude.motion_done(now):
             self.modes.motion_done()
-            self._hmi_ack(TargetAck.COMPLETED)
+            self.handshake.ack(TargetAck.COMPLETED)
             self.attitude.hold(self.attitude.final_references())
             self.motion.duration_s = now - self.motion.started_s
         u = np.zeros(len(self.cfg.cylinders))
@@ -342,107 +345,11 @@ class ServiceCore:
             ref = self.attitude.last_references  # this cycle's, for the run record
             self._last_drive_t = now
             self._motion_figures(now)
-        link.set_control(
-            mode=PlcMode.ATTITUDE_ADJUST if self.modes.valves_enabled else PlcMode.IDLE,
-            enable=self.modes.valves_enabled,
-        )
-        link.send_valve_commands(u, now)
-        self._publish(now, x, u, lstate, ref)
-
-    # ------------------------------------------------------------------ pieces
-
-    def _conditions(
-        self,
-        positions_valid: bool,
-        status: Any,
-        p: np.ndarray,
-        p_valid: np.ndarray,
-        pos: Reading | None = None,
-        now: float = 0.0,
-    ) -> list[Cause]:
-        """Interlock conditions present now (each also blocks a reset)."""
-        out: list[Cause] = []
-        if status is None or not self.link.bus_health.can_send():
-            age = self.link.status_age_s(now)
-            out.append(
-                Cause(
-                    Interlock.PLC_HEARTBEAT,
-                    detail="PLC status lost" if status is None else "bus off or down",
-                )
-                if math.isinf(age)
-                else Cause(
-                    Interlock.PLC_HEARTBEAT,
-                    value=units.to_ms(age),
-                    limit=self.cfg.safety.plc_heartbeat_timeout_ms,
-                    detail="since the last PLC status" if status is None else "bus off or down",
-                )
-            )
-        if not positions_valid and pos is not None:
-            out.extend(self._position_causes(pos, now))
-        if status is not None and status.fault not in (Fault.NONE, Fault.ESTOP):
-            name = (
-                Fault(status.fault).name
-                if status.fault in Fault._value2member_map_
-                else str(status.fault)
-            )
-            out.append(Cause(Interlock.PLC_FAULT, where=name))
-        # The largest valid pressure (NaN where not valid, so fmax skips them; NaN when
-        # none is), against the limit (positive, so the zeros for invalid values below
-        # never matter).
-        if float(np.fmax.reduce(p, axis=None)) > self.max_pressure_pa:
-            pv = np.where(p_valid, p, 0.0)  # rare: then find whose it is
-            i = int(np.argmax(pv.max(axis=1)))
-            peak = float(pv[i].max())
-            out.append(
-                Cause(
-                    Interlock.PRESSURE,
-                    where=self._by_index[i].id,
-                    value=units.to_mpa(peak),
-                    limit=units.to_mpa(self.max_pressure_pa),
-                )
-            )
-        return out
-
-    def _position_causes(self, pos: Reading, now: float) -> list[Cause]:
-        """Rare path (an active position not valid): a sensor reporting a fault, or the
-        first active cylinder whose position is older than ``safety.sensor_timeout_ms``."""
-        out: list[Cause] = []
-        failed = set(self.link.failed_positions(self.active, now))
-        for i in self.active:
-            if i in failed:
-                out.append(Cause(Interlock.SENSOR, where=self._by_index[i].id))
-        ages = pos.age_s.tolist()
-        for i in self.active:
-            age = ages[i]
-            if i not in failed and not pos.valid[i] and age > self.sensor_timeout_s:
-                out.append(
-                    Cause(
-                        Interlock.SENSOR_TIMEOUT,
-                        where=self._by_index[i].id,
-                        value=None if math.isinf(age) else units.to_ms(age),
-                        limit=self.cfg.safety.sensor_timeout_ms,
-                        detail="never received" if math.isinf(age) else "",
-                    )
-                )
-                break
-        return out
-
-    def _losses(self, positions_valid: bool, status: Any, now: float) -> list[str]:
-        """Why the link counts as dropped out now (empty: fresh): what suspends a motion."""
-        out: list[str] = []
-        if not positions_valid:
-            out.append("rod positions of the active group stale")
-        if status is None or self.link.status_age_s(now) > self.link.status_stale_s:
-            out.append("PLC status stale")
-        elif status.command_timeout:
-            out.append("the PLC reports the IPC's commands stale")
-        return out
+        return u, ref
 
     # ------------------------------------------------------------------ ride-through
 
-    def _ride_through(
-        self, now: float, losses: list[str], x: np.ndarray, p_valid: np.ndarray
-    ) -> None:
+    def _ride_through(self, now: float, losses: list[str], inp: MachineInputs) -> None:
         """Suspend a motion on a loss of the link; resume it once fresh and checked."""
         mode = self.modes.mode
         if mode in SUSPENDABLE_MODES:
@@ -468,11 +375,12 @@ class ServiceCore:
         self._fresh_cycles += 1
         if self._fresh_cycles < self.RESUME_FRESH_CYCLES:
             return
-        cause = self._resume_check(x, p_valid)
+        stop_ref = self._stop_ref.tolist() if self._stop_ref is not None else None
+        cause = resume_cause(inp, stop_ref, self.limits)
         if cause is not None:
             self.modes.fault(cause)
         else:
-            self._resume(now, x)
+            self._resume(now, inp.positions.value)
 
     def _suspend(self, now: float, losses: list[str], mode: Mode) -> None:
         reason = "; ".join(losses)
@@ -486,26 +394,6 @@ class ServiceCore:
         log.warning("suspended", reason=reason, from_mode=str(mode), suspends=self.suspends)
         if self.record is not None:
             self.record.event(now, "suspended", reason=reason, from_mode=str(mode))
-
-    def _resume_check(self, x: np.ndarray, p_valid: np.ndarray) -> Cause | None:
-        """Every active rod within the sync band of where it stopped, its pressures valid."""
-        ref = self._stop_ref
-        xs = x.tolist()
-        refs = ref.tolist() if ref is not None else xs
-        lim = self.max_sync_m
-        for i in self.active:
-            dev = abs(xs[i] - refs[i])
-            if not dev <= lim:  # NaN too
-                return Cause(
-                    Interlock.RESUME_CHECK,
-                    where=self._by_index[i].id,
-                    value=units.to_mm(dev),
-                    limit=units.to_mm(lim),
-                    detail="from where the motion stopped",
-                )
-        if not bool(p_valid[self._active_arr].all()):
-            return Cause(Interlock.RESUME_CHECK, where="pressures", detail="not valid")
-        return None
 
     def _resume(self, now: float, x: np.ndarray) -> None:
         last = self._last_drive_t if self._last_drive_t is not None else self._suspended_at
@@ -521,58 +409,6 @@ class ServiceCore:
         log.warning("resumed", suspended_s=suspended_s, shift_s=shift, resumes=self.resumes)
         if self.record is not None:
             self.record.event(now, "resumed", suspended_s=suspended_s, shift_s=shift)
-
-    def _hmi_ack(self, status: TargetAck, seq: int | None = None) -> None:
-        """Answer an HMI request in the control word (the PLC shows it to the operator):
-        ``seq``, else the request being served; a local request (seq 0) is not answered."""
-        seq = self.modes.hmi_seq if seq is None else seq
-        if seq:
-            self.link.set_control(ack_seq=seq, ack_status=status)
-
-    def _motion_checks(self, x: np.ndarray) -> None:
-        for name, m in self.attitude.metrics.items():
-            if m.twist_m > self.max_twist_m:
-                self.modes.fault(self._over(Interlock.TWIST, name, m.twist_m, self.max_twist_m))
-            if m.tracking_error_m > self.max_tracking_m:
-                self.modes.fault(
-                    self._over(
-                        Interlock.TRACKING_ERROR, name, m.tracking_error_m, self.max_tracking_m
-                    )
-                )
-            if m.sync_error_m > self.max_sync_m:
-                self.modes.fault(
-                    self._over(Interlock.SYNC_ERROR, name, m.sync_error_m, self.max_sync_m)
-                )
-        # Plain floats: the first active rod within the margin of an end or at a limit
-        # switch (the mask of the switches is worked out once per received word).
-        limits = self.link.limit_switches(self._now)
-        if limits is not self._limits_of[0]:
-            at = None
-            if limits is not None:
-                a = self._active_arr
-                at = (limits.retracted[a] | limits.extended[a]).tolist()
-            self._limits_of = (limits, at)
-        at_limit = self._limits_of[1]
-        xs = x.tolist()
-        lo = self.end_margin_m
-        for k, (i, hi) in enumerate(zip(self.active, self._stroke_hi_list, strict=True)):
-            v = xs[i]
-            if v < lo or v > hi or (at_limit is not None and at_limit[k]):
-                to_end = min(v, self.stroke[i] - v)
-                self.modes.fault(
-                    Cause(
-                        Interlock.STROKE_END,
-                        where=self._by_index[i].id,
-                        value=units.to_mm(to_end),
-                        limit=units.to_mm(self.end_margin_m),
-                        detail="(limit switch)" if to_end >= lo else "",
-                    )
-                )
-                break
-
-    @staticmethod
-    def _over(il: Interlock, where: str, value_m: float, limit_m: float) -> Cause:
-        return Cause(il, where=where, value=units.to_mm(value_m), limit=units.to_mm(limit_m))
 
     def _planning(self, x: np.ndarray, valid: bool, now: float) -> None:
         mode = self.modes.mode
@@ -598,7 +434,7 @@ class ServiceCore:
         self._submitted = False
         if self.modes.mode != Mode.PLANNING:
             return  # stopped or faulted meanwhile: the plan is dropped
-        self._hmi_ack(TargetAck.ACCEPTED if res.ok and res.feasible else TargetAck.REJECTED)
+        self.handshake.ack(TargetAck.ACCEPTED if res.ok and res.feasible else TargetAck.REJECTED)
         if not res.ok:
             self.modes.fault(Cause(Interlock.PLANNER, detail=str(res.error)))
             verdict: dict[str, Any] = {"ok": False, "code": "planner", "error": res.error}

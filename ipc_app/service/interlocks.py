@@ -11,15 +11,30 @@ lasts and however its value moves. Everything shown to the operator (``wara ctl
 status``, the log, the run record) is rendered from this data; nothing matches an
 interlock by its text.
 
+:func:`present_causes`, :func:`motion_causes`, :func:`link_losses` and
+:func:`resume_cause` are the checks: pure functions of one cycle's
+:class:`~ipc_app.service.machine_io.MachineInputs` (and the mode, the controller's
+figures) against the :class:`Limits` of the configuration, returning causes.
+
 :func:`markdown_table` renders the table of docs/service.md (a test keeps the two equal).
 """
 
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from enum import StrEnum
-from typing import Any
+from typing import TYPE_CHECKING, Any, Protocol
+
+import numpy as np
+
+from config import units
+from config.schema import ProjectConfig
+from plc_bridge.link import Fault
+
+if TYPE_CHECKING:
+    from ipc_app.service.machine_io import MachineInputs
 
 
 class Applies(StrEnum):
@@ -272,3 +287,204 @@ def markdown_table() -> str:
         key = f"`{s.key}`" if s.key else "-"
         rows.append(f"| `{il}` | {key} | {s.applies} | {s.condition} |")
     return "\n".join(rows) + "\n"
+
+
+# --------------------------------------------------------------------------- the checks
+
+
+@dataclass(frozen=True)
+class Limits:
+    """The interlock limits of a project in SI units, and the cylinders they watch
+    (``active``: can_index of the attitude cylinders, lower then upper)."""
+
+    active: tuple[int, ...]
+    #: cylinder id by can_index
+    ids: tuple[str, ...]
+    #: stroke by can_index [m]
+    stroke_m: tuple[float, ...]
+    max_twist_m: float
+    max_sync_m: float
+    max_tracking_m: float
+    max_pressure_pa: float
+    end_margin_m: float
+    sensor_timeout_s: float
+    #: the configured figures for the causes' ``limit`` (config units)
+    sensor_timeout_ms: float
+    plc_heartbeat_timeout_ms: float
+
+    @classmethod
+    def from_config(cls, cfg: ProjectConfig, active: Sequence[int]) -> Limits:
+        s = cfg.safety
+        cyl = cfg.cylinders_by_can_index
+        return cls(
+            active=tuple(active),
+            ids=tuple(c.id for c in cyl),
+            stroke_m=tuple(c.stroke_m for c in cyl),
+            max_twist_m=units.mm(s.max_twist_mm),
+            max_sync_m=units.mm(s.max_sync_error_mm),
+            max_tracking_m=units.mm(s.max_tracking_error_mm),
+            max_pressure_pa=units.mpa(s.max_pressure_mpa),
+            end_margin_m=units.mm(s.stroke_end_margin_mm),
+            sensor_timeout_s=units.ms(s.sensor_timeout_ms),
+            sensor_timeout_ms=s.sensor_timeout_ms,
+            plc_heartbeat_timeout_ms=s.plc_heartbeat_timeout_ms,
+        )
+
+
+class Metrics(Protocol):
+    """A layer's figures of the last controller update (m)."""
+
+    @property
+    def sync_error_m(self) -> float: ...
+    @property
+    def twist_m(self) -> float: ...
+    @property
+    def tracking_error_m(self) -> float: ...
+
+
+def present_causes(inp: MachineInputs, lim: Limits) -> list[Cause]:
+    """The conditions checked in every mode (:attr:`Applies.ALWAYS`) present now: each
+    latches a fault (after start-up) and blocks a reset."""
+    out: list[Cause] = []
+    status = inp.status
+    if status is None or not inp.bus_ok:
+        age = inp.status_age_s
+        out.append(
+            Cause(
+                Interlock.PLC_HEARTBEAT,
+                detail="PLC status lost" if status is None else "bus off or down",
+            )
+            if math.isinf(age)
+            else Cause(
+                Interlock.PLC_HEARTBEAT,
+                value=units.to_ms(age),
+                limit=lim.plc_heartbeat_timeout_ms,
+                detail="since the last PLC status" if status is None else "bus off or down",
+            )
+        )
+    if not inp.positions_valid:
+        out.extend(position_causes(inp, lim))
+    if status is not None and status.fault not in (Fault.NONE, Fault.ESTOP):
+        name = (
+            Fault(status.fault).name
+            if status.fault in Fault._value2member_map_
+            else str(status.fault)
+        )
+        out.append(Cause(Interlock.PLC_FAULT, where=name))
+    # The largest valid pressure (NaN where not valid, so fmax skips them; NaN when
+    # none is), against the limit (positive, so the zeros for invalid values below
+    # never matter).
+    p = inp.pressures.value
+    if float(np.fmax.reduce(p, axis=None)) > lim.max_pressure_pa:
+        pv = np.where(inp.pressures.valid, p, 0.0)  # rare: then find whose it is
+        i = int(np.argmax(pv.max(axis=1)))
+        peak = float(pv[i].max())
+        out.append(
+            Cause(
+                Interlock.PRESSURE,
+                where=lim.ids[i],
+                value=units.to_mpa(peak),
+                limit=units.to_mpa(lim.max_pressure_pa),
+            )
+        )
+    return out
+
+
+def position_causes(inp: MachineInputs, lim: Limits) -> list[Cause]:
+    """Rare path (an active position not valid): a sensor reporting a fault, or the
+    first active cylinder whose position is older than ``safety.sensor_timeout_ms``."""
+    out: list[Cause] = []
+    failed = inp.failed_sensors
+    for i in lim.active:
+        if i in failed:
+            out.append(Cause(Interlock.SENSOR, where=lim.ids[i]))
+    pos = inp.positions
+    ages = pos.age_s.tolist()
+    for i in lim.active:
+        age = ages[i]
+        if i not in failed and not pos.valid[i] and age > lim.sensor_timeout_s:
+            out.append(
+                Cause(
+                    Interlock.SENSOR_TIMEOUT,
+                    where=lim.ids[i],
+                    value=None if math.isinf(age) else units.to_ms(age),
+                    limit=lim.sensor_timeout_ms,
+                    detail="never received" if math.isinf(age) else "",
+                )
+            )
+            break
+    return out
+
+
+def link_losses(inp: MachineInputs) -> list[str]:
+    """Why the link counts as dropped out now (empty: fresh): what suspends a motion."""
+    out: list[str] = []
+    if not inp.positions_valid:
+        out.append("rod positions of the active group stale")
+    status = inp.status
+    if status is None or inp.status_stale:
+        out.append("PLC status stale")
+    elif status.command_timeout:
+        out.append("the PLC reports the IPC's commands stale")
+    return out
+
+
+def motion_causes(inp: MachineInputs, metrics: Mapping[str, Metrics], lim: Limits) -> list[Cause]:
+    """The checks of a driven motion (:attr:`Applies.DRIVEN`; the caller runs them in
+    the valve modes with valid positions): each layer's twist, tracking and sync error
+    (the controller's last figures), then the first active rod within the margin of an
+    end of its stroke or at a limit switch."""
+    out: list[Cause] = []
+    for name, m in metrics.items():
+        if m.twist_m > lim.max_twist_m:
+            out.append(_over(Interlock.TWIST, name, m.twist_m, lim.max_twist_m))
+        if m.tracking_error_m > lim.max_tracking_m:
+            out.append(
+                _over(Interlock.TRACKING_ERROR, name, m.tracking_error_m, lim.max_tracking_m)
+            )
+        if m.sync_error_m > lim.max_sync_m:
+            out.append(_over(Interlock.SYNC_ERROR, name, m.sync_error_m, lim.max_sync_m))
+    at_limit = inp.at_limit
+    xs = inp.positions.value.tolist()
+    lo = lim.end_margin_m
+    stroke = lim.stroke_m
+    for k, i in enumerate(lim.active):
+        v = xs[i]
+        if v < lo or v > stroke[i] - lo or (at_limit is not None and at_limit[k]):
+            to_end = min(v, stroke[i] - v)
+            out.append(
+                Cause(
+                    Interlock.STROKE_END,
+                    where=lim.ids[i],
+                    value=units.to_mm(to_end),
+                    limit=units.to_mm(lo),
+                    detail="(limit switch)" if to_end >= lo else "",
+                )
+            )
+            break
+    return out
+
+
+def resume_cause(inp: MachineInputs, stop_ref: Sequence[float] | None, lim: Limits) -> Cause | None:
+    """Before a suspended motion resumes: every active rod within the sync band of where
+    it stopped (``stop_ref`` by can_index), its pressures valid; else the cause."""
+    xs = inp.positions.value.tolist()
+    refs = stop_ref if stop_ref is not None else xs
+    band = lim.max_sync_m
+    for i in lim.active:
+        dev = abs(xs[i] - refs[i])
+        if not dev <= band:  # NaN too
+            return Cause(
+                Interlock.RESUME_CHECK,
+                where=lim.ids[i],
+                value=units.to_mm(dev),
+                limit=units.to_mm(band),
+                detail="from where the motion stopped",
+            )
+    if not bool(inp.pressures.valid[list(lim.active)].all()):
+        return Cause(Interlock.RESUME_CHECK, where="pressures", detail="not valid")
+    return None
+
+
+def _over(il: Interlock, where: str, value_m: float, limit_m: float) -> Cause:
+    return Cause(il, where=where, value=units.to_mm(value_m), limit=units.to_mm(limit_m))

@@ -103,8 +103,6 @@ class _State:
     faults: FaultLatch = field(default_factory=FaultLatch)
     estop_active: bool = False
     target_deg: tuple[float, float] | None = None
-    #: TargetSeq of the HMI request being served (0: a local request, or none)
-    hmi_seq: int = 0
     resume_to: Mode | None = None
     last_message: str = "booting"
 
@@ -167,11 +165,6 @@ class ModeMachine:
             return self._s.faults.interlocks()
 
     @property
-    def hmi_seq(self) -> int:
-        """TargetSeq of the HMI request being planned or run (0: a local request)."""
-        return self._s.hmi_seq
-
-    @property
     def target_deg(self) -> tuple[float, float] | None:
         """(roll, pitch) of the adjustment being planned or run, deg."""
         return self._s.target_deg
@@ -201,9 +194,9 @@ class ModeMachine:
         """BOOT -> IDLE once the service is wired (valves closed)."""
         return self._go("boot_complete", {Mode.BOOT}, Mode.IDLE, "start-up complete")
 
-    def request_adjust(self, roll_deg: float, pitch_deg: float, hmi_seq: int = 0) -> Outcome:
-        """IDLE or HOLDING -> PLANNING for target (roll, pitch); ``hmi_seq`` is the HMI's
-        TargetSeq of the request (0: a local one). A refused request changes nothing."""
+    def request_adjust(self, roll_deg: float, pitch_deg: float) -> Outcome:
+        """IDLE or HOLDING -> PLANNING for target (roll, pitch). A refused request
+        changes nothing."""
         with self._lock:
             out = self._go_locked(
                 "request_adjust",
@@ -213,7 +206,6 @@ class ModeMachine:
             )
             if out.accepted:
                 self._s.target_deg = (roll_deg, pitch_deg)
-                self._s.hmi_seq = hmi_seq
             return out
 
     def plan_ready(self) -> Outcome:
@@ -317,7 +309,6 @@ class ModeMachine:
             out = self._transition("reset", Mode.IDLE, f"reset after: {cleared}")
             s.faults.clear()
             s.target_deg = None
-            s.hmi_seq = 0
             s.resume_to = None
             return out
 
