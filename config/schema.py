@@ -429,6 +429,9 @@ class Control(Strict):
     pid: Pid = Pid()
     sync: Sync = Sync()
     realtime: Realtime = Realtime()
+    #: The rod speed of a jog in the MANUAL unit mode (``wara ctl jog``): slow enough
+    #: for an operator beside the machine; 20 mm/s is the top of a hand-jog range.
+    manual_jog_speed_mm_s: Annotated[Finite, Field(gt=0, le=20)] = 2.0
 
     @property
     def period_s(self) -> float:

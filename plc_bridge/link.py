@@ -128,6 +128,10 @@ class ControlWord:
     fault_reset: bool = False
     ack_seq: int = 0
     ack_status: TargetAck = TargetAck.NONE
+    #: the IPC service's PackML state and unit mode numbers (``PackMLState``,
+    #: ``UnitMode``; 0: undefined), for the PLC and its HMI to show
+    state: int = 0
+    unit_mode: int = 0
 
 
 _CONTROL_FIELDS = frozenset(f.name for f in fields(ControlWord))
@@ -619,6 +623,8 @@ class IpcLink(_Side):
             "TargetAckStatus": int(c.ack_status),
             "TargetAckSeq": int(c.ack_seq) & 0xFF,
             "FastCylinderMask": _mask_of(self._active),
+            "PackMLState": int(c.state),
+            "UnitMode": int(c.unit_mode),
         }
         return [vals[n] for n in self._ctl_codec.signal_names]
 
@@ -896,6 +902,8 @@ class PlcLink(_Side):
             fault_reset=bool(d["FaultReset"]),
             ack_seq=int(d["TargetAckSeq"]),
             ack_status=TargetAck(int(d["TargetAckStatus"])),
+            state=int(d["PackMLState"]),
+            unit_mode=int(d["UnitMode"]),
         )
 
     def valve_commands(self, now: float | None = None) -> Reading:

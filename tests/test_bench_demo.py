@@ -55,7 +55,7 @@ def test_a_failed_run_says_why() -> None:
             {
                 "passed": False,
                 "error": None,
-                "final_mode": "FAULT",
+                "final_mode": "ABORTED",
                 "fault_reasons": ["plc fault: IPC_TIMEOUT"],
                 "examples": [],
             },
@@ -64,7 +64,7 @@ def test_a_failed_run_says_why() -> None:
         dict(os.environ),
     )
     assert not r["passed"] and r["exit_code"] == 1
-    assert r["reason"] == "service FAULT: plc fault: IPC_TIMEOUT"
+    assert r["reason"] == "service ABORTED: plc fault: IPC_TIMEOUT"
     assert r["suspends"] == 0  # no ride_through key: counted as none
 
 

@@ -21,9 +21,9 @@ def test_wara_bench_step_reports_every_mode(capsys: pytest.CaptureFixture[str]) 
         root.handlers[:] = handlers
         root.setLevel(level)
     out = json.loads(capsys.readouterr().out)  # logs went to stderr
-    assert out["bench"] == "step" and out["final_mode"] == "HOLDING"
-    assert {"IDLE", "PLANNING", "ADJUSTING", "HOLDING"} <= set(out["modes"])
-    adjusting = out["modes"]["ADJUSTING"]
+    assert out["bench"] == "step" and out["final_mode"] == "COMPLETE"
+    assert {"IDLE", "STARTING", "EXECUTE", "COMPLETE"} <= set(out["modes"])
+    adjusting = out["modes"]["EXECUTE"]
     assert adjusting["steps"] > 1000  # the whole 6.1 s motion at 200 Hz
     for figures in [*out["modes"].values(), out["all"]]:
         assert 0 < figures["cpu_p50_ms"] <= figures["cpu_p99_ms"] <= figures["cpu_max_ms"]

@@ -39,7 +39,7 @@ def _former_tuning(tmp_path: Path) -> ProjectConfig:
 def test_shipped_tuning_holds_with_the_required_delay(planner: PlannerWorker) -> None:
     run = run_one(load_project(), planner, REQUIRED_MS, hold_s=15.0)
     assert run.reached_target and run.stable, run
-    assert run.mode == "HOLDING" and not run.faults
+    assert run.mode == "COMPLETE" and not run.faults
     assert max(run.hold_sync_error_mm.values()) < 0.02  # mm, far inside 0.07
 
 
@@ -49,7 +49,7 @@ def test_report_margin_and_verdict(tmp_path: Path) -> None:
     report = run_study(cfg, delays_ms=(0.0, 5.0), hold_s=20.0, required_ms=5.0)
     assert [r["stable"] for r in report["runs"]] == [True, False]
     rocked = report["runs"][1]
-    assert rocked["mode"] == "FAULT"
+    assert rocked["mode"] == "ABORTED"
     assert ("sync error", "lower") in [tuple(k) for k in rocked["fault_keys"]], rocked["faults"]
     assert report["delay_margin_ms"] == 0.0
     assert report["passed"] is False

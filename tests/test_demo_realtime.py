@@ -39,7 +39,7 @@ def test_realtime_one_process_demo_example_1() -> None:
     assert ex["attitude_error_deg"] <= ATTITUDE_TOL_DEG
     assert ex["max_twist_mm"] <= TWIST_TOL_MM
     assert ex["sync_error_mm"] <= SYNC_TOL_MM
-    assert out["final_mode"] == "HOLDING" and out["fault_reasons"] == []
+    assert out["final_mode"] == "COMPLETE" and out["fault_reasons"] == []
     loop = out["loop"]
     assert loop["cycles"] > 1000 and loop["jitter_p99_ms"] is not None
     assert set(out["ride_through"]) == {"suspends", "resumes"}
@@ -68,7 +68,7 @@ def test_a_latched_fault_ends_the_example_at_once_with_its_reason() -> None:
         res = demo.run_example(2.0, 1.0)
         assert not res.passed
         assert demo.faulted()
-        assert res.note.startswith("did not finish: service FAULT: "), res.note
+        assert res.note.startswith("did not finish: service ABORTED: "), res.note
         assert "plc heartbeat" in res.note
         # stopped within a second of the fault (simulated time), not after 300 s
         assert demo.sim.t_s < 3.0 + 1.0, demo.sim.t_s
@@ -79,11 +79,11 @@ def test_a_latched_fault_ends_the_example_at_once_with_its_reason() -> None:
 def test_failure_reason_names_the_latched_faults() -> None:
     s = {
         "error": None,
-        "final_mode": "FAULT",
+        "final_mode": "ABORTED",
         "fault_reasons": ["plc fault: IPC_TIMEOUT", "sensor: stale"],
         "examples": [],
     }
-    assert failure_reason(s) == "service FAULT: plc fault: IPC_TIMEOUT; sensor: stale"
+    assert failure_reason(s) == "service ABORTED: plc fault: IPC_TIMEOUT; sensor: stale"
     s = {"error": "service did not come up: x", "examples": []}
     assert failure_reason(s) == "service did not come up: x"
     s = {

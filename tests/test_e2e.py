@@ -86,7 +86,7 @@ class Run:
         d = self.demo
         assert self.until(lambda: d.core.modes.mode == Mode.IDLE, 5.0) is not None
         assert d.core.request_adjust(2.0, 1.0)["ok"]
-        assert self.until(lambda: d.core.modes.mode == Mode.ADJUSTING, 30.0) is not None
+        assert self.until(lambda: d.core.modes.mode == Mode.EXECUTE, 30.0) is not None
         assert d.sim.t_s < FAULT_AT_S, "motion must start before the fault"
         assert self.until(lambda: d.sim.t_s >= FAULT_AT_S, FAULT_AT_S) is not None
 
@@ -120,36 +120,36 @@ CASES = [
     # (fault event, safe mode, the first interlock is one of, max cycles after the fault).
     # A lost input suspends the motion first and faults once the loss is longer than
     # its timeout.
-    ({"kind": "plc_silent", "start_s": FAULT_AT_S}, Mode.FAULT, _ALL_LOST, 22),
-    ({"kind": "bus_off", "start_s": FAULT_AT_S}, Mode.FAULT, _ALL_LOST, 22),
+    ({"kind": "plc_silent", "start_s": FAULT_AT_S}, Mode.ABORTED, _ALL_LOST, 22),
+    ({"kind": "bus_off", "start_s": FAULT_AT_S}, Mode.ABORTED, _ALL_LOST, 22),
     (
         {"kind": "drop", "start_s": FAULT_AT_S, "rate": 1.0, "messages": ["PLC_RodPos_*"]},
-        Mode.FAULT,
+        Mode.ABORTED,
         _LOST,
         _SENSOR_TIMEOUT_CYCLES,
     ),
     (
         {"kind": "bad_crc", "start_s": FAULT_AT_S, "messages": ["PLC_RodPos_*"]},
-        Mode.FAULT,
+        Mode.ABORTED,
         _LOST,
         _SENSOR_TIMEOUT_CYCLES,
     ),
     (
         {"kind": "frozen_counter", "start_s": FAULT_AT_S, "messages": ["PLC_RodPos_*"]},
-        Mode.FAULT,
+        Mode.ABORTED,
         _LOST,
         _SENSOR_TIMEOUT_CYCLES,
     ),
     (
         # (the wire keeps the order: the frames behind the delayed ones wait too)
         {"kind": "delay", "start_s": FAULT_AT_S, "delay_ms": 200, "messages": ["PLC_RodPos_*"]},
-        Mode.FAULT,
+        Mode.ABORTED,
         _ALL_LOST,
         _SENSOR_TIMEOUT_CYCLES,
     ),
     (
         {"kind": "sensor", "start_s": FAULT_AT_S, "cylinder": "upper_2", "mode": "fail"},
-        Mode.FAULT,
+        Mode.ABORTED,
         frozenset({Interlock.SENSOR}),
         5,
     ),
@@ -161,33 +161,33 @@ CASES = [
             "mode": "jump",
             "offset": 5.0,
         },
-        Mode.FAULT,
+        Mode.ABORTED,
         frozenset({Interlock.SYNC_ERROR}),
         5,
     ),
     (
         {"kind": "sensor", "start_s": FAULT_AT_S, "cylinder": "upper_2", "mode": "stuck"},
-        Mode.FAULT,
+        Mode.ABORTED,
         _SYNC_OR_TRACKING,
         100,
     ),
     (
         {"kind": "stuck_valve", "start_s": FAULT_AT_S, "cylinder": "upper_2", "opening": 0.0},
-        Mode.FAULT,
+        Mode.ABORTED,
         _SYNC_OR_TRACKING,
         100,
     ),
     (
         {"kind": "ignore_commands", "start_s": FAULT_AT_S},
-        Mode.FAULT,
+        Mode.ABORTED,
         _SYNC_OR_TRACKING,
         100,
     ),
-    ({"kind": "estop", "start_s": FAULT_AT_S}, Mode.ESTOP, frozenset(), 8),
+    ({"kind": "estop", "start_s": FAULT_AT_S}, Mode.ABORTED, frozenset(), 8),
     # Stalls longer than the timeouts: no longer a short loss.
     (
         {"kind": "plc_stall", "start_s": FAULT_AT_S, "end_s": FAULT_AT_S + 0.3},
-        Mode.FAULT,
+        Mode.ABORTED,
         _ALL_LOST,
         _SENSOR_TIMEOUT_CYCLES,
     ),
@@ -198,7 +198,7 @@ CASES = [
             "end_s": FAULT_AT_S + 0.3,
             "direction": "plc_to_ipc",
         },
-        Mode.FAULT,
+        Mode.ABORTED,
         _ALL_LOST,
         _SENSOR_TIMEOUT_CYCLES,
     ),
@@ -211,7 +211,7 @@ CASES = [
             "end_s": FAULT_AT_S + 0.3,
             "direction": "ipc_to_plc",
         },
-        Mode.FAULT,
+        Mode.ABORTED,
         frozenset({Interlock.PLC_FAULT}),
         26,
     ),
@@ -351,7 +351,7 @@ def test_limit_interlocks(
         d = run.demo
         assert run.until(lambda: d.core.modes.mode == Mode.IDLE, 5.0) is not None
         assert d.core.request_adjust(2.0, 1.0)["ok"]
-        k = run.until(lambda: d.core.modes.mode == Mode.FAULT, 12.0)
+        k = run.until(lambda: d.core.modes.mode == Mode.ABORTED, 12.0)
         assert k is not None, d.core.modes.snapshot()
         assert interlock in d.core.modes.fault_interlocks
     finally:
@@ -366,7 +366,7 @@ def test_planner_crash_is_a_fault(tmp_path: Path) -> None:
         d = run.demo
         assert run.until(lambda: d.core.modes.mode == Mode.IDLE, 5.0) is not None
         assert d.core.request_adjust(CRASH_ROLL_DEG, 1.0)["ok"]  # the planner process dies
-        assert run.until(lambda: d.core.modes.mode == Mode.FAULT, 60.0) is not None
+        assert run.until(lambda: d.core.modes.mode == Mode.ABORTED, 60.0) is not None
         assert d.core.modes.fault_interlocks == (Interlock.PLANNER,)
     finally:
         run.close()
@@ -379,7 +379,7 @@ def test_infeasible_target_is_refused_with_reasons(planner: PlannerWorker, tmp_p
         d = run.demo
         assert run.until(lambda: d.core.modes.mode == Mode.IDLE, 5.0) is not None
         assert d.core.request_adjust(30.0, 2.0)["ok"]
-        assert run.until(lambda: d.core.modes.mode != Mode.PLANNING, 30.0) is not None
+        assert run.until(lambda: d.core.modes.mode != Mode.STARTING, 30.0) is not None
         assert d.core.modes.mode == Mode.IDLE
         assert "stroke" in d.core.modes.snapshot()["message"]
     finally:
@@ -443,9 +443,9 @@ def test_hmi_target_from_the_plc_is_planned_executed_and_acknowledged(
     run = Run(load_project(), planner, tmp_path, _scenario(event))
     try:
         d = run.demo
-        assert run.until(lambda: d.core.modes.mode == Mode.ADJUSTING, 30.0) is not None
+        assert run.until(lambda: d.core.modes.mode == Mode.EXECUTE, 30.0) is not None
         assert d.core.modes.target_deg == pytest.approx((-3.0, 2.0))
-        assert run.until(lambda: d.core.modes.mode == Mode.HOLDING, 60.0) is not None
+        assert run.until(lambda: d.core.modes.mode == Mode.COMPLETE, 60.0) is not None
         run.until(lambda: d.sim.hmi_ack is not None and d.sim.hmi_ack[1].name == "COMPLETED", 1.0)
         assert d.sim.hmi_ack is not None and d.sim.hmi_ack[1].name == "COMPLETED"
         roll = np.degrees(d.sim.truth().workpiece_roll_rad)
@@ -475,15 +475,15 @@ def test_hmi_acks_carry_the_seq_of_their_own_request(
 
     try:
         d = run.demo
-        assert run.until(lambda: watch() or d.core.modes.mode == Mode.ADJUSTING, 30.0) is not None
-        assert run.until(lambda: watch() or d.core.modes.mode == Mode.HOLDING, 30.0) is not None
+        assert run.until(lambda: watch() or d.core.modes.mode == Mode.EXECUTE, 30.0) is not None
+        assert run.until(lambda: watch() or d.core.modes.mode == Mode.COMPLETE, 30.0) is not None
         assert d.sim.hmi_issued == [1, 2]  # one TargetSeq per event, once
         assert acks == [(1, "ACCEPTED"), (2, "REJECTED"), (1, "COMPLETED")], acks
         assert d.core.modes.target_deg == pytest.approx((2.0, 1.0))
         # a local request, planned and run: the PLC's ack stays the HMI's last answer
         assert d.core.request_adjust(2.5, 1.0)["ok"]
-        assert run.until(lambda: watch() or d.core.modes.mode == Mode.ADJUSTING, 30.0) is not None
-        assert run.until(lambda: watch() or d.core.modes.mode == Mode.HOLDING, 30.0) is not None
+        assert run.until(lambda: watch() or d.core.modes.mode == Mode.EXECUTE, 30.0) is not None
+        assert run.until(lambda: watch() or d.core.modes.mode == Mode.COMPLETE, 30.0) is not None
         assert acks == [(1, "ACCEPTED"), (2, "REJECTED"), (1, "COMPLETED")], acks
     finally:
         run.close()
@@ -505,7 +505,7 @@ def test_reset_clears_the_plcs_own_fault(planner: PlannerWorker, tmp_path: Path)
     try:
         run.start_motion()
         d = run.demo
-        assert run.until(lambda: d.core.modes.mode == Mode.FAULT, 2.0) is not None
+        assert run.until(lambda: d.core.modes.mode == Mode.ABORTED, 2.0) is not None
         timeout = (Interlock.PLC_FAULT, Fault.IPC_TIMEOUT.name)
         run.until(lambda: timeout in [(f.interlock, f.where) for f in d.core.modes.faults], 1.0)
         assert timeout in [(f.interlock, f.where) for f in d.core.modes.faults]
@@ -525,11 +525,11 @@ def test_estop_released_then_reset_returns_to_idle(planner: PlannerWorker, tmp_p
     try:
         run.start_motion()
         d = run.demo
-        assert run.until(lambda: d.core.modes.mode == Mode.ESTOP, 0.1) is not None
+        assert run.until(lambda: d.core.modes.mode == Mode.ABORTED, 0.1) is not None
         # Still pressed: the reset is refused.
         refused = d.core.request_reset()
         run.until(lambda: False, 0.1)
-        assert d.core.modes.mode == Mode.ESTOP, refused
+        assert d.core.modes.mode == Mode.ABORTED, refused
         run.until(lambda: d.sim.t_s > FAULT_AT_S + 1.0, 2.0)  # released
         assert d.core.request_reset()["ok"]
         assert run.until(lambda: d.core.modes.mode == Mode.IDLE, 2.0) is not None

@@ -68,7 +68,7 @@ def test_a_lasting_overpressure_under_sensor_noise_is_latched_once_per_cylinder(
         # what safety.max_pressure_mpa sets
         d.core.limits = replace(d.core.limits, max_pressure_pa=peak - 50e3)
         d.advance(10.0)
-        assert d.core.modes.mode is Mode.FAULT
+        assert d.core.modes.mode is Mode.ABORTED
         faults = d.core.modes.faults
         assert faults and {f.interlock for f in faults} == {Interlock.PRESSURE}
         assert len(faults) == len({f.where for f in faults}) <= len(cfg.cylinders)

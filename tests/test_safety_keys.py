@@ -190,6 +190,6 @@ def test_the_cases_see_the_reaction_they_stand_for() -> None:
     assert command_timeout(_with(cfg, command_timeout_ms=200.0)) is Fault.NONE
     assert max_suspend(cfg) == (Mode.SUSPENDED, ())
     assert max_suspend(_with(cfg, max_suspend_ms=150.0)) == (
-        Mode.FAULT,
+        Mode.ABORTED,
         (Interlock.SUSPEND_TIMEOUT,),
     )

@@ -14,6 +14,7 @@ from typing import Any
 import can
 import numpy as np
 import pytest
+from pydantic import ValidationError
 
 from config import ProjectConfig
 from hil_sim.hydraulics import CylinderBank, CylinderParams
@@ -326,15 +327,14 @@ def _bare_core(cfg: ProjectConfig) -> tuple[ServiceCore, _Planner]:
 
 def _update(core: ServiceCore, inp: Any) -> tuple[ControlWord, ...]:
     core.update(inp)
-    en = core.modes.valves_enabled
-    return core.handshake.finish(PlcMode.ATTITUDE_ADJUST if en else PlcMode.IDLE, en)
+    return core.control_words()
 
 
 def _holding(core: ServiceCore, cfg: ProjectConfig, t: float) -> None:
     assert core.modes.request_adjust(1.0, 0.0).accepted and core.modes.plan_ready().accepted
     core.attitude.engage(_mid(cfg), t, None)  # no trajectory: done at once
     _update(core, machine_inputs(cfg, t=t))
-    assert core.modes.mode is Mode.HOLDING
+    assert core.modes.mode is Mode.COMPLETE
 
 
 def test_boot_waits_for_fresh_inputs_then_faults_after_the_timeout(
@@ -344,9 +344,9 @@ def test_boot_waits_for_fresh_inputs_then_faults_after_the_timeout(
     lost = {"status": None, "status_age_s": np.inf}
     for t in np.arange(0.0, core.boot_timeout_s, 0.5):
         _update(core, machine_inputs(project, t=float(t), **lost))
-        assert core.modes.mode is Mode.BOOT
+        assert core.modes.mode is Mode.STOPPED
     _update(core, machine_inputs(project, t=core.boot_timeout_s + 0.1, **lost))
-    assert core.modes.mode is Mode.FAULT
+    assert core.modes.mode is Mode.ABORTED
     assert core.modes.fault_interlocks == (Interlock.PLC_HEARTBEAT,)
     core2, _ = _bare_core(project)
     _update(core2, machine_inputs(project))
@@ -358,19 +358,19 @@ def test_a_fault_latches_and_resets_only_once_the_cause_is_gone(project: Project
     _update(core, machine_inputs(project, t=0.0))
     over = machine_inputs(project, t=0.1, status=replace(HEALTHY, fault=Fault.OVERPRESSURE))
     _update(core, over)
-    assert core.modes.mode is Mode.FAULT
+    assert core.modes.mode is Mode.ABORTED
     assert core.request_reset()["note"] == "resetting"
     words = _update(core, replace(over, t=0.2))  # the PLC fault stays: pulse held
-    assert core.modes.mode is Mode.FAULT and words[0].fault_reset
+    assert core.modes.mode is Mode.ABORTED and words[0].fault_reset
     words = _update(core, machine_inputs(project, t=0.3))  # cleared: pulse off, reset
-    assert [w.fault_reset for w in words] == [False]
+    assert not words[-1].fault_reset and words[-1].state == 4  # the pulse off, IDLE
     assert core.modes.mode is Mode.IDLE
     # a reset with the cause still present is refused, the fault kept
     _update(core, over)
     core.request_reset()
     _update(core, replace(over, t=1.0))
     _update(core, replace(over, t=1.0 + Handshake.RESET_PULSE_S))
-    assert core.modes.mode is Mode.FAULT
+    assert core.modes.mode is Mode.ABORTED
 
 
 def test_estop_needs_release_and_reset(project: ProjectConfig) -> None:
@@ -379,9 +379,10 @@ def test_estop_needs_release_and_reset(project: ProjectConfig) -> None:
     _holding(core, project, 0.1)
     pressed = machine_inputs(project, t=0.2, status=replace(HEALTHY, estop=True))
     words = _update(core, pressed)
-    assert core.modes.mode is Mode.ESTOP and words[-1] == ControlWord(PlcMode.IDLE, False)
+    assert core.modes.mode is Mode.ABORTED
+    assert (words[-1].mode, words[-1].enable, words[-1].state) == (PlcMode.IDLE, False, 9)
     _update(core, machine_inputs(project, t=0.3))
-    assert core.modes.mode is Mode.ESTOP  # released, not reset
+    assert core.modes.mode is Mode.ABORTED  # released, not reset
     core.request_reset()
     _update(core, machine_inputs(project, t=0.4))
     assert core.modes.mode is Mode.IDLE
@@ -396,7 +397,7 @@ def test_motion_checks_run_only_with_the_valves_driven(project: ProjectConfig) -
     assert core.modes.mode is Mode.IDLE  # not driven: not checked
     _holding(core, project, 0.1)
     _update(core, machine_inputs(project, t=0.2, x=x))
-    assert core.modes.mode is Mode.FAULT
+    assert core.modes.mode is Mode.ABORTED
     assert core.modes.fault_interlocks == (Interlock.STROKE_END,)
 
 
@@ -410,7 +411,7 @@ def test_a_short_loss_suspends_and_resumes_a_long_one_faults(project: ProjectCon
     for k in range(ServiceCore.RESUME_FRESH_CYCLES):
         assert core.modes.mode is Mode.SUSPENDED
         _update(core, machine_inputs(project, t=0.25 + 0.005 * k))
-    assert core.modes.mode is Mode.HOLDING and (core.suspends, core.resumes) == (1, 1)
+    assert core.modes.mode is Mode.COMPLETE and (core.suspends, core.resumes) == (1, 1)
     # suspended again, the rods moved beyond the sync band meanwhile: resume check
     _update(core, machine_inputs(project, t=0.5, **stale))
     x = _mid(project)
@@ -432,7 +433,7 @@ def test_hmi_requests_are_planned_answered_and_cancelled(project: ProjectConfig)
     _update(core, machine_inputs(project, t=0.0))
     req = HmiTarget(np.deg2rad(2.0), np.deg2rad(1.0), TargetRequest.NEW_TARGET, seq=5)
     _update(core, machine_inputs(project, t=0.1, hmi=req))
-    assert core.modes.mode is Mode.PLANNING and core.handshake.seq == 5
+    assert core.modes.mode is Mode.STARTING and core.handshake.seq == 5
     assert planner.submitted == [(1, pytest.approx(2.0), pytest.approx(1.0))]
     # a second request while planning is refused with its own seq
     req2 = replace(req, seq=6)
@@ -442,7 +443,8 @@ def test_hmi_requests_are_planned_answered_and_cancelled(project: ProjectConfig)
     planner.result = PlanResult(1, False, ("stroke",), None, None, None, 0.01)
     words = _update(core, machine_inputs(project, t=0.3))
     assert core.modes.mode is Mode.IDLE
-    assert [(w.ack_seq, w.ack_status) for w in words] == [(5, TargetAck.REJECTED)]
+    assert (words[0].ack_seq, words[0].ack_status) == (5, TargetAck.REJECTED)
+    assert words[-1].state == 4  # IDLE
     # a planner crash is an interlock
     _update(core, machine_inputs(project, t=0.4, hmi=replace(req, seq=7)))
     planner.result = PlanResult(2, False, (), "crashed", None, None, 0.01)
@@ -456,6 +458,84 @@ def test_hmi_requests_are_planned_answered_and_cancelled(project: ProjectConfig)
     words = _update(core3, machine_inputs(project, t=0.2, hmi=cancel))
     assert core3.modes.mode is Mode.IDLE
     assert (words[0].ack_seq, words[0].ack_status) == (9, TargetAck.NONE)
+
+
+def _manual_core(cfg: ProjectConfig) -> ServiceCore:
+    core, _ = _bare_core(cfg)
+    _update(core, machine_inputs(cfg, t=0.0))
+    assert core.request_unit_mode("manual")["accepted"]
+    return core
+
+
+def test_jog_moves_one_cylinder_at_the_configured_speed_in_manual_only(
+    project: ProjectConfig,
+) -> None:
+    core, _ = _bare_core(project)
+    _update(core, machine_inputs(project, t=0.0))
+    cid = project.layers.upper.cylinders[1]
+    i = project.cylinder(cid).can_index
+    core.request_jog(cid, 2.0)
+    _update(core, machine_inputs(project, t=0.1))
+    assert core.modes.mode is Mode.IDLE  # PRODUCTION: refused
+    assert core.request_unit_mode("MANUAL")["accepted"]
+    for bad, dist, why in (("pump_1", 2.0, "not an attitude cylinder"), (cid, 5000.0, "outside")):
+        out = core._do_jog(machine_inputs(project, t=0.2), bad, dist)
+        assert out["ok"] is False and why in out["error"]
+        assert core.modes.mode is Mode.IDLE
+    x0 = _mid(project)
+    core.request_jog(cid, 2.0)
+    _update(core, machine_inputs(project, t=1.0))
+    assert core.modes.mode is Mode.EXECUTE and core.modes.valves_enabled
+    speed = project.control.manual_jog_speed_mm_s * 1e-3
+    ref = core.attitude.references(1.5)
+    assert ref[i] - x0[i] == pytest.approx(speed * 0.5)
+    others = [j for j in core.active if j != i]
+    assert ref[others] == pytest.approx(x0[others])
+    _update(core, machine_inputs(project, t=1.0 + 2e-3 / speed + 0.01))
+    assert core.modes.mode is Mode.COMPLETE
+    assert core.attitude.references(99.0)[i] - x0[i] == pytest.approx(2e-3)
+    # and no unit-mode change while the pose is held
+    assert not core.request_unit_mode("PRODUCTION")["accepted"]
+
+
+def test_hold_stops_the_motion_and_unhold_goes_on_where_it_stopped(
+    project: ProjectConfig,
+) -> None:
+    core = _manual_core(project)
+    cid = project.layers.lower.cylinders[0]
+    core.request_jog(cid, -3.0)
+    _update(core, machine_inputs(project, t=1.0))
+    assert core.modes.mode is Mode.EXECUTE
+    _update(core, machine_inputs(project, t=1.005))
+    core.request_hold()
+    words = _update(core, machine_inputs(project, t=1.01))
+    assert core.modes.mode is Mode.HELD and not words[-1].enable
+    assert words[-1].state == 11  # PackML Held on the wire
+    stop = core._stop_ref
+    assert stop is not None
+    x = stop.copy()
+    x[core.active[0]] += 2 * core.limits.max_sync_m  # moved while held: refused
+    core.request_unhold()
+    _update(core, machine_inputs(project, t=2.0, x=x))
+    assert core.modes.mode is Mode.HELD
+    core.request_unhold()
+    _update(core, machine_inputs(project, t=3.0, x=stop.copy()))
+    assert core.modes.mode is Mode.EXECUTE
+    # the jog goes on from where it stopped: the time held is not travelled
+    i = project.cylinder(cid).can_index
+    assert core.attitude.references(3.005)[i] == pytest.approx(stop[i], abs=2e-5)
+
+
+def test_clear_then_reset_from_a_fault(project: ProjectConfig) -> None:
+    core, _ = _bare_core(project)
+    _update(core, machine_inputs(project, t=0.0))
+    over = machine_inputs(project, t=0.1, status=replace(HEALTHY, fault=Fault.OVERPRESSURE))
+    _update(core, over)
+    assert core.request_clear()["note"] == "clearing"
+    words = _update(core, machine_inputs(project, t=0.2))
+    assert core.modes.mode is Mode.STOPPED
+    assert [w.fault_reset for w in words][:2] == [True, False] and words[-1].state == 2
+    assert core.request_reset()["accepted"] and core.modes.mode is Mode.IDLE
 
 
 # --------------------------------------------------------------------------- wiring
@@ -524,7 +604,7 @@ def _run(
         core.step(k, clock[0])
         if until is not None and core.modes.mode == until:
             return k
-        if core.modes.mode == Mode.PLANNING:
+        if core.modes.mode == Mode.STARTING:
             time.sleep(0.002)  # the planner process works in wall-clock time
     return n
 
@@ -534,11 +614,11 @@ def test_adjusts_to_example_1_and_holds(project: ProjectConfig, worker: PlannerW
     _run(core, rig, clock, 0.5)
     assert core.modes.mode == Mode.IDLE, core.modes.snapshot()
     assert core.request_adjust(2.0, 1.0)["ok"]
-    _run(core, rig, clock, 30.0, until=Mode.ADJUSTING)
-    assert core.modes.mode == Mode.ADJUSTING, core.modes.snapshot()
+    _run(core, rig, clock, 30.0, until=Mode.EXECUTE)
+    assert core.modes.mode == Mode.EXECUTE, core.modes.snapshot()
     assert rig.plc.control(clock[0]) is not None
-    _run(core, rig, clock, 60.0, until=Mode.HOLDING)
-    assert core.modes.mode == Mode.HOLDING
+    _run(core, rig, clock, 60.0, until=Mode.COMPLETE)
+    assert core.modes.mode == Mode.COMPLETE
     _run(core, rig, clock, 2.0)
     word = rig.plc.control(clock[0])
     assert word is not None and word.enable and word.mode is PlcMode.ATTITUDE_ADJUST
@@ -559,8 +639,8 @@ def test_silent_plc_faults_within_stated_cycles(
     # the shorter of the positions' and the status' timeout plus two cycles
     s = project.safety
     limit = int(min(s.sensor_timeout_ms, s.plc_heartbeat_timeout_ms) / 1e3 / core.period_s) + 2
-    k = _run(core, rig, clock, 1.0, until=Mode.FAULT)
-    assert core.modes.mode == Mode.FAULT and k <= limit, (k, limit)
+    k = _run(core, rig, clock, 1.0, until=Mode.ABORTED)
+    assert core.modes.mode == Mode.ABORTED and k <= limit, (k, limit)
     assert core.modes.fault_interlocks[0] in (Interlock.SENSOR_TIMEOUT, Interlock.PLC_HEARTBEAT)
     _run(core, rig, clock, 0.1)
     assert {Interlock.SENSOR_TIMEOUT, Interlock.PLC_HEARTBEAT} <= set(core.modes.fault_interlocks)
@@ -571,3 +651,23 @@ def test_silent_plc_faults_within_stated_cycles(
     assert core.request_reset(wait_s=0.0)["note"] == "resetting"
     _run(core, rig, clock, 0.1)
     assert core.modes.mode == Mode.IDLE
+
+
+@pytest.mark.parametrize("bad", [0.0, -1.0, 25.0, float("nan")])
+def test_the_jog_speed_key_is_bounded(project: ProjectConfig, bad: float) -> None:
+    data = project.model_dump()
+    data["control"]["manual_jog_speed_mm_s"] = bad
+    with pytest.raises(ValidationError, match="manual_jog_speed_mm_s"):
+        ProjectConfig.model_validate(data)
+
+
+def test_the_jog_speed_key_sets_the_speed(project: ProjectConfig) -> None:
+    fast = project.model_copy(
+        update={"control": project.control.model_copy(update={"manual_jog_speed_mm_s": 8.0})}
+    )
+    core = _manual_core(fast)
+    cid = fast.layers.lower.cylinders[2]
+    core.request_jog(cid, 4.0)
+    _update(core, machine_inputs(fast, t=1.0))
+    i = fast.cylinder(cid).can_index
+    assert core.attitude.references(1.25)[i] - _mid(fast)[i] == pytest.approx(2e-3)

@@ -22,10 +22,11 @@ from ipc_app.service.ctl import (
     CtlServer,
     CtlUnavailable,
     default_socket_path,
+    dispatch,
     request,
 )
 from ipc_app.service.interlocks import Cause, Interlock
-from ipc_app.service.modes import ModeMachine
+from ipc_app.service.modes import Mode, ModeMachine, UnitMode
 from ipc_app.service.sdnotify import SystemdNotifier
 from wara.cli import main
 
@@ -67,8 +68,39 @@ class FakeService:
             {} if out.accepted else {"ok": False, "code": "refused", "error": out.message}
         )
 
+    def _outcome(self, out: Any) -> dict[str, Any]:
+        return out.to_dict() | (
+            {} if out.accepted else {"ok": False, "code": "refused", "error": out.message}
+        )
+
+    def clear(self) -> dict[str, Any]:
+        return self._outcome(self.modes.clear())
+
+    def hold(self) -> dict[str, Any]:
+        return self._outcome(self.modes.hold())
+
+    def unhold(self) -> dict[str, Any]:
+        return self._outcome(self.modes.unhold())
+
+    def unit_mode(self, unit: str) -> dict[str, Any]:
+        return self._outcome(self.modes.set_unit_mode(UnitMode(unit)))
+
+    def jog(self, cylinder: str, distance_mm: float) -> dict[str, Any]:
+        self.calls.append(("jog", (cylinder, distance_mm)))
+        return self._outcome(self.modes.jog(f"{cylinder} {distance_mm:+.2f} mm"))
+
     def handlers(self) -> CtlHandlers:
-        return CtlHandlers(self.adjust, self.status, self.stop, self.reset)
+        return CtlHandlers(
+            self.adjust,
+            self.status,
+            self.stop,
+            self.reset,
+            self.clear,
+            self.hold,
+            self.unhold,
+            self.unit_mode,
+            self.jog,
+        )
 
 
 @pytest.fixture
@@ -106,7 +138,7 @@ def test_commands_round_trip(served: tuple[FakeService, Path]) -> None:
     svc, path = served
     assert request("status", socket_path=path)["mode"] == "IDLE"
     r = request("adjust", socket_path=path, roll_deg=-3.0, pitch_deg=2.0)
-    assert r["ok"] and r["mode"] == "PLANNING"
+    assert r["ok"] and r["mode"] == "STARTING"
     assert svc.calls == [("adjust", (-3.0, 2.0))]
     assert request("stop", socket_path=path)["mode"] == "IDLE"
     hb = Cause(Interlock.PLC_HEARTBEAT, detail="PLC status lost")
@@ -215,7 +247,7 @@ def test_wara_ctl_status_and_adjust(
     assert main(["ctl", "status", "--json", "--socket", str(path)]) == 0
     assert json.loads(capsys.readouterr().out)["mode"] == "IDLE"
     code = main(["ctl", "adjust", "--roll-deg", "-3", "--pitch-deg", "2", "--socket", str(path)])
-    assert code == 0 and "mode: PLANNING" in capsys.readouterr().out
+    assert code == 0 and "mode: STARTING" in capsys.readouterr().out
 
 
 def test_wara_ctl_refused_and_infeasible(
@@ -227,7 +259,7 @@ def test_wara_ctl_refused_and_infeasible(
     assert code == 3 and "target not reachable" in err and "upper_1 beyond" in err
     svc.modes.fault(Cause(Interlock.TWIST, "upper", 2.0, 1.5))
     code = main(["ctl", "--socket", str(path), "adjust", "--roll-deg", "1", "--pitch-deg", "0"])
-    assert code == 1 and "refused in FAULT" in capsys.readouterr().err
+    assert code == 1 and "refused in ABORTED" in capsys.readouterr().err
     assert main(["ctl", "--socket", str(path), "stop"]) == 0
 
 
@@ -361,7 +393,7 @@ def test_blocking_requests_are_bounded_and_never_hold_up_stop(short_tmp: Path) -
 
     def slow_adjust(roll: float, pitch: float) -> dict[str, Any]:
         release.wait(30)
-        return {"mode": "PLANNING"}
+        return {"mode": "STARTING"}
 
     h = CtlHandlers(slow_adjust, svc.status, svc.stop, svc.reset)
     with capture_logs(), CtlServer(h, short_tmp / "b.sock", max_workers=2) as server:
@@ -419,7 +451,7 @@ def test_a_dead_server_thread_is_a_fault_and_is_restarted(
         assert watch.check()  # latched and restarted
         assert server.healthy and server.restarts == 1
         st = request("status", socket_path=server.path)
-        assert st["mode"] == "FAULT"
+        assert st["mode"] == "ABORTED"
         assert [(f["interlock"], f["where"]) for f in st["faults"]] == [("control channel", "dead")]
         assert "selector state corrupted" in st["fault_reasons"][0]  # the operator sees why
         assert watch.check() and watch.outages == 1  # once per outage
@@ -432,7 +464,7 @@ def test_a_removed_socket_file_is_a_fault_and_is_bound_again(short_tmp: Path) ->
         server.path.unlink()
         assert server.state() == "socket_gone"
         assert watch.check()
-        assert request("status", socket_path=server.path)["mode"] == "FAULT"
+        assert request("status", socket_path=server.path)["mode"] == "ABORTED"
         assert [(f.interlock, f.where) for f in svc.modes.faults] == [
             (Interlock.CONTROL_CHANNEL, "socket_gone")
         ]
@@ -454,7 +486,7 @@ def test_a_stalled_server_stops_the_service(short_tmp: Path) -> None:
             threading.Event().wait(0.8)
             assert server.state() == "stalled"
             assert not watch.check()  # the service stops (systemd restarts it)
-            assert svc.modes.mode == "FAULT"
+            assert svc.modes.mode == "ABORTED"
             gate.set()
 
 
@@ -520,3 +552,46 @@ def test_the_service_handlers_answer_refusals_as_refused(short_tmp: Path) -> Non
         assert r["error"] == "target infeasible: upper_1 beyond its stroke"
         assert request("stop", socket_path=server.path)["ok"] is True
         assert request("status", socket_path=server.path)["ctl"]["state"] == "ok"
+
+
+def test_wara_ctl_packml_commands(
+    served: tuple[FakeService, Path], capsys: pytest.CaptureFixture[str]
+) -> None:
+    svc, path = served
+    sock = ["--socket", str(path)]
+    # jog only in MANUAL; the unit mode changes in IDLE
+    assert main(["ctl", *sock, "jog", "--cylinder", "main_leg_1", "--distance-mm", "2"]) == 1
+    assert "unit mode PRODUCTION" in capsys.readouterr().err
+    assert main(["ctl", *sock, "unit-mode", "MANUAL"]) == 0
+    assert main(["ctl", *sock, "jog", "--cylinder", "main_leg_1", "--distance-mm", "2"]) == 0
+    assert "mode: EXECUTE" in capsys.readouterr().out
+    assert svc.calls[-1] == ("jog", ("main_leg_1", 2.0))
+    assert main(["ctl", *sock, "unit-mode", "PRODUCTION"]) == 1  # not while moving
+    assert main(["ctl", *sock, "hold"]) == 0 and svc.modes.mode is Mode.HELD
+    assert main(["ctl", *sock, "unhold"]) == 0 and svc.modes.mode is Mode.EXECUTE
+    # a fault: clear, then reset
+    svc.modes.fault(Cause(Interlock.TWIST, "upper", 2.0, 1.5))
+    capsys.readouterr()
+    assert main(["ctl", *sock, "clear"]) == 0 and svc.modes.mode is Mode.STOPPED
+    assert main(["ctl", *sock, "reset"]) == 0 and svc.modes.mode is Mode.IDLE
+    with pytest.raises(SystemExit) as exc:
+        main(["ctl", *sock, "unit-mode", "AUTO"])
+    assert exc.value.code == 2
+    # the protocol checks the arguments itself
+    r = request("jog", socket_path=path, cylinder="main_leg_1", distance_mm=float("nan"))
+    assert (
+        r["code"] == "bad_request" and "'distance_mm' must be a finite number in mm" in r["error"]
+    )
+    r = request("unit_mode", socket_path=path, unit_mode=7)
+    assert r["code"] == "bad_request"
+
+
+def test_a_service_without_the_packml_commands_says_so() -> None:
+    svc = FakeService()
+    h = CtlHandlers(svc.adjust, svc.status, svc.stop, svc.reset)
+    r = dispatch(h, b'{"cmd": "hold"}')
+    assert r == {
+        "ok": False,
+        "code": "bad_request",
+        "error": "hold is not supported by this service",
+    }

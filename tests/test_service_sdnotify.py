@@ -37,8 +37,8 @@ def test_ready_status_watchdog_stopping_on_a_path_socket(
     assert n.enabled
     assert n.ready("IDLE, loop 200 Hz")
     assert sock.recv(4096) == b"READY=1\nSTATUS=IDLE, loop 200 Hz"
-    assert n.status("ADJUSTING")
-    assert sock.recv(4096) == b"STATUS=ADJUSTING"
+    assert n.status("EXECUTE")
+    assert sock.recv(4096) == b"STATUS=EXECUTE"
     assert n.watchdog(0.0)
     assert sock.recv(4096) == b"WATCHDOG=1"
     assert n.stopping()

@@ -48,7 +48,7 @@ def test_a_removed_socket_is_a_fault_and_the_channel_comes_back() -> None:
                     break
                 time.sleep(0.05)
                 st = _wait_status(sock, 10)
-            assert st["mode"] == "FAULT"
+            assert st["mode"] == "ABORTED"
             assert ("control channel", "socket_gone") in [
                 (f["interlock"], f["where"]) for f in st["faults"]
             ]

@@ -298,7 +298,7 @@ class Demo:
             self._k += 1
             self.core.step(self._k, self.sim.t_s)
             self.trace.add(self.sim, self.core)
-            if self.core.modes.mode == Mode.PLANNING:
+            if self.core.modes.mode == Mode.STARTING:
                 self._await_planner()
 
     def _await_planner(self) -> None:
@@ -317,14 +317,14 @@ class Demo:
             now = self.core.modes.mode
             if now == mode:
                 return True
-            if stop_on_fault and now in (Mode.FAULT, Mode.ESTOP):
+            if stop_on_fault and now in (Mode.ABORTED, Mode.ABORTED):
                 return False
             self.advance(step)
             waited += step
         return self.core.modes.mode == mode
 
     def faulted(self) -> bool:
-        return self.core.modes.mode in (Mode.FAULT, Mode.ESTOP)
+        return self.core.modes.mode in (Mode.ABORTED, Mode.ABORTED)
 
     def fault_note(self) -> str:
         """Why the service stopped: its mode and the latched fault reasons."""
@@ -356,11 +356,11 @@ class Demo:
         if not out.get("ok"):
             res.note = f"refused: {out.get('error')}"
             return res
-        if not self.wait_for(Mode.ADJUSTING, 60.0):
+        if not self.wait_for(Mode.EXECUTE, 60.0):
             res.note = f"no plan: {self.fault_note()}"
             return res
         self.progress(f"adjusting to ({roll_deg:+.1f}, {pitch_deg:+.1f}) deg")
-        if not self.wait_for(Mode.HOLDING, 300.0):
+        if not self.wait_for(Mode.COMPLETE, 300.0):
             res.note = f"did not finish: {self.fault_note()}"
             return res
         self.advance(self.core.HOLD_SETTLE_S + HOLD_MEASURE_S)
@@ -375,10 +375,10 @@ class Demo:
         res.sync_error_mm = units.to_mm(m.hold_sync_error_m)
         res.max_sync_error_mm = units.to_mm(m.max_sync_error_m)
         res.duration_s = m.duration_s
-        if self.core.modes.mode != Mode.HOLDING:
+        if self.core.modes.mode != Mode.COMPLETE:
             res.note = self.fault_note()
         res.passed = (
-            self.core.modes.mode == Mode.HOLDING
+            self.core.modes.mode == Mode.COMPLETE
             and res.attitude_error_deg <= ATTITUDE_TOL_DEG
             and res.max_twist_mm <= TWIST_TOL_MM
             and res.sync_error_mm <= SYNC_TOL_MM

@@ -491,7 +491,7 @@ def _judge(st: dict[str, Any], res: ExampleResult) -> ExampleResult:
     res.max_sync_error_mm = float(m.get("max_sync_error_mm", math.nan))
     res.duration_s = float(m.get("duration_s", math.nan))
     mode = st.get("mode")
-    if mode != "HOLDING":
+    if mode != "COMPLETE":
         res.note = f"mode {mode}: {st.get('fault_reasons') or st.get('message', '')}"
     elif not m.get("hold_samples"):
         res.note = "no standstill samples (settle time too short)"
@@ -509,7 +509,7 @@ def _judge(st: dict[str, Any], res: ExampleResult) -> ExampleResult:
         ]
         res.note = "; ".join(over)
     res.passed = (
-        mode == "HOLDING"
+        mode == "COMPLETE"
         and bool(m.get("hold_samples"))
         and res.attitude_error_deg <= ATTITUDE_TOL_DEG
         and res.max_twist_mm <= TWIST_TOL_MM
@@ -530,13 +530,13 @@ def _run_example(
 
     def done(st: dict[str, Any]) -> bool:
         watch.see(st)
-        if st.get("mode") == "HOLDING":  # holding *this* target, not the previous one
+        if st.get("mode") == "COMPLETE":  # holding *this* target, not the previous one
             target = (st.get("motion") or {}).get("target_deg") or [math.nan, math.nan]
             return abs(target[0] - roll) < 1e-9 and abs(target[1] - pitch) < 1e-9
-        return st.get("mode") in ("FAULT", "ESTOP", "IDLE")
+        return st.get("mode") in ("ABORTED", "IDLE")
 
     st = svc.wait(done, timeout_s=300.0)
-    if st is None or st.get("mode") != "HOLDING":
+    if st is None or st.get("mode") != "COMPLETE":
         mode = None if st is None else st.get("mode")
         reasons = None if st is None else st.get("fault_reasons")
         res.note = f"did not finish: mode {mode} {reasons or ''}".strip()
@@ -603,7 +603,7 @@ def service_and_simulator(
         svc = _Service(svc_child, sock)
         _wait_socket(svc_child, sock, 60.0)
         say("waiting for the service to be IDLE")
-        st = svc.wait(lambda s: s.get("mode") in ("IDLE", "FAULT", "ESTOP"), 60.0)
+        st = svc.wait(lambda s: s.get("mode") in ("IDLE", "ABORTED"), 60.0)
         if st is None or st.get("mode") != "IDLE":
             raise TwoProcessError(
                 f"service did not come up: {st and (st.get('mode'), st.get('fault_reasons'))}"

@@ -65,6 +65,11 @@ def service_handlers(
         status=lambda: core().snapshot() | {"ctl": ctl().health()},
         stop=lambda: _reply(core().modes.stop("operator stop (wara ctl)").to_dict()),
         reset=lambda: _reply(core().request_reset(wait_s=wait_s)),
+        clear=lambda: _reply(core().request_clear(wait_s=wait_s)),
+        hold=lambda: _reply(core().request_hold(wait_s=wait_s)),
+        unhold=lambda: _reply(core().request_unhold(wait_s=wait_s)),
+        unit_mode=lambda u: _reply(core().request_unit_mode(u)),
+        jog=lambda c, d: _reply(core().request_jog(c, d, wait_s=wait_s)),
     )
 
 

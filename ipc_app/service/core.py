@@ -23,7 +23,10 @@ E-stop from the PLC takes the machine to ESTOP (valves closed) until released an
 
 from __future__ import annotations
 
+import math
 import threading
+from collections import deque
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any, NamedTuple, Protocol
 
@@ -45,17 +48,44 @@ from ipc_app.service.interlocks import (
     present_causes,
     resume_cause,
 )
-from ipc_app.service.machine_io import Handshake, MachineInputs, MachineOutputs, Reader, write
-from ipc_app.service.modes import SUSPENDABLE_MODES, Mode, ModeMachine, Transition
+from ipc_app.service.machine_io import (
+    Handshake,
+    JogPath,
+    MachineInputs,
+    MachineOutputs,
+    Reader,
+    write,
+)
+from ipc_app.service.modes import (
+    PACKML_STATES,
+    SUSPENDABLE_MODES,
+    UNIT_MODES,
+    Mode,
+    ModeMachine,
+    Outcome,
+    Transition,
+    UnitMode,
+)
 from ipc_app.service.record import RunRecorder
 from ipc_app.service.worker import PlanResult
-from plc_bridge.link import IpcLink, LinkState, TargetAck, TargetRequest
+from plc_bridge.link import ControlWord, IpcLink, LinkState, TargetAck, TargetRequest
 from plc_bridge.link import Mode as PlcMode
 
 log = structlog.get_logger("wara.service")
 
-#: Numeric mode in the run record (``mode_code`` column).
-_MODE_CODES = {m: i for i, m in enumerate(Mode)}
+#: Numeric mode in the run record (``mode_code`` column): the PackML state number.
+_MODE_CODES = {m: PACKML_STATES[str(m)] for m in Mode}
+
+
+class _Call:
+    """An operator request run by the loop thread (:meth:`ServiceCore._in_loop`)."""
+
+    __slots__ = ("done", "fn", "result")
+
+    def __init__(self, fn: Callable[[MachineInputs], dict[str, Any]]) -> None:
+        self.fn = fn
+        self.result: dict[str, Any] = {}
+        self.done = threading.Event()
 
 
 class Planner(Protocol):
@@ -148,6 +178,8 @@ class ServiceCore:
         self._fresh_cycles = 0
         self._last_drive_t: float | None = None
         self._stop_ref: np.ndarray | None = None
+        self._pulse_for = "reset"
+        self._calls: deque[_Call] = deque()
         self._reset_outcome: dict[str, Any] | None = None
         self._submitted = False
         self._boot_since: float | None = None
@@ -194,30 +226,143 @@ class ServiceCore:
     # ------------------------------------------------------------------ operator side
 
     def request_reset(self, wait_s: float = 0.0) -> dict[str, Any]:
-        """Reset after a FAULT or E-STOP: the PLC is asked to clear its own latched fault
-        (``fault_reset`` in the control word, :class:`Handshake`), then the modes are
-        reset once no cause is present. With ``wait_s`` > 0 wait for the outcome."""
-        if self.modes.mode not in (Mode.FAULT, Mode.ESTOP):
-            return self.modes.reset().to_dict()  # refused, with its message
+        """Reset: from ABORTED clear first (the PLC is asked to clear its own latched
+        fault, ``fault_reset`` in the control word, :class:`Handshake`; then the modes
+        once no cause is present), then STOPPED -> IDLE. With ``wait_s`` > 0 wait for
+        the outcome."""
+        return self._after_pulse("reset", wait_s)
+
+    def request_clear(self, wait_s: float = 0.0) -> dict[str, Any]:
+        """Clear: ABORTED -> STOPPED (the PLC's fault cleared as for a reset)."""
+        return self._after_pulse("clear", wait_s)
+
+    def _after_pulse(self, event: str, wait_s: float) -> dict[str, Any]:
+        act = self.modes.reset if event == "reset" else self.modes.clear
+        if self.modes.mode != Mode.ABORTED:
+            return act().to_dict()  # a plain reset, or refused with its message
         with self._outcome_cv:
             self._reset_outcome = None
+            self._pulse_for = event
             self.handshake.request_reset()
             if wait_s <= 0:
-                return {"ok": True, "mode": str(self.modes.mode), "note": "resetting"}
+                note = "resetting" if event == "reset" else "clearing"
+                return {"ok": True, "mode": str(self.modes.mode), "note": note}
             self._outcome_cv.wait_for(lambda: self._reset_outcome is not None, timeout=wait_s)
             out = self._reset_outcome
-        return out if out is not None else self.modes.reset().to_dict()
+        return out if out is not None else act().to_dict()
 
     def _reset_step(self, now: float, present: list[Cause]) -> None:
-        """Drive a requested reset (loop thread)."""
+        """Drive a requested reset or clear (loop thread)."""
         if not self.handshake.resetting:
             return
         plc_fault = any(c.interlock is Interlock.PLC_FAULT for c in present)
         if self.handshake.reset_step(now, plc_fault):
-            out = self.modes.reset().to_dict()
+            act = self.modes.reset if self._pulse_for == "reset" else self.modes.clear
+            out = act().to_dict()
             with self._outcome_cv:
                 self._reset_outcome = out
                 self._outcome_cv.notify_all()
+
+    def request_unit_mode(self, unit: str) -> dict[str, Any]:
+        """PRODUCTION, MAINTENANCE or MANUAL; only in STOPPED, IDLE or ABORTED."""
+        try:
+            um = UnitMode(unit.upper())
+        except ValueError:
+            names = ", ".join(str(u) for u in UnitMode)
+            return {
+                "ok": False,
+                "code": "bad_request",
+                "error": f"unit mode {unit!r}: one of {names}",
+            }
+        return self.modes.set_unit_mode(um).to_dict()
+
+    def request_hold(self, wait_s: float = 0.0) -> dict[str, Any]:
+        """EXECUTE -> HELD (done by the loop: the pose where the motion stops)."""
+        return self._in_loop(self._do_hold, wait_s)
+
+    def request_unhold(self, wait_s: float = 0.0) -> dict[str, Any]:
+        """HELD -> EXECUTE once the rods are where the motion stopped (loop)."""
+        return self._in_loop(self._do_unhold, wait_s)
+
+    def request_jog(self, cylinder: str, distance_mm: float, wait_s: float = 0.0) -> dict[str, Any]:
+        """Jog one attitude cylinder by ``distance_mm`` at ``control.manual_jog_speed_mm_s``
+        (unit mode MANUAL, from IDLE or COMPLETE; the other cylinders hold)."""
+        return self._in_loop(lambda inp: self._do_jog(inp, cylinder, distance_mm), wait_s)
+
+    def _in_loop(
+        self, fn: Callable[[MachineInputs], dict[str, Any]], wait_s: float
+    ) -> dict[str, Any]:
+        call = _Call(fn)
+        self._calls.append(call)  # bounded by the control channel's worker pool
+        if wait_s > 0 and call.done.wait(wait_s):
+            return call.result
+        return {"ok": True, "mode": str(self.modes.mode), "note": "pending"}
+
+    def _run_calls(self, inp: MachineInputs) -> None:
+        while self._calls:
+            call = self._calls.popleft()
+            call.result = call.fn(inp)
+            call.done.set()
+
+    def _do_hold(self, inp: MachineInputs) -> dict[str, Any]:
+        out = self.modes.hold()
+        if out.accepted:
+            self._stopped_here(inp.t)
+        return out.to_dict()
+
+    def _do_unhold(self, inp: MachineInputs) -> dict[str, Any]:
+        if self.modes.mode != Mode.HELD:
+            return self.modes.unhold().to_dict()  # refused, with its message
+        stop_ref = self._stop_ref.tolist() if self._stop_ref is not None else None
+        cause = None if inp.positions_valid else "rod positions not valid"
+        if cause is None:
+            c = resume_cause(inp, stop_ref, self.limits)
+            cause = None if c is None else c.text()
+        if cause is not None:
+            msg = f"unhold refused: {cause}; `wara ctl stop` ends the motion"
+            return {"ok": False, "code": "refused", "error": msg, "mode": str(self.modes.mode)}
+        self._go_on(inp.t, inp.positions.value, self.modes.unhold, "operator unhold")
+        return {"ok": True, "mode": str(self.modes.mode)}
+
+    def _do_jog(self, inp: MachineInputs, cylinder: str, distance_mm: float) -> dict[str, Any]:
+        def refused(msg: str) -> dict[str, Any]:
+            return {"ok": False, "code": "refused", "error": msg, "mode": str(self.modes.mode)}
+
+        if not self.modes.allowed("jog"):
+            return self.modes.jog(cylinder).to_dict()  # refused, with its message
+        where = [
+            (name, k, i)
+            for name, idx in self.attitude.layers.items()
+            for k, i in enumerate(idx)
+            if self._by_index[i].id == cylinder
+        ]
+        if not where:
+            ids = ", ".join(self._by_index[i].id for i in self.active)
+            return refused(f"jog: {cylinder!r} is not an attitude cylinder ({ids})")
+        if not inp.positions_valid:
+            return refused("jog refused: rod positions not valid")
+        ((layer, k, i),) = where
+        x = inp.positions.value
+        d = units.mm(distance_mm)
+        end = float(x[i]) + d
+        lo, hi = self.limits.end_margin_m, self.limits.stroke_m[i] - self.limits.end_margin_m
+        if not (math.isfinite(d) and d != 0.0 and lo <= end <= hi):
+            return refused(
+                f"jog refused: {cylinder} would end at {units.to_mm(end):.1f} mm, outside "
+                f"{units.to_mm(lo):.1f}..{units.to_mm(hi):.1f} mm (stroke less the end margin)"
+            )
+        speed = units.mm(self.cfg.control.manual_jog_speed_mm_s)
+        half = self.stroke / 2
+        lo_i, up_i = self.attitude.layers["lower"], self.attitude.layers["upper"]
+        path = JogPath(
+            (x[lo_i] - half[lo_i]).tolist(), (x[up_i] - half[up_i]).tolist(), layer, k, d, speed
+        )
+        out = self.modes.jog(f"{cylinder} {distance_mm:+.2f} mm at {units.to_mm(speed):.1f} mm/s")
+        if out.accepted:
+            self.motion = MotionStats(started_s=inp.t)
+            # a trajectory by its interface (duration_s, sample, positions)
+            self.attitude.engage(x, inp.t, path)  # type: ignore[arg-type]
+        return out.to_dict()
 
     def request_adjust(
         self, roll_deg: float, pitch_deg: float, wait_s: float = 0.0, hmi_seq: int = 0
@@ -233,7 +378,7 @@ class ServiceCore:
         else:
             return {"ok": False, "code": "refused", "error": out.message, "mode": str(out.mode)}
         if wait_s <= 0:
-            return {"ok": True, "mode": str(Mode.PLANNING)}
+            return {"ok": True, "mode": str(Mode.STARTING)}
         with self._outcome_cv:
             self._outcome_cv.wait_for(lambda: self._outcome is not None, timeout=wait_s)
             result = self._outcome
@@ -249,7 +394,7 @@ class ServiceCore:
         """
         pub = self._published
         if pub is None:
-            return {"mode": str(Mode.BOOT)}
+            return {"mode": str(Mode.STOPPED)}
         snap = dict(pub.modes)
         x = pub.x
         snap.update(
@@ -277,11 +422,19 @@ class ServiceCore:
         inp = self.reader.read(now)
         self._inputs = inp
         u, ref = self.update(inp)
-        hs = self.handshake
-        enabled = self.modes.valves_enabled
-        words = hs.finish(PlcMode.ATTITUDE_ADJUST if enabled else PlcMode.IDLE, enabled)
-        write(self.link, MachineOutputs(words, u, now))
+        write(self.link, MachineOutputs(self.control_words(), u, now))
         self._publish(now, inp.positions.value, u, inp.link_state, ref)
+
+    def control_words(self) -> tuple[ControlWord, ...]:
+        """The cycle's control words after :meth:`update`: the handshake's edits, then
+        the PLC mode and enable, the PackML state and unit mode."""
+        enabled = self.modes.valves_enabled
+        return self.handshake.finish(
+            PlcMode.ATTITUDE_ADJUST if enabled else PlcMode.IDLE,
+            enabled,
+            _MODE_CODES[self.modes.mode],
+            UNIT_MODES[self.modes.unit_mode],
+        )
 
     def update(self, inp: MachineInputs) -> tuple[np.ndarray, np.ndarray | None]:
         """The cycle's decisions from its inputs: interlocks, modes, planner hand-off,
@@ -300,7 +453,7 @@ class ServiceCore:
         present = present_causes(inp, self.limits)
         self._present = present
         losses = link_losses(inp)
-        if self.modes.mode == Mode.BOOT:
+        if not self.modes.booted:
             if self._boot_since is None:
                 self._boot_since = now
             # every input fresh, and the PLC hearing our commands
@@ -331,9 +484,10 @@ class ServiceCore:
                 self.modes.stop("HMI cancel")
                 self.handshake.ack(TargetAck.NONE, hmi.seq)
 
+        self._run_calls(inp)
         self._planning(x, valid, now)
 
-        if self.modes.mode == Mode.ADJUSTING and self.attitude.motion_done(now):
+        if self.modes.mode == Mode.EXECUTE and self.attitude.motion_done(now):
             self.modes.motion_done()
             self.handshake.ack(TargetAck.COMPLETED)
             self.attitude.hold(self.attitude.final_references())
@@ -384,9 +538,7 @@ class ServiceCore:
 
     def _suspend(self, now: float, losses: list[str], mode: Mode) -> None:
         reason = "; ".join(losses)
-        ref = self.attitude.last_references
-        self._stop_ref = (ref if ref is not None else self.attitude.references(now)).copy()
-        self._suspended_at = now
+        self._stopped_here(now)
         self._fresh_cycles = 0
         if not self.modes.suspend(reason).accepted:
             return
@@ -395,15 +547,32 @@ class ServiceCore:
         if self.record is not None:
             self.record.event(now, "suspended", reason=reason, from_mode=str(mode))
 
-    def _resume(self, now: float, x: np.ndarray) -> None:
+    def _stopped_here(self, now: float) -> None:
+        """A motion stops (suspended or held): where the references were, and when."""
+        ref = self.attitude.last_references
+        self._stop_ref = (ref if ref is not None else self.attitude.references(now)).copy()
+        self._suspended_at = now
+
+    def _go_on(
+        self, now: float, x: np.ndarray, event: Callable[[str], Outcome], reason: str
+    ) -> float:
+        """The stopped motion goes on (resume, unhold): the trajectory shifted by the time
+        stopped, the controllers reset at ``x``. Returns the shift."""
         last = self._last_drive_t if self._last_drive_t is not None else self._suspended_at
         shift = max(0.0, now - last - self.period_s)  # the next reference follows the last
-        suspended_s = now - self._suspended_at
         self.attitude.resume(x, shift)
         self.motion.started_s += shift
-        self.modes.resume(
+        event(reason)
+        return shift
+
+    def _resume(self, now: float, x: np.ndarray) -> None:
+        suspended_s = now - self._suspended_at
+        shift = self._go_on(
+            now,
+            x,
+            self.modes.resume,
             f"frames fresh for {self.RESUME_FRESH_CYCLES} cycles, rods within the sync band "
-            f"after {units.to_ms(suspended_s):.0f} ms"
+            f"after {units.to_ms(suspended_s):.0f} ms",
         )
         self.resumes += 1
         log.warning("resumed", suspended_s=suspended_s, shift_s=shift, resumes=self.resumes)
@@ -412,7 +581,7 @@ class ServiceCore:
 
     def _planning(self, x: np.ndarray, valid: bool, now: float) -> None:
         mode = self.modes.mode
-        if mode == Mode.PLANNING and not self._submitted and valid:
+        if mode == Mode.STARTING and not self._submitted and valid:
             target = self.modes.target_deg
             if target is not None:
                 self._request_id += 1
@@ -432,7 +601,7 @@ class ServiceCore:
         if res is None or res.request_id != self._request_id:
             return
         self._submitted = False
-        if self.modes.mode != Mode.PLANNING:
+        if self.modes.mode != Mode.STARTING:
             return  # stopped or faulted meanwhile: the plan is dropped
         self.handshake.ack(TargetAck.ACCEPTED if res.ok and res.feasible else TargetAck.REJECTED)
         if not res.ok:
@@ -450,7 +619,7 @@ class ServiceCore:
                 plan=res.plan,
             )
             self.attitude.engage(x, now, res.trajectory)
-            verdict = {"ok": True, "mode": str(Mode.ADJUSTING), "duration_s": res.duration_s}
+            verdict = {"ok": True, "mode": str(Mode.EXECUTE), "duration_s": res.duration_s}
         log.info("plan", request_id=res.request_id, **verdict)
         if self.record is not None:
             self.record.event(now, "plan", request_id=res.request_id, plan=res.plan, **verdict)
@@ -462,7 +631,7 @@ class ServiceCore:
         m = self.motion
         sync = max(g.sync_error_m for g in self.attitude.metrics.values())
         tw = max(g.twist_m for g in self.attitude.metrics.values())
-        if self.modes.mode == Mode.ADJUSTING:
+        if self.modes.mode == Mode.EXECUTE:
             m.max_twist_m = max(m.max_twist_m, tw)
             m.max_sync_error_m = max(m.max_sync_error_m, sync)
         elif now - (m.started_s + m.duration_s) >= self.HOLD_SETTLE_S:

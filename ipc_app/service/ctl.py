@@ -13,6 +13,13 @@ adjust     ``{"cmd": "adjust", "roll_deg": R,           what the service's handl
 status     ``{"cmd": "status"}``                        the service's status (``mode``, ...)
 stop       ``{"cmd": "stop"}``                          ``mode``
 reset      ``{"cmd": "reset"}``                         ``mode``
+clear      ``{"cmd": "clear"}``                         ``mode``
+hold       ``{"cmd": "hold"}``                          ``mode``
+unhold     ``{"cmd": "unhold"}``                        ``mode``
+unit_mode  ``{"cmd": "unit_mode", "unit_mode": U}``     ``mode`` (U: PRODUCTION, MAINTENANCE,
+                                                        MANUAL)
+jog        ``{"cmd": "jog", "cylinder": ID,             ``mode``
+           "distance_mm": D}``
 =========  ===========================================  =====================================
 
 A refused or failed request answers ``{"ok": false, "error": "one line", "code": C}`` with
@@ -82,7 +89,9 @@ log = structlog.get_logger("wara.service.ctl")
 SOCKET_NAME = "ctl.sock"
 SYSTEM_RUNTIME_DIR = Path("/run/wara")
 MAX_LINE_BYTES = 64 * 1024
-COMMANDS = ("adjust", "status", "stop", "reset")
+COMMANDS = ("adjust", "status", "stop", "reset", "clear", "hold", "unhold", "unit_mode", "jog")
+#: The longest cylinder id a ``jog`` request may name.
+MAX_ID_CHARS = 40
 #: Commands answered by the I/O thread itself: quick, and never queued behind others.
 INLINE_COMMANDS = frozenset({"status", "stop"})
 #: Largest reply the client reads (a status is a few KiB).
@@ -129,23 +138,36 @@ class CtlHandlers:
     status: Callable[[], Reply]
     stop: Callable[[], Reply]
     reset: Callable[[], Reply]
+    #: the PackML commands beyond these four (None: refused as not supported)
+    clear: Callable[[], Reply] | None = None
+    hold: Callable[[], Reply] | None = None
+    unhold: Callable[[], Reply] | None = None
+    unit_mode: Callable[[str], Reply] | None = None
+    jog: Callable[[str, float], Reply] | None = None
 
 
 def _error(code: str, message: str) -> Reply:
     return {"ok": False, "error": message, "code": code}
 
 
-def _number(req: Mapping[str, Any], key: str) -> float:
+def _number(req: Mapping[str, Any], key: str, unit: str = "degrees") -> float:
     v = req.get(key)
     if isinstance(v, bool) or not isinstance(v, int | float):
-        raise ValueError(f"{key!r} must be a finite number in degrees, got {_brief(v)}")
+        raise ValueError(f"{key!r} must be a finite number in {unit}, got {_brief(v)}")
     try:
         f = float(v)
     except OverflowError:
         f = math.inf
     if not math.isfinite(f):
-        raise ValueError(f"{key!r} must be a finite number in degrees, got {_brief(v)}")
+        raise ValueError(f"{key!r} must be a finite number in {unit}, got {_brief(v)}")
     return f
+
+
+def _name(req: Mapping[str, Any], key: str) -> str:
+    v = req.get(key)
+    if not isinstance(v, str) or not 0 < len(v) <= MAX_ID_CHARS:
+        raise ValueError(f"{key!r} must be a name of 1..{MAX_ID_CHARS} characters, got {_brief(v)}")
+    return v
 
 
 def _brief(v: Any) -> str:
@@ -163,7 +185,7 @@ class Request:
     """One parsed, checked request: the command and its arguments."""
 
     cmd: str
-    args: tuple[float, ...] = ()
+    args: tuple[Any, ...] = ()
 
 
 def parse(line: bytes) -> Request | Reply:
@@ -179,6 +201,16 @@ def parse(line: bytes) -> Request | Reply:
     cmd = req.get("cmd")
     if not isinstance(cmd, str) or cmd not in COMMANDS:
         return _error("bad_request", f"unknown command {_brief(cmd)}; expected one of {COMMANDS}")
+    if cmd == "unit_mode":
+        try:
+            return Request(cmd, (_name(req, "unit_mode"),))
+        except ValueError as exc:
+            return _error("bad_request", str(exc))
+    if cmd == "jog":
+        try:
+            return Request(cmd, (_name(req, "cylinder"), _number(req, "distance_mm", "mm")))
+        except ValueError as exc:
+            return _error("bad_request", str(exc))
     if cmd != "adjust":
         return Request(cmd)
     try:
@@ -199,8 +231,13 @@ def call(handlers: CtlHandlers, req: Request) -> Reply:
             reply = handlers.status()
         elif req.cmd == "stop":
             reply = handlers.stop()
-        else:
+        elif req.cmd == "reset":
             reply = handlers.reset()
+        else:
+            fn = getattr(handlers, req.cmd)
+            if fn is None:
+                return _error("bad_request", f"{req.cmd} is not supported by this service")
+            reply = fn(*req.args)
     except ValueError as exc:
         return _error("bad_request", str(exc))
     except Exception as exc:

@@ -41,7 +41,7 @@ class Applies(StrEnum):
     """When a check runs."""
 
     ALWAYS = "always (after start-up)"
-    DRIVEN = "valves driven (ADJUSTING, HOLDING)"
+    DRIVEN = "valves driven (EXECUTE, COMPLETE)"
     SUSPENDED = "SUSPENDED, before the motion resumes"
     EVENT = "when the planner answers"
 

@@ -13,7 +13,7 @@ that fits reports the count (``log_records_dropped``).
 
 One JSON object per line, e.g.::
 
-    {"event": "mode", "from_mode": "IDLE", "mode": "PLANNING", "reason": "adjust to ...",
+    {"event": "mode", "from_mode": "IDLE", "mode": "STARTING", "reason": "adjust to ...",
      "level": "info", "logger": "wara.service.modes", "timestamp": "2026-...Z"}
 
 Usage (once, at service start; :meth:`LoggingHandle.stop` flushes at shutdown)::

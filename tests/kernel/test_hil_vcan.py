@@ -242,7 +242,7 @@ def hil_run(tmp_path_factory: pytest.TempPathFactory) -> Iterator[HilRun]:
         def idle() -> dict[str, Any] | None:
             alive("service")
             st = _status(sock) if sock.exists() else None
-            return st if st and st.get("mode") in ("IDLE", "FAULT", "ESTOP") else None
+            return st if st and st.get("mode") in ("IDLE", "ABORTED") else None
 
         st = _wait(idle, 300.0, "the service to come up")
         assert st["mode"] == "IDLE", st
@@ -254,11 +254,11 @@ def hil_run(tmp_path_factory: pytest.TempPathFactory) -> Iterator[HilRun]:
             s = _status(sock)
             if s is None:
                 return None
-            if s.get("mode") in ("FAULT", "ESTOP", "IDLE"):
+            if s.get("mode") in ("ABORTED", "IDLE"):
                 return s  # finished, wrongly: the tests say why
             target = (s.get("motion") or {}).get("target_deg") or [math.nan, math.nan]
             at = abs(target[0] - TARGET[0]) < 1e-9 and abs(target[1] - TARGET[1]) < 1e-9
-            return s if s.get("mode") == "HOLDING" and at else None
+            return s if s.get("mode") == "COMPLETE" and at else None
 
         holding: dict[str, Any] = {"mode": "never asked"}
         if adjust.returncode == 0:
@@ -297,13 +297,13 @@ def test_service_reaches_example_1_and_holds_without_fault(hil_run: HilRun) -> N
         r.log("service.log")[-3000:],
     )
     st = r.holding
-    assert st.get("mode") == "HOLDING", (st, r.log("service.log")[-3000:])
+    assert st.get("mode") == "COMPLETE", (st, r.log("service.log")[-3000:])
     assert not st.get("fault_reasons")
     achieved = st["motion"]["achieved_deg"]  # from the measured rod positions
     assert abs(achieved[0] - TARGET[0]) <= 10 * ATTITUDE_TOL_DEG, st["motion"]
     assert abs(achieved[1] - TARGET[1]) <= 10 * ATTITUDE_TOL_DEG, st["motion"]
     # Still holding after the injections, the same target, nothing latched.
-    assert r.after.get("mode") == "HOLDING" and not r.after.get("fault_reasons"), r.after
+    assert r.after.get("mode") == "COMPLETE" and not r.after.get("fault_reasons"), r.after
     assert r.after["motion"]["target_deg"] == st["motion"]["target_deg"]
     # Both processes stopped cleanly on SIGTERM.
     assert r.exit_codes == {"service": 0, "hil": 0}, (r.exit_codes, r.log("hil.log")[-2000:])
@@ -325,7 +325,7 @@ def test_wrong_crc_and_counter_on_the_service_ids_are_rejected_and_counted(
     log = r.log("service.log")
     assert "PLC_Status (0x090) rejected: crc_error" in log
     assert "PLC_Status (0x090) rejected: counter_invalid" in log
-    assert r.after.get("estop") in (False, None) and r.after.get("mode") == "HOLDING"
+    assert r.after.get("estop") in (False, None) and r.after.get("mode") == "COMPLETE"
 
 
 def test_frame_from_a_stranger_id_moves_nothing(hil_run: HilRun) -> None:

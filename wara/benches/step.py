@@ -96,9 +96,9 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
             out = core.request_adjust(*EXAMPLE)
             if not out.get("ok"):
                 raise RuntimeError(f"adjust refused: {out}")
-            if not demo.wait_for(Mode.ADJUSTING, 60.0):
+            if not demo.wait_for(Mode.EXECUTE, 60.0):
                 raise RuntimeError(f"no plan: {core.modes.snapshot()}")
-            if not demo.wait_for(Mode.HOLDING, 60.0):
+            if not demo.wait_for(Mode.COMPLETE, 60.0):
                 raise RuntimeError(f"did not finish: {core.modes.snapshot()}")
             demo.advance(hold_s)
             final_mode = str(core.modes.mode)

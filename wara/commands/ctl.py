@@ -3,14 +3,17 @@
     wara ctl adjust --roll-deg -3 --pitch-deg 2
     wara ctl status [--json]
     wara ctl stop
-    wara ctl reset
+    wara ctl reset                  # from ABORTED: clear (PLC fault reset), then reset
+    wara ctl clear | hold | unhold
+    wara ctl unit-mode PRODUCTION|MAINTENANCE|MANUAL
+    wara ctl jog --cylinder main_leg_1 --distance-mm 2   # MANUAL only
     wara ctl --socket /tmp/wara-test/ctl.sock status
 
 The socket defaults to the service's (``$WARA_CTL_SOCKET``, ``/run/wara/ctl.sock`` on an
 installed IPC, see :func:`ipc_app.service.ctl.default_socket_path`); it is owner-only,
 so run as the service user (``sudo -u wara wara ctl status``).
 
-Exit codes: 0 accepted; 1 refused by the service (e.g. adjust while FAULT, reset while
+Exit codes: 0 accepted; 1 refused by the service (e.g. adjust while ABORTED, reset while
 the cause is still present, or ``busy`` after the retries); 3 infeasible target (the
 planner's reasons are printed); 2 bad arguments or no service listening (one line on
 stderr). A full listen queue and a ``busy`` answer are retried for up to 5 s.
@@ -40,7 +43,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
         "ctl",
         parents=[common],
-        help="control the running service (adjust, status, stop, reset)",
+        help="control the running service (adjust, status, stop, reset, hold, jog, ...)",
         description="Send one command to the running W-ARa service over its local socket.",
     )
     verbs = p.add_subparsers(dest="verb", metavar="VERB", parser_class=type(p))
@@ -51,7 +54,17 @@ def register(sub: argparse._SubParsersAction) -> None:
     adj.add_argument("--timeout-s", type=float, default=60.0, help="wait this long for the answer")
     verbs.add_parser("status", parents=[common], help="mode, faults, loop statistics")
     verbs.add_parser("stop", parents=[common], help="controlled stop: valves closed, load held")
-    verbs.add_parser("reset", parents=[common], help="clear a latched FAULT once its cause is gone")
+    verbs.add_parser(
+        "reset", parents=[common], help="ABORTED (clear first) or STOPPED -> IDLE, cause gone"
+    )
+    verbs.add_parser("clear", parents=[common], help="ABORTED -> STOPPED once the cause is gone")
+    verbs.add_parser("hold", parents=[common], help="EXECUTE -> HELD: stop the motion where it is")
+    verbs.add_parser("unhold", parents=[common], help="HELD -> EXECUTE: the motion goes on")
+    um = verbs.add_parser("unit-mode", parents=[common], help="PackML unit mode")
+    um.add_argument("unit_mode", choices=("PRODUCTION", "MAINTENANCE", "MANUAL"))
+    jog = verbs.add_parser("jog", parents=[common], help="MANUAL: move one cylinder slowly")
+    jog.add_argument("--cylinder", required=True, help="attitude cylinder id, e.g. main_leg_1")
+    jog.add_argument("--distance-mm", type=float, required=True, help="rod travel, mm (+ out)")
     p.set_defaults(func=run)
 
 
@@ -63,9 +76,18 @@ def run(args: argparse.Namespace) -> int:
             raise UsageError("--roll-deg and --pitch-deg must be finite numbers")
         fields = {"roll_deg": args.roll_deg, "pitch_deg": args.pitch_deg}
         timeout_s = args.timeout_s
+    elif args.verb == "unit-mode":
+        fields = {"unit_mode": args.unit_mode}
+    elif args.verb == "jog":
+        if not math.isfinite(args.distance_mm):
+            raise UsageError("--distance-mm must be a finite number")
+        fields = {"cylinder": args.cylinder, "distance_mm": args.distance_mm}
     try:
         reply = request(
-            args.verb, socket_path=getattr(args, "socket", None), timeout_s=timeout_s, **fields
+            args.verb.replace("-", "_"),
+            socket_path=getattr(args, "socket", None),
+            timeout_s=timeout_s,
+            **fields,
         )
     except CtlError as exc:
         raise UsageError(str(exc)) from None

@@ -245,10 +245,10 @@ def soak(workdir: Path, config_path: str, duration_s: float, seed: int) -> dict[
             reasons = list((st or {}).get("fault_reasons") or [what])
             faults.append({"at_s": round(time.monotonic() - t_start, 1), "reasons": reasons})
             _say(f"LATCHED FAULT: {'; '.join(reasons)}")
-            if len(faults) >= MAX_FAULTS or (st or {}).get("mode") not in ("FAULT", "ESTOP"):
+            if len(faults) >= MAX_FAULTS or (st or {}).get("mode") not in ("ABORTED",):
                 return False
             svc.call("reset")
-            back = svc.wait(lambda s: s.get("mode") in ("IDLE", "HOLDING"), 10.0)
+            back = svc.wait(lambda s: s.get("mode") in ("IDLE", "COMPLETE"), 10.0)
             _say(f"reset: {'back in ' + back['mode'] if back else 'the service stays faulted'}")
             if back is not None:
                 drawer.start_from(back)
@@ -261,8 +261,8 @@ def soak(workdir: Path, config_path: str, duration_s: float, seed: int) -> dict[
             if not reply.get("ok"):
                 st = svc.status()
                 drawer.start_from(st)
-                if st.get("mode") in ("FAULT", "ESTOP"):
-                    if not latch(st, "refused in FAULT"):
+                if st.get("mode") in ("ABORTED",):
+                    if not latch(st, "refused in ABORTED"):
                         break
                     continue
                 why = reply.get("error") or reply.get("reasons") or reply.get("code")
@@ -276,13 +276,13 @@ def soak(workdir: Path, config_path: str, duration_s: float, seed: int) -> dict[
                 watch.see(st)
                 progress(st)
                 mode = st.get("mode")
-                if mode == "HOLDING":
+                if mode == "COMPLETE":
                     tgt = (st.get("motion") or {}).get("target_deg") or [math.nan] * 2
                     return abs(tgt[0] - r) < 1e-9 and abs(tgt[1] - p) < 1e-9
-                return mode in ("FAULT", "ESTOP", "IDLE")
+                return mode in ("ABORTED", "IDLE")
 
             done = svc.wait(settled, timeout_s=300.0, poll_s=0.25)
-            if done is None or done.get("mode") != "HOLDING":
+            if done is None or done.get("mode") != "COMPLETE":
                 mode = None if done is None else done.get("mode")
                 if not latch(done, f"move ended in {mode}"):
                     break
@@ -307,7 +307,7 @@ def soak(workdir: Path, config_path: str, duration_s: float, seed: int) -> dict[
             while ok and time.monotonic() < hold_end:
                 st = svc.status()
                 watch.see(st)
-                if st.get("mode") in ("FAULT", "ESTOP"):
+                if st.get("mode") in ("ABORTED",):
                     ok = latch(st, "fault while holding")
                     break
                 time.sleep(0.25)
@@ -323,7 +323,7 @@ def soak(workdir: Path, config_path: str, duration_s: float, seed: int) -> dict[
         svc.wait(reported, 10.0, 0.5)
         final = svc.status()
         watch.see(final)
-        if final.get("mode") in ("FAULT", "ESTOP"):
+        if final.get("mode") in ("ABORTED",):
             faults.append(
                 {
                     "at_s": round(time.monotonic() - t_start, 1),

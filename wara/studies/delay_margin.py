@@ -82,7 +82,7 @@ def run_one(
         out.max_twist_mm = res.max_twist_mm
         start = len(demo.trace.t)
         held = 0.0
-        while out.reached_target and held < hold_s and demo.core.modes.mode == Mode.HOLDING:
+        while out.reached_target and held < hold_s and demo.core.modes.mode == Mode.COMPLETE:
             step = min(1.0, hold_s - held)  # one second at a time: stop at a fault
             demo.advance(step)
             held += step
@@ -100,7 +100,7 @@ def run_one(
         demo.close()
     out.stable = (
         out.reached_target
-        and out.mode == Mode.HOLDING.name
+        and out.mode == Mode.COMPLETE.name
         and bool(out.hold_sync_error_mm)
         and max(out.hold_sync_error_mm.values()) <= SYNC_TOL_MM
     )
