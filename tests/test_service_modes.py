@@ -358,3 +358,11 @@ def test_packml_numbers_cover_every_state_and_the_dbc_tables() -> None:
     assert ctl.signal("UnitMode").choices == {0: "UNDEFINED"} | {
         v: str(k) for k, v in UNIT_MODES.items()
     }
+
+
+def test_a_reset_after_an_abort_during_start_up_leaves_the_start_up_to_finish() -> None:
+    m = ModeMachine()
+    m.fault(Cause(Interlock.PLC_HEARTBEAT, detail="PLC status lost"))
+    out = m.reset()
+    assert out.accepted and m.mode is Mode.STOPPED and "start-up" in out.message
+    assert m.boot_complete().mode is Mode.IDLE

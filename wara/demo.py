@@ -310,7 +310,7 @@ class Demo:
 
     def wait_for(self, mode: Mode, timeout_s: float, *, stop_on_fault: bool = True) -> bool:
         """Advance until the service is in ``mode`` (machine time in lockstep); False at
-        once when it latches a FAULT or E-STOP on the way (``stop_on_fault``)."""
+        once when it latches a fault or the e-stop (ABORTED) on the way (``stop_on_fault``)."""
         waited = 0.0
         step = 0.05
         while waited < timeout_s:

@@ -13,7 +13,7 @@ so the multicast traffic never reaches the host's network:
    :class:`NetnsUnavailable`, one line, exit 2.
 2. :func:`run_inside_netns` starts the simulator, then the service, and drives the
    service only through its control socket (as ``wara ctl`` does): waits for IDLE, runs
-   the examples one after another (``adjust`` -> HOLDING -> ``settle_s`` of standstill ->
+   the examples one after another (``adjust`` -> COMPLETE -> ``settle_s`` of standstill ->
    the status ``motion`` block), keeps the run going until the measured window spans
    ``min_run_s`` of loop cycles, then stops both with SIGTERM (kill after a timeout).
 
@@ -583,7 +583,7 @@ def service_and_simulator(
     try:
         # The simulator compiles its plant on first use (numba; tens of seconds on a fresh
         # machine): start the service only once the simulated PLC is on the wire, or the
-        # service's start-up window would rightly end in a FAULT.
+        # service's start-up window would rightly end ABORTED.
         say("waiting for the simulator to run")
         _wait_running(sim, SIM_START_TIMEOUT_S)
         svc_child = _Child(

@@ -22,7 +22,7 @@ Suggested wiring (the loop thread only calls non-blocking methods)::
     ctl = CtlServer(CtlHandlers(adjust, status, stop, reset), socket_path); ctl.start()
     loop = FixedRateLoop(step, cfg.control.period_s, realtime=cfg.control.realtime,
                          on_stats=lambda s: log.info("loop_stats", **s))
-    modes.boot_complete()                                      # BOOT -> IDLE, valves closed
+    modes.boot_complete()                                      # STOPPED -> IDLE, valves closed
     freeze_startup_heap(); loop.start()
     notifier.ready("IDLE")
 

@@ -8,7 +8,7 @@ WATCHDOG is sent from the loop thread itself, so a stalled loop is restarted by 
 SIGTERM/SIGINT stop it: valves commanded closed, then everything shut down in order.
 
 The control channel is supervised (:class:`CtlWatch`): when its server thread ends or
-the socket file goes away, FAULT is latched (the operator lost ``stop``) and the server is
+the socket file goes away, ABORTED is latched (the operator lost ``stop``) and the server is
 restarted; ``wara ctl status`` shows it under ``ctl``. A server that stalls, or cannot be
 restarted, stops the service in order (exit 1, systemd restarts it), and the loop holds
 back WATCHDOG while the channel is unhealthy.

@@ -1,4 +1,4 @@
-"""The service's control step: read -> interlocks -> modes -> update -> write.
+"""The service's control step: read -> update (interlocks, modes, control) -> write.
 
 :class:`ServiceCore` owns no thread and no clock: :meth:`ServiceCore.step` is called once
 per period with the time, by :class:`~ipc_app.service.loop.FixedRateLoop` in the service
@@ -9,7 +9,7 @@ channel's threads only call the (thread-safe) mode machine and read the last sna
 
 Interlocks are data (:mod:`ipc_app.service.interlocks`: which one, its config key, when
 it applies); a tripped check is a :class:`~ipc_app.service.interlocks.Cause` and the
-reaction a controlled stop: valves closed, load held, FAULT latched until ``reset``.
+reaction a controlled stop: valves closed, load held, ABORTED latched until ``reset``.
 
 A short loss of the link (the active group's rod positions or the PLC status stale, or
 the PLC reporting the IPC's commands stale) suspends a motion instead (SUSPENDED: valves
@@ -18,7 +18,13 @@ closed, the trajectory clock stopped). Once fresh frames are back for
 where they stopped, the motion resumes by itself with the trajectory shifted in time; a
 loss longer than its timeout latches the fault.
 
-E-stop from the PLC takes the machine to ESTOP (valves closed) until released and reset.
+E-stop from the PLC takes the machine to ABORTED (valves closed) until released and reset.
+The modes are PackML states (:mod:`ipc_app.service.modes`, docs/modes.md).
+
+Over 500 lines because the step and the operator requests it serves (adjust, reset and
+clear, hold and unhold, jog) work on the same state: the modes, the controllers, the
+reference where a motion stopped; the checks themselves are in interlocks.py and the
+inputs, outputs and handshake in machine_io.py.
 """
 
 from __future__ import annotations
@@ -77,6 +83,10 @@ log = structlog.get_logger("wara.service")
 _MODE_CODES = {m: PACKML_STATES[str(m)] for m in Mode}
 
 
+#: Modes at the start of a cycle in which its motion checks may run.
+_LIMIT_MODES = frozenset({Mode.EXECUTE, Mode.COMPLETE, Mode.SUSPENDED})
+
+
 class _Call:
     """An operator request run by the loop thread (:meth:`ServiceCore._in_loop`)."""
 
@@ -133,7 +143,7 @@ class _Published(NamedTuple):
 class ServiceCore:
     """One IPC service: modes, interlocks, planner hand-off and the attitude loops."""
 
-    #: Cycles of HOLDING before the standstill figures are taken (let the hold settle).
+    #: Seconds of COMPLETE before the standstill figures are taken (let the hold settle).
     HOLD_SETTLE_S = 1.0
     #: Cycles of fresh frames before a suspended motion is checked and resumed.
     RESUME_FRESH_CYCLES = 3
@@ -419,7 +429,9 @@ class ServiceCore:
         """One cycle: read the machine, update the modes and controllers, write."""
         self._now = now
         self.cycles += 1
-        inp = self.reader.read(now)
+        # the limit switches only where the stroke-end check may run this cycle (the
+        # valve modes, and SUSPENDED, which may resume before the checks)
+        inp = self.reader.read(now, self.modes.mode in _LIMIT_MODES)
         self._inputs = inp
         u, ref = self.update(inp)
         write(self.link, MachineOutputs(self.control_words(), u, now))

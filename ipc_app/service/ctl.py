@@ -25,7 +25,7 @@ jog        ``{"cmd": "jog", "cylinder": ID,             ``mode``
 A refused or failed request answers ``{"ok": false, "error": "one line", "code": C}`` with
 ``C`` one of ``bad_request`` (not JSON, nested too deeply, unknown command, missing or
 non-finite number, line longer than :data:`MAX_LINE_BYTES`), ``refused`` (the mode
-machine said no, e.g. adjust while FAULT), ``busy`` (every worker busy with an ``adjust``
+machine said no, e.g. adjust while ABORTED), ``busy`` (every worker busy with an ``adjust``
 or ``reset``; or no slot for a new client), ``infeasible`` (the planner's ``reasons`` list
 is included) or ``internal`` (a handler raised; logged).
 

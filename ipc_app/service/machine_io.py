@@ -56,7 +56,8 @@ class MachineInputs:
     #: the IPC's bus can send (not off or down)
     bus_ok: bool
     #: per active cylinder (in :attr:`ServiceCore.active` order): at a limit switch;
-    #: None when the limit-switch frame is stale
+    #: None when the limit-switch frame is stale, or not read (``read(limits=False)``:
+    #: in the modes where no check uses it)
     at_limit: Sequence[bool] | None
     #: a new HMI request (a TargetSeq not seen before), or None
     hmi: HmiTarget | None
@@ -86,12 +87,14 @@ class Reader:
         self._active_arr = np.array(self.active, dtype=np.intp)
         self._limits_of: tuple[LimitSwitches | None, Sequence[bool] | None] = (None, None)
 
-    def read(self, now: float) -> MachineInputs:
+    def read(self, now: float, limits_needed: bool = True) -> MachineInputs:
+        """The cycle's inputs; the limit switches only when ``limits_needed`` (their
+        frame is decoded per word: the loop asks only in the modes that check them)."""
         link = self.link
         link.poll(now)
         pos = link.positions_m(now)
         valid = bool(pos.valid[self._active_arr].all())
-        limits = link.limit_switches(now)
+        limits = link.limit_switches(now) if limits_needed else None
         if limits is not self._limits_of[0]:
             at = None
             if limits is not None:
@@ -111,7 +114,7 @@ class Reader:
             status_age_s=age,
             status_stale=age > link.status_stale_s,
             bus_ok=link.bus_health.can_send(),
-            at_limit=self._limits_of[1],
+            at_limit=self._limits_of[1] if limits_needed else None,
             hmi=link.new_hmi_request(now),
             link_state=link.state(now),
         )

@@ -40,6 +40,9 @@ a lasting condition is one entry, and only a new entry is logged.
 
 The machine is thread-safe (one short re-entrant lock): the control channel thread calls the
 operator requests while the loop thread calls the rest.
+
+Over 500 lines because the rules, the machine that follows them and their rendering
+for the docs are one unit: a rule changed here changes the docs' table and diagram.
 """
 
 from __future__ import annotations
@@ -481,6 +484,9 @@ class ModeMachine:
                 out = self.clear()
                 if not out.accepted:
                     return Outcome(False, s.mode, out.message.replace("clear", "reset", 1))
+                if not s.booted:  # aborted during start-up: it completes by itself
+                    s.last_message = "cleared; IDLE once every input is fresh (start-up)"
+                    return Outcome(True, s.mode, s.last_message)
             if s.mode != Mode.STOPPED or not s.booted:
                 why = "start-up not complete" if s.mode == Mode.STOPPED else f"mode is {s.mode}"
                 return self._refuse("reset", f"nothing to reset: {why}")

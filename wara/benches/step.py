@@ -3,14 +3,14 @@
 The HIL simulator and the service alternate in one thread on the in-process ``virtual``
 bus (:class:`wara.demo.Demo` in ``lockstep``), with the real planner worker process and a
 run record in a temporary directory, as in the service: IDLE, then Example 1 (roll 2,
-pitch 1 deg) through PLANNING, ADJUSTING and HOLDING. Logs go to stderr (JSON lines), the
+pitch 1 deg) through STARTING, EXECUTE and COMPLETE. Logs go to stderr (JSON lines), the
 result to stdout. Each step is timed around
 ``ServiceCore.step`` only (the simulator's step is not counted): the loop thread's CPU
 (``time.thread_time_ns``) and the wall time, as p50 / p99 / max in ms per mode (the mode
 at the start of the step) and over all steps. Before the first timed step the start-up
 heap is frozen, as the service's loop does.
 
-``--quick``: 0.5 s of IDLE and 1 s of HOLDING instead of 3 s and 4 s (the motion takes
+``--quick``: 0.5 s of IDLE and 1 s of COMPLETE instead of 3 s and 4 s (the motion takes
 its 6.1 s either way). Compare figures as ratios within one run or between runs close
 in time: the machine is shared.
 """

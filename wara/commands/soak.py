@@ -6,7 +6,7 @@ The soak moves the machine from target to target across the reachable workspace
 (roll ``±ROLL_DEG``, pitch ``±PITCH_DEG``): each target is drawn at random (``--seed``)
 and kept only if the planner finds it feasible from where the previous one ends; it goes
 to the service through its control socket (as ``wara ctl adjust``), the soak waits for
-HOLDING, holds ``HOLD_S`` and draws the next, until the time is up.
+COMPLETE, holds ``HOLD_S`` and draws the next, until the time is up.
 
 Reported (JSON on stdout with ``--json``, else a few lines; a progress line on stderr per
 move and every ~10 s): moves done and refused, loop cycles and overruns after start-up

@@ -12,7 +12,7 @@ saw across two processes with the former LADRC tuning).
 This study runs the lockstep demo once per delay, with the simulator's wire holding
 every ``PLC_RodPos_*`` frame back by that delay (``delay`` fault of the HIL scenario):
 one target (Example 1 by default), then a hold of ``hold_s``; the hold is *stable* when
-the service is still HOLDING at the end and the largest sync error of either layer over
+the service is still COMPLETE (holding) at the end and the largest sync error of either layer over
 the last half of the hold is within the standstill goal (0.07 mm).
 
     wara sim delay-margin                       # shipped project, 0-50 ms
