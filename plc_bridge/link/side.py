@@ -163,7 +163,7 @@ class LinkSide:
         # they do not leave as one burst into a short socketcan transmit queue.
         t0 = self._clock()
         for k, fid in enumerate(sorted(self._period)):
-            self._next_due[fid] = t0 + (0.0 if self._period[fid] < 0.02 else 0.001 * k)
+            self._next_due[fid] = t0 + (0.0 if self._period[fid] < 0.02 else units.MS * k)
 
     @classmethod
     def from_config(cls, cfg: ProjectConfig, **kwargs: Any) -> Any:
@@ -179,7 +179,8 @@ class LinkSide:
             if units.ms(ms) < 1.5 * cycle:
                 raise ConfigError(
                     f"safety.{self.role.heartbeat_timeout_key}: {ms} ms is shorter than 1.5 cycles "
-                    f"of {spec.name} ({cycle * 1000:.0f} ms); use at least {1.5 * cycle * 1000:.0f}"
+                    f"of {spec.name} ({units.to_ms(cycle):.0f} ms); "
+                    f"use at least {units.to_ms(1.5 * cycle):.0f}"
                 )
             return units.ms(ms)
         return self.cfg.can.stale_cycles * cycle
@@ -328,8 +329,8 @@ class LinkSide:
                     self.role.node,
                     rec.name,
                     rec.codec.frame_id,
-                    rec.age_s(now) * 1000.0,
-                    rec.timeout_s * 1000.0,
+                    units.to_ms(rec.age_s(now)),
+                    units.to_ms(rec.timeout_s),
                 )
             elif rec.was_fresh and not was and rec.counters["timeouts"]:
                 log.info("%s: %s receiving again", self.role.node, rec.name)
@@ -380,8 +381,8 @@ class LinkSide:
             age = r.age_s(now)
             msgs[r.name] = {
                 "fresh": r.fresh(now),
-                "age_ms": None if math.isinf(age) else round(age * 1000.0, 3),
-                "timeout_ms": round(r.timeout_s * 1000.0, 3),
+                "age_ms": None if math.isinf(age) else round(units.to_ms(age), 3),
+                "timeout_ms": round(units.to_ms(r.timeout_s), 3),
                 "lost_frames": r.lost_frames,
                 **dict(r.counters),
             }
