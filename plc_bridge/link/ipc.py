@@ -3,9 +3,9 @@
 from __future__ import annotations
 
 import math
-from collections.abc import Iterable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import replace
-from typing import Any
+from typing import Any, TypeVar
 
 import can
 import numpy as np
@@ -29,6 +29,8 @@ from plc_bridge.link.words import (
     TargetRequest,
 )
 from plc_bridge.supervision import RxRecord
+
+W = TypeVar("W")
 
 
 class IpcLink(LinkSide):
@@ -55,11 +57,10 @@ class IpcLink(LinkSide):
             for m in self.catalog.with_prefix("IPC_ValveCmd_")
         ]
         self._last_hmi_seq: int | None = None
-        # The decoded values (a new tuple per accepted frame) and the word built from
-        # them: status() and hmi_target() run every cycle, a frame comes every 2-10.
-        self._status_of: tuple[object, PlcStatus | None] = (None, None)
-        self._hmi_of: tuple[object, HmiTarget | None] = (None, None)
-        self._limits_of: tuple[object, LimitSwitches | None] = (None, None)
+        # Per received word: the decoded values (a new tuple per accepted frame) and the
+        # word built from them. status(), hmi_target() and limit_switches() run every
+        # cycle, a frame comes every 2-10.
+        self._words: dict[str, tuple[object, Any]] = {}
         self._pos = self._loop_rows
         self._press = [
             (self._rx_by_name[m.name], list(m.slots))
@@ -240,26 +241,24 @@ class IpcLink(LinkSide):
         """Chamber pressures [Pa], shape (19, 2): column 0 cap side, column 1 rod side."""
         return self._array(self._press_fast, 2, units.MPA, self._clock() if now is None else now)
 
-    def status(self, now: float | None = None) -> PlcStatus | None:
-        """The PLC status word, or None when stale (the PLC is then considered lost)."""
-        v = self._status_rec.latest(self._clock() if now is None else now)
+    def _word(
+        self, rec: RxRecord, build: Callable[[dict[str, float]], W], now: float | None
+    ) -> W | None:
+        """The word ``build`` makes of ``rec``'s latest values, None when stale; the same
+        (frozen) object until the next frame."""
+        v = rec.latest(self._clock() if now is None else now)
         if v is None:
             return None
-        if v is self._status_of[0]:  # the same frame as last call: the same (frozen) word
-            return self._status_of[1]
-        d = dict(zip(self._status_rec.codec.signal_names, v, strict=True))
-        code = int(d["FaultCode"])
-        st = PlcStatus(
-            mode=Mode(int(d["ModeActual"])),
-            estop=bool(d["EStop"]),
-            pump_running=bool(d["PumpRunning"]),
-            drives_enabled=bool(d["DrivesEnabled"]),
-            command_timeout=bool(d["CommandTimeout"]),
-            fault=Fault(code) if code in Fault._value2member_map_ else code,
-            supply_pressure_pa=units.mpa(d["SupplyPressure"]),
-        )
-        self._status_of = (v, st)
-        return st
+        last = self._words.get(rec.name)
+        if last is not None and last[0] is v:
+            return last[1]
+        word = build(dict(zip(rec.codec.signal_names, v, strict=True)))
+        self._words[rec.name] = (v, word)
+        return word
+
+    def status(self, now: float | None = None) -> PlcStatus | None:
+        """The PLC status word, or None when stale (the PLC is then considered lost)."""
+        return self._word(self._status_rec, _plc_status, now)
 
     def status_age_s(self, now: float | None = None) -> float:
         """Time since the last valid PLC status frame (inf: never)."""
@@ -282,20 +281,7 @@ class IpcLink(LinkSide):
 
     def hmi_target(self, now: float | None = None) -> HmiTarget | None:
         """The operator's current target request, or None when stale."""
-        v = self._hmi_rec.latest(self._clock() if now is None else now)
-        if v is None:
-            return None
-        if v is self._hmi_of[0]:  # the same frame as last call: the same (frozen) target
-            return self._hmi_of[1]
-        d = dict(zip(self._hmi_rec.codec.signal_names, v, strict=True))
-        t = HmiTarget(
-            roll_rad=units.deg(d["TargetRoll"]),
-            pitch_rad=units.deg(d["TargetPitch"]),
-            request=TargetRequest(int(d["TargetRequest"])),
-            seq=int(d["TargetSeq"]),
-        )
-        self._hmi_of = (v, t)
-        return t
+        return self._word(self._hmi_rec, _hmi_target, now)
 
     def new_hmi_request(self, now: float | None = None) -> HmiTarget | None:
         """A fresh HMI request whose ``seq`` has not been returned before, else None."""
@@ -308,18 +294,37 @@ class IpcLink(LinkSide):
     def limit_switches(self, now: float | None = None) -> LimitSwitches | None:
         """The limit switches by ``can_index``, or None when stale. The same object (its
         arrays read-only) until the next frame: the loop asks every cycle."""
-        v = self._limits_rec.latest(self._clock() if now is None else now)
-        if v is None:
-            return None
-        if v is self._limits_of[0]:
-            return self._limits_of[1]
-        d = dict(zip(self._limits_rec.codec.signal_names, v, strict=True))
-        bits = np.arange(N_CYLINDERS)
-        ls = LimitSwitches(
-            retracted=(int(d["LimitRetractedMask"]) >> bits) & 1 == 1,
-            extended=(int(d["LimitExtendedMask"]) >> bits) & 1 == 1,
-        )
-        ls.retracted.flags.writeable = False
-        ls.extended.flags.writeable = False
-        self._limits_of = (v, ls)
-        return ls
+        return self._word(self._limits_rec, _limit_switches, now)
+
+
+def _plc_status(d: dict[str, float]) -> PlcStatus:
+    code = int(d["FaultCode"])
+    return PlcStatus(
+        mode=Mode(int(d["ModeActual"])),
+        estop=bool(d["EStop"]),
+        pump_running=bool(d["PumpRunning"]),
+        drives_enabled=bool(d["DrivesEnabled"]),
+        command_timeout=bool(d["CommandTimeout"]),
+        fault=Fault(code) if code in Fault._value2member_map_ else code,
+        supply_pressure_pa=units.mpa(d["SupplyPressure"]),
+    )
+
+
+def _hmi_target(d: dict[str, float]) -> HmiTarget:
+    return HmiTarget(
+        roll_rad=units.deg(d["TargetRoll"]),
+        pitch_rad=units.deg(d["TargetPitch"]),
+        request=TargetRequest(int(d["TargetRequest"])),
+        seq=int(d["TargetSeq"]),
+    )
+
+
+def _limit_switches(d: dict[str, float]) -> LimitSwitches:
+    bits = np.arange(N_CYLINDERS)
+    ls = LimitSwitches(
+        retracted=(int(d["LimitRetractedMask"]) >> bits) & 1 == 1,
+        extended=(int(d["LimitExtendedMask"]) >> bits) & 1 == 1,
+    )
+    ls.retracted.flags.writeable = False
+    ls.extended.flags.writeable = False
+    return ls
