@@ -18,6 +18,8 @@ L_PER_MIN = 1e-3 / 60.0  # m^3/s per l/min
 LITRE = 1e-3  # m^3 per l
 MS = 1e-3  # s per ms
 UM = 1e-6  # m per um
+US = 1e-6  # s per us
+NS = 1e-9  # s per ns
 KPA = 1e3  # Pa per kPa
 
 
@@ -39,6 +41,16 @@ def ms(value_ms: float) -> float:
 def to_ms(value_s: float) -> float:
     """Seconds to milliseconds."""
     return value_s / MS
+
+
+def to_us(value_s: float) -> float:
+    """Seconds to microseconds."""
+    return value_s / US
+
+
+def to_kn(value_n: float) -> float:
+    """Newton to kilonewton."""
+    return value_n / KN
 
 
 def um(value_um: float) -> float:

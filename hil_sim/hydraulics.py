@@ -29,6 +29,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.optimize import fsolve
 
+from config import units
 from config.derived import viscous_damping_n_s_m
 from config.schema import Cylinder, CylinderPlant, Hydraulics
 from hil_sim._jit import jit
@@ -533,7 +534,7 @@ def rest_equilibrium(
     reg = float(params.regularization_pa[0])
     stroke = float(params.stroke_m[0])
     stop = float(end_stop_force_n(x_m, 0.0, stroke, float(params.stop_stiffness_n_m[0]), 0.0))
-    scale = 1e6
+    scale = units.MPA  # the pressure unknowns in MPa
 
     def residual(z: FloatArray) -> list[float]:
         spool = z[0] * xv_max

@@ -29,6 +29,13 @@ Model
   across the piston stays.
 
 Everything is integrated together with fixed-step RK4 in one numba kernel.
+
+The layer kinematics here (:func:`rotation`, :func:`extension_and_jacobian`) are the
+simulator's truth, on purpose not the controller's ``ipc_app.model.kinematics``: the
+plant is what the controller's model is checked against (the demo reports the attitude
+the simulator reached, not the one the controller believes), ``hil_sim`` never imports
+``ipc_app``, and these run inside the numba kernel together with their Jacobian, which
+the controller has no use for. Both follow model.md sections 1-3.
 """
 
 from __future__ import annotations

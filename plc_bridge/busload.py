@@ -20,6 +20,7 @@ from collections.abc import Iterable
 from dataclasses import asdict, dataclass
 from typing import Any
 
+from config import units
 from config.schema import ProjectConfig
 from plc_bridge.catalog import Catalog, MessageSpec, load_catalog
 
@@ -106,7 +107,7 @@ def bus_load(
                 dlc=m.dlc,
                 bits_per_frame=bits,
                 active=on,
-                cycle_ms=round(cycle * 1000.0, 6),
+                cycle_ms=round(units.to_ms(cycle), 6),
                 frames_per_s=round(fps, 6),
                 bits_per_s=round(fps * bits, 3),
                 load_percent=round(100.0 * fps * bits / bitrate, 4),

@@ -49,6 +49,8 @@ from typing import Any
 
 import can
 
+from config import units
+
 MAGIC = b"WU"
 VERSION = 1
 FRAME = struct.Struct("<2sBBII8s")
@@ -214,7 +216,7 @@ class WaraUdpBus(can.BusABC):
             remote = bool(cid & RTR_FLAG)
             if anc and len(anc[0][2]) >= _TIMESPEC.size:
                 sec, nsec = _TIMESPEC.unpack_from(anc[0][2])
-                stamp = sec + nsec * 1e-9
+                stamp = sec + nsec * units.NS
             else:
                 stamp = time.time()
             msg = can.Message(

@@ -21,7 +21,7 @@ from ipc_app.model import (
     target_in_base,
     twist,
 )
-from ipc_app.model.kinematics import S, T, Vec
+from ipc_app.model.kinematics import S, T, Vec, extensions_at, linked_attitude
 from ipc_app.model.statics import equilibrium_matrix, lump
 
 angle = st.floats(-0.25, 0.25)
@@ -64,6 +64,28 @@ def test_linkage_and_coplanarity_identities(roll: float, pitch: float) -> None:
     assert (d[1] - d[0]) / (2 * a) == pytest.approx(math.sin(pitch), abs=1e-14)
     assert (d[0] + d[1]) / (2 * b) == pytest.approx(math.sin(roll) * math.cos(pitch), abs=1e-14)
     assert float(coplanarity_distance(d, a, b)) == pytest.approx(0.0, abs=1e-15)
+
+
+@given(angle, angle, small, st.floats(-0.01, 0.01))
+def test_extensions_on_floats_are_the_array_form(
+    roll: float, pitch: float, z: float, w: float
+) -> None:
+    a, b = 2.8, 1.4
+    want = extensions(roll, pitch, a, b, z, w)
+    assert want == pytest.approx(extensions(roll, pitch, a, b, z) + w * np.array([1, -1, 1, -1]))
+    assert extensions_at(roll, pitch, a, b, z, w) == pytest.approx(want.tolist(), abs=1e-16)
+
+
+@given(angle, angle)
+def test_linked_attitude_inverts_a_linked_layer(roll: float, pitch: float) -> None:
+    a, b = 1.6, 1.2
+    d = extensions(roll, pitch, a, b)
+    r, p = linked_attitude(d[0], d[1], a, b)
+    assert float(r) == pytest.approx(roll, abs=1e-12)
+    assert float(p) == pytest.approx(pitch, abs=1e-12)
+    fit = fit_layer(d, a, b)  # the least-squares fit of the same extensions
+    assert float(fit.roll) == pytest.approx(float(r), abs=1e-15)
+    assert float(fit.pitch) == pytest.approx(float(p), abs=1e-15)
 
 
 @given(angle, angle, st.floats(-0.01, 0.01))

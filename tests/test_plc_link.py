@@ -637,7 +637,7 @@ def test_sent_frames_deep_copy_like_python_can_messages() -> None:
     independent can.Message."""
     import copy
 
-    from plc_bridge.link import _TxMessage
+    from plc_bridge.link.side import _TxMessage
 
     for kw in (
         {"arbitration_id": 0x200, "data": bytes(range(8)), "is_extended_id": False},

@@ -23,6 +23,7 @@ from ipc_app.control.ladrc import LADRC
 from ipc_app.control.pid import PID
 from ipc_app.control.plant_gain import cylinder_b0
 from ipc_app.control.sync import Controller, SyncGroup
+from ipc_app.model.kinematics import layer_twist
 from ipc_app.planner.trajectory import Trajectory
 
 FloatArray = NDArray[np.float64]
@@ -159,8 +160,7 @@ class AttitudeController:
         self.last_references = ref
         xs = x_rod_m.tolist()
         u = [0.0] * self.n
-        # Four values per layer: plain floats (numpy's per-call overhead dominates here);
-        # the same IEEE operations in the same order as kinematics.twist, so bit-identical.
+        # Four values per layer: plain floats (numpy's per-call overhead dominates here).
         for name, idx in self.layers.items():
             group = self.groups[name]
             y = [xs[i] for i in idx]
@@ -169,10 +169,9 @@ class AttitudeController:
             for i, c in zip(idx, cmds):  # noqa: B905 - four each
                 u[i] = c
             h = self._half_lists[name]
-            e0, e1, e2, e3 = (y[0] - h[0], y[1] - h[1], y[2] - h[2], y[3] - h[3])
             self.metrics[name] = LayerMetrics(
                 sync_error_m=max(map(abs, group.last_sync_error)),
-                twist_m=abs((e0 - e1 + e2 - e3) / 4.0),
+                twist_m=abs(layer_twist(y[0] - h[0], y[1] - h[1], y[2] - h[2], y[3] - h[3])),
                 tracking_error_m=max(
                     abs(r[0] - y[0]), abs(r[1] - y[1]), abs(r[2] - y[2]), abs(r[3] - y[3])
                 ),

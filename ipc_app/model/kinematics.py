@@ -1,7 +1,12 @@
-"""Frames and single-layer kinematics (model.md sections 1 and 3).
+"""Frames and single-layer kinematics (model.md sections 1 and 3): the one implementation
+that planner, trajectory, controller and service use.
 
-All functions are vectorized: angles may be floats or numpy arrays of any (common)
-shape; per-cylinder results gain a trailing axis of length 4 (cylinders 1-4).
+The functions are vectorized: angles may be floats or numpy arrays of any (common)
+shape; per-cylinder results gain a trailing axis of length 4 (cylinders 1-4). The
+control loop samples one point per cycle, where numpy's per-call overhead is most of the
+cost: :func:`extensions_at` and :func:`layer_twist` give the same formulas on plain
+floats. Each formula is written once (``_layer_extensions``, ``_plane_attitude``,
+:func:`layer_twist`) and evaluated on arrays or on floats.
 
 Attitude of a platform relative to the frame below: ``R(roll, pitch) = Ry(pitch) @ Rx(roll)``.
 Cylinder i acts at platform point ``p_i = (s_i a, t_i b, 0)`` with
@@ -10,7 +15,10 @@ Cylinder i acts at platform point ``p_i = (s_i a, t_i b, 0)`` with
 
 from __future__ import annotations
 
-from typing import NamedTuple
+import functools
+import math
+from collections.abc import Callable
+from typing import Any, NamedTuple
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -76,17 +84,69 @@ def normal(roll: ArrayLike, pitch: ArrayLike) -> Vec:
     return Vec(sp * cr, -sr, cp * cr)
 
 
+def _layer_extensions(
+    sin: Callable[[Any], Any],
+    cos: Callable[[Any], Any],
+    roll: Any,
+    pitch: Any,
+    a: float,
+    b: float,
+    heave: Any = 0.0,
+    twist: Any = None,
+) -> list[Any]:
+    """The layer's extensions, cylinders 1-4, with ``sin``/``cos`` of numpy or of math.
+
+    ``d_i = z - x_i sin(pitch) + y_i sin(roll) cos(pitch) + twist P_i`` with
+    ``x_i = s_i a``, ``y_i = t_i b``, ``P = (1, -1, 1, -1)`` (``twist`` None: no term).
+    """
+    asp = a * sin(pitch)
+    bsc = b * sin(roll) * cos(pitch)
+    d1 = heave - asp + bsc
+    d2 = heave + asp + bsc
+    d3 = heave + asp - bsc
+    d4 = heave - asp - bsc
+    if twist is None:
+        return [d1, d2, d3, d4]
+    return [d1 + twist, d2 - twist, d3 + twist, d4 - twist]
+
+
 def extensions(
-    roll: ArrayLike, pitch: ArrayLike, a: float, b: float, heave: ArrayLike = 0.0
+    roll: ArrayLike,
+    pitch: ArrayLike,
+    a: float,
+    b: float,
+    heave: ArrayLike = 0.0,
+    twist: ArrayLike | None = None,
 ) -> Array:
     """Extensions from mid-stroke of cylinders 1-4 (shape ``(..., 4)``).
 
-    ``d_i = z - x_i sin(pitch) + y_i sin(roll) cos(pitch)`` with ``x_i = s_i a``, ``y_i = t_i b``.
+    ``d_i = z - x_i sin(pitch) + y_i sin(roll) cos(pitch)`` with ``x_i = s_i a``, ``y_i = t_i b``;
+    with ``twist`` given, ``+ twist (1, -1, 1, -1)`` (a layer that is not a plane).
     """
-    roll_ = np.asarray(roll, dtype=float)[..., None]
-    pitch_ = np.asarray(pitch, dtype=float)[..., None]
-    z = np.asarray(heave, dtype=float)[..., None]
-    return z - S * a * np.sin(pitch_) + T * b * np.sin(roll_) * np.cos(pitch_)
+    r, p, z = np.broadcast_arrays(
+        np.asarray(roll, dtype=float), np.asarray(pitch, dtype=float), np.asarray(heave, float)
+    )
+    tw = None if twist is None else np.asarray(twist, dtype=float)
+    return np.stack(_layer_extensions(np.sin, np.cos, r, p, a, b, z, tw), axis=-1)
+
+
+#: :func:`extensions` at one attitude, on plain floats (the control loop's form):
+#: ``extensions_at(roll, pitch, a, b, heave=0.0, twist=None) -> [d1, d2, d3, d4]``. A
+#: partial (no Python frame of its own): the loop calls it four times a cycle.
+extensions_at = functools.partial(_layer_extensions, math.sin, math.cos)
+
+
+def _plane_attitude(sin_pitch: Array, sin_roll_cos_pitch: Array) -> tuple[Array, Array]:
+    """(roll, pitch) from ``sin(pitch)`` and ``sin(roll) cos(pitch)``: the inverse of
+    :func:`extensions` (both clipped to [-1, 1])."""
+    pitch = np.arcsin(np.clip(sin_pitch, -1.0, 1.0))
+    roll = np.arcsin(np.clip(sin_roll_cos_pitch / np.cos(pitch), -1.0, 1.0))
+    return roll, pitch
+
+
+def layer_twist(d1: Any, d2: Any, d3: Any, d4: Any) -> Any:
+    """The layer's twist ``(d1 - d2 + d3 - d4) / 4`` (m), on floats or arrays."""
+    return (d1 - d2 + d3 - d4) / 4.0
 
 
 class LayerFit(NamedTuple):
@@ -104,23 +164,28 @@ def fit_layer(d: ArrayLike, a: float, b: float) -> LayerFit:
     With the symmetric action points the normal equations decouple:
     ``heave = mean(d)``, ``sin(pitch) = (-d1 + d2 + d3 - d4) / (4a)``,
     ``sin(roll) cos(pitch) = (d1 + d2 - d3 - d4) / (4b)``; the residual of each point is
-    ``±twist``. On a linked plan (``d3 = -d1``, ``d4 = -d2``, heave 0) this reduces to the
-    inverse of model.md section 3: ``sin(pitch) = (d2 - d1) / (2a)``.
+    ``±twist``. On a linked plan (``d3 = -d1``, ``d4 = -d2``, heave 0) this reduces to
+    :func:`linked_attitude`.
     """
     d_ = np.asarray(d, dtype=float)
     d1, d2, d3, d4 = d_[..., 0], d_[..., 1], d_[..., 2], d_[..., 3]
     heave = (d1 + d2 + d3 + d4) / 4.0
-    sin_pitch = np.clip((-d1 + d2 + d3 - d4) / (4.0 * a), -1.0, 1.0)
-    pitch = np.arcsin(sin_pitch)
-    sin_roll = np.clip((d1 + d2 - d3 - d4) / (4.0 * b) / np.cos(pitch), -1.0, 1.0)
-    twist = (d1 - d2 + d3 - d4) / 4.0
-    return LayerFit(np.arcsin(sin_roll), pitch, heave, twist)
+    roll, pitch = _plane_attitude((-d1 + d2 + d3 - d4) / (4.0 * a), (d1 + d2 - d3 - d4) / (4.0 * b))
+    return LayerFit(roll, pitch, heave, layer_twist(d1, d2, d3, d4))
+
+
+def linked_attitude(d1: ArrayLike, d2: ArrayLike, a: float, b: float) -> tuple[Array, Array]:
+    """(roll, pitch) of a linked layer (``d3 = -d1``, ``d4 = -d2``, heave 0) from d1, d2:
+    the exact inverse of model.md section 3, ``sin(pitch) = (d2 - d1) / 2a``,
+    ``sin(roll) cos(pitch) = (d1 + d2) / 2b``."""
+    d1_, d2_ = np.asarray(d1), np.asarray(d2)
+    return _plane_attitude((d2_ - d1_) / (2.0 * a), (d1_ + d2_) / (2.0 * b))
 
 
 def twist(d: ArrayLike) -> Array:
-    """The layer's twist ``(d1 - d2 + d3 - d4) / 4`` (m)."""
+    """The layer's twist :func:`layer_twist` of extensions ``d`` (shape ``(..., 4)``)."""
     d_ = np.asarray(d, dtype=float)
-    return (d_[..., 0] - d_[..., 1] + d_[..., 2] - d_[..., 3]) / 4.0
+    return np.asarray(layer_twist(d_[..., 0], d_[..., 1], d_[..., 2], d_[..., 3]))
 
 
 def coplanarity_distance(d: ArrayLike, a: float, b: float) -> Array:

@@ -20,7 +20,7 @@ from __future__ import annotations
 import numpy as np
 
 from config.schema import LdwPso
-from ipc_app.model.kinematics import coplanarity_distance, fit_layer
+from ipc_app.model.kinematics import coplanarity_distance, extensions, fit_layer
 from ipc_app.planner.exact import Solution, pick
 from ipc_app.planner.problem import PlanningProblem
 
@@ -35,9 +35,8 @@ def solve_ldw_pso(problem: PlanningProblem, opts: LdwPso, seed: int | None = Non
     def fitness(x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         fit = fit_layer(x, a, b)
         # Linked upper extensions of the fitted attitude: d1, d2 fix it exactly.
-        sp, q = np.sin(fit.pitch), np.sin(fit.roll) * np.cos(fit.pitch)
-        d1 = -a * sp + b * q
-        d2 = a * sp + b * q
+        linked = extensions(fit.roll, fit.pitch, a, b)
+        d1, d2 = linked[..., 0], linked[..., 1]
         ev = problem.evaluate(d1, d2)
         linkage = (np.abs(x[:, 0] + x[:, 2]) + np.abs(x[:, 1] + x[:, 3])) / lim
         cop = np.maximum(coplanarity_distance(x, a, b) - problem.coplanarity_tol, 0.0)

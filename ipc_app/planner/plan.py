@@ -71,7 +71,7 @@ class Plan:
                 "roll_deg": units.to_deg(lp.roll_rad),
                 "pitch_deg": units.to_deg(lp.pitch_rad),
                 "displacement_m": list(lp.displacement_m),
-                "force_kn": [f / 1e3 for f in lp.force_n],
+                "force_kn": [units.to_kn(f) for f in lp.force_n],
                 "cylinders": list(lp.cylinders),
             }
 

@@ -21,7 +21,13 @@ from numpy.typing import ArrayLike
 from config import units
 from config.schema import ProjectConfig
 from ipc_app.model.composition import solve_lower, target_in_base
-from ipc_app.model.kinematics import Array, BoolArray, coplanarity_distance, extensions
+from ipc_app.model.kinematics import (
+    Array,
+    BoolArray,
+    coplanarity_distance,
+    extensions,
+    linked_attitude,
+)
 from ipc_app.model.statics import MachineStatics
 
 Objective = Literal["sum_pressure", "peak_pressure", "pump_energy"]
@@ -118,10 +124,7 @@ class PlanningProblem:
 
     def upper_attitude(self, d1: ArrayLike, d2: ArrayLike) -> tuple[Array, Array]:
         """Upper (roll, pitch) of the linked layer with extensions d1, d2 (exact inverse)."""
-        sp = np.clip((np.asarray(d2) - np.asarray(d1)) / (2.0 * self.a_upper), -1.0, 1.0)
-        pitch = np.arcsin(sp)
-        q = (np.asarray(d1) + np.asarray(d2)) / (2.0 * self.b_upper) / np.cos(pitch)
-        return np.arcsin(np.clip(q, -1.0, 1.0)), pitch
+        return linked_attitude(d1, d2, self.a_upper, self.b_upper)
 
     def evaluate(self, d1: ArrayLike, d2: ArrayLike) -> Evaluation:
         """Evaluate candidates given by the upper extensions of cylinders 1 and 2."""
@@ -267,8 +270,8 @@ class PlanningProblem:
                     )
                 if f[i] < self.f_min:
                     out.append(
-                        f"lift-off: {name} rod force {f[i] / 1e3:.1f} kN below the minimum "
-                        f"{self.f_min / 1e3:.1f} kN"
+                        f"lift-off: {name} rod force {units.to_kn(f[i]):.1f} kN below the minimum "
+                        f"{units.to_kn(self.f_min):.1f} kN"
                     )
                 if p[i] > self.p_rated:
                     out.append(

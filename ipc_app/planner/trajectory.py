@@ -17,68 +17,63 @@ checked on a dense grid of ``s`` including the ``d''(s) s_dot^2`` term.
 
 from __future__ import annotations
 
-import math
+from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
 from config.schema import Trajectory as TrajectoryOptions
-from ipc_app.model.kinematics import Array, extensions, fit_layer
+from ipc_app.model.kinematics import Array, extensions, extensions_at, fit_layer
 from ipc_app.planner.problem import FEASIBILITY_TOLERANCE, PlanningProblem
 
-_TWIST_PATTERN = np.array([1.0, -1.0, 1.0, -1.0])
 _DENSE = 401  # points in s for the duration computation
 
 
-def time_scaling(profile: str, tau: Array) -> tuple[Array, Array, Array]:
-    """``s, ds/dtau, d2s/dtau2`` of the normalized profile on ``tau`` in [0, 1]."""
-    tau = np.clip(tau, 0.0, 1.0)
+#: The trapezoidal profile accelerates over this fraction of the motion, cruises at the
+#: peak rate, and decelerates over the same fraction at the end.
+_TRAPEZOID_RAMP = 0.25
+
+
+def _profile(profile: str, tau: Any, where: Callable[[Any, Any, Any], Any]) -> tuple[Any, Any, Any]:
+    """``s, ds/dtau, d2s/dtau2`` of the normalized profile at ``tau`` in [0, 1] (already
+    clipped), written once: ``where`` is ``np.where`` on arrays, a conditional on floats."""
     if profile == "quintic":
         s = tau**3 * (10 - 15 * tau + 6 * tau**2)
         ds = 30 * tau**2 * (1 - tau) ** 2
         dds = 60 * tau * (1 - tau) * (1 - 2 * tau)
         return s, ds, dds
     if profile == "trapezoidal":
-        f = 0.25  # accelerate over the first quarter, cruise, decelerate over the last
+        f = _TRAPEZOID_RAMP
         vpk = 1.0 / (1.0 - f)
         acc = vpk / f
-        s = np.where(
-            tau < f,
+        ramp_up, cruise = tau < f, tau <= 1 - f
+        s = where(
+            ramp_up,
             0.5 * acc * tau**2,
-            np.where(
-                tau <= 1 - f,
-                0.5 * acc * f**2 + vpk * (tau - f),
-                1.0 - 0.5 * acc * (1 - tau) ** 2,
-            ),
+            where(cruise, 0.5 * acc * f**2 + vpk * (tau - f), 1.0 - 0.5 * acc * (1 - tau) ** 2),
         )
-        ds = np.where(tau < f, acc * tau, np.where(tau <= 1 - f, vpk, acc * (1 - tau)))
-        dds = np.where(tau < f, acc, np.where(tau <= 1 - f, 0.0, -acc))
+        ds = where(ramp_up, acc * tau, where(cruise, vpk, acc * (1 - tau)))
+        dds = where(ramp_up, acc, where(cruise, 0.0, -acc))
         return s, ds, dds
     raise ValueError(f"unknown time scaling {profile!r}; expected 'quintic' or 'trapezoidal'")
 
 
-def time_scaling_at(profile: str, tau: float) -> tuple[float, float]:
-    """``s, ds/dtau`` of :func:`time_scaling` at one ``tau``, on plain floats.
+def _choose(cond: bool, yes: float, no: float) -> float:
+    return yes if cond else no
 
-    The same IEEE operations in the same order as :func:`time_scaling` on a 0-d input
-    (what the loop used to pass: ``np.clip`` returns a numpy scalar, whose ``x**2`` is C
-    ``pow`` like Python's, not the ``x * x`` of an array's ``square``), so bit for bit its
-    values (``tests/test_planner.py`` checks it on a dense grid): the control loop samples
-    one point per cycle, where numpy's per-call overhead is most of the cost.
-    """
+
+def time_scaling(profile: str, tau: Array) -> tuple[Array, Array, Array]:
+    """``s, ds/dtau, d2s/dtau2`` of the normalized profile on ``tau`` in [0, 1]."""
+    return _profile(profile, np.clip(tau, 0.0, 1.0), np.where)
+
+
+def time_scaling_at(profile: str, tau: float) -> tuple[float, float]:
+    """``s, ds/dtau`` of :func:`time_scaling` at one ``tau``, on plain floats (the control
+    loop samples one point per cycle, where numpy's per-call overhead is most of the cost)."""
     tau = 0.0 if tau < 0.0 else (1.0 if tau > 1.0 else tau)
-    if profile == "quintic":
-        return tau**3 * (10 - 15 * tau + 6 * tau**2), 30 * tau**2 * (1 - tau) ** 2
-    if profile == "trapezoidal":
-        f = 0.25
-        vpk = 1.0 / (1.0 - f)
-        acc = vpk / f
-        if tau < f:
-            return 0.5 * acc * tau**2, acc * tau
-        if tau <= 1 - f:
-            return 0.5 * acc * f**2 + vpk * (tau - f), vpk
-        return 1.0 - 0.5 * acc * (1 - tau) ** 2, acc * (1 - tau)
-    raise ValueError(f"unknown time scaling {profile!r}; expected 'quintic' or 'trapezoidal'")
+    s, ds, _ = _profile(profile, tau, _choose)
+    return s, ds
 
 
 @dataclass(frozen=True)
@@ -98,33 +93,17 @@ class LayerPath:
         """(roll, pitch, extensions (..., 4)) at path parameter s."""
         roll = self.roll0 + s * (self.roll1 - self.roll0)
         pitch = self.pitch0 + s * (self.pitch1 - self.pitch0)
-        d = extensions(roll, pitch, self.a, self.b, self.heave0 * (1 - s))
-        d = d + (self.twist0 * (1 - np.asarray(s)))[..., None] * _TWIST_PATTERN
+        rest = 1 - np.asarray(s)
+        d = extensions(roll, pitch, self.a, self.b, self.heave0 * rest, self.twist0 * rest)
         return roll, pitch, d
 
     def extensions_at(self, s: float) -> list[float]:
-        """The extensions of :meth:`at` at one ``s``, on plain floats, bit for bit.
-
-        :func:`~ipc_app.model.kinematics.extensions` and the twist term written out per
-        cylinder with the same operations in the same order; ``math.sin``/``math.cos``
-        give numpy's float64 values on this platform (libm; ``tests/test_planner.py``
-        checks the whole path on a dense grid against :meth:`at`).
-        """
+        """The extensions of :meth:`at` at one ``s``, on plain floats
+        (:func:`~ipc_app.model.kinematics.extensions_at`)."""
         roll = self.roll0 + s * (self.roll1 - self.roll0)
         pitch = self.pitch0 + s * (self.pitch1 - self.pitch0)
-        z = self.heave0 * (1 - s)
-        tw = self.twist0 * (1 - s)
-        # extensions(): z - (S_i a) sin(pitch) + ((T_i b) sin(roll)) cos(pitch), then
-        # + twist0 (1 - s) P_i, with S = (1, -1, -1, 1), T = (1, 1, -1, -1) and
-        # P = (1, -1, 1, -1): every product with a sign is the signed product, exactly.
-        asp = self.a * math.sin(pitch)
-        bsc = self.b * math.sin(roll) * math.cos(pitch)
-        return [
-            z - asp + bsc + tw,
-            z - -asp + bsc + -tw,
-            z - -asp + -bsc + tw,
-            z - asp + -bsc + -tw,
-        ]
+        rest = 1 - s
+        return extensions_at(roll, pitch, self.a, self.b, self.heave0 * rest, self.twist0 * rest)
 
 
 @dataclass(frozen=True)
@@ -159,8 +138,7 @@ class Trajectory:
 
         The velocity is the forward difference of the path over ``s`` (step ``1e-7``)
         times ``ds/dt``. Computed on plain floats (:func:`time_scaling_at`,
-        :meth:`LayerPath.extensions_at`), bit for bit what the former numpy form gave
-        (``tests/test_planner.py``).
+        :meth:`LayerPath.extensions_at`): the same formulas as the planned samples.
         """
         s, ds, rate = self._scaling(t)
         eps = 1e-7

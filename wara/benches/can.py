@@ -18,7 +18,7 @@ from typing import Any
 
 import numpy as np
 
-from config import load_project
+from config import load_project, units
 from config.schema import N_CYLINDERS
 from plc_bridge import FrameCodec, IpcLink, PlcLink, PlcStatus, bus_load, load_catalog
 
@@ -33,7 +33,7 @@ def _best_us(fn: Any, reps: int, rounds: int = 5) -> float:
         for _ in range(reps):
             fn()
         best = min(best, (time.perf_counter() - t0) / reps)
-    return best * 1e6
+    return units.to_us(best)
 
 
 def run(args: argparse.Namespace) -> dict[str, Any]:
@@ -76,7 +76,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         cantools_us += per_cycle[spec.name] * t_us
 
     link_us = _link_cycle_us(cfg, cycles=100 if quick else 1000)
-    period_us = 1e6 / rate
+    period_us = units.to_us(1.0 / rate)
     codec_pct = 100.0 * compiled_us / period_us
     return {
         "bench": "can",
@@ -154,4 +154,4 @@ def ipc_side_cycles(
     finally:
         ipc.close()
         plc.close()
-    return 1e6 * float(np.median(spent)), frames
+    return units.to_us(float(np.median(spent))), frames

@@ -25,7 +25,7 @@ from typing import Any
 
 import numpy as np
 
-from config import load_project
+from config import load_project, units
 from ipc_app.service.core import ServiceCore
 from ipc_app.service.logs import configure_logging
 from ipc_app.service.loop import freeze_startup_heap
@@ -36,8 +36,8 @@ EXAMPLE = (2.0, 1.0)
 
 
 def _figures(cpu_ns: list[int], wall_ns: list[int]) -> dict[str, Any]:
-    cpu = np.asarray(cpu_ns, dtype=float) / 1e6
-    wall = np.asarray(wall_ns, dtype=float) / 1e6
+    cpu = np.asarray(cpu_ns, dtype=float) * (units.NS / units.MS)
+    wall = np.asarray(wall_ns, dtype=float) * (units.NS / units.MS)
     if cpu.size == 0:
         return {"steps": 0}
     return {
@@ -113,7 +113,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     return {
         "bench": "step",
         "example_deg": list(EXAMPLE),
-        "period_ms": cfg.control.period_s * 1e3,
+        "period_ms": units.to_ms(cfg.control.period_s),
         "final_mode": final_mode,
         "modes": modes,
         "all": _figures(all_cpu, all_wall),

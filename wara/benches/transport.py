@@ -32,7 +32,7 @@ from typing import Any
 import can
 import numpy as np
 
-from config import load_project
+from config import load_project, units
 from config.schema import ProjectConfig
 from plc_bridge import open_bus
 from wara.benches.can import ipc_side_cycles
@@ -102,7 +102,7 @@ def _frame_costs(cfg: ProjectConfig, n: int, batch: int = 120) -> tuple[float, f
         expected = sent + (own if python_can else 0)
         if got != expected:
             raise RuntimeError(f"{cfg.can.interface}: {got} of {expected} frames received")
-        return send_s / sent * 1e6, recv_s / sent * 1e6
+        return units.to_us(send_s / sent), units.to_us(recv_s / sent)
     finally:
         rx.shutdown()
         tx.shutdown()
@@ -135,7 +135,7 @@ def measure(config: str | None, quick: bool) -> dict[str, Any]:
             best[t]["link_cycle_us"] = min(best[t]["link_cycle_us"], c)
             frames_per_cycle[t] = f
     old, new = best["udp_multicast"], best["wara_udp"]
-    period_us = base.control.period_s * 1e6
+    period_us = units.to_us(base.control.period_s)
     return {
         "bench": "transport",
         "period_us": period_us,

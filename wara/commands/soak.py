@@ -165,7 +165,7 @@ def latency_ms(t_s: np.ndarray, period_s: float) -> np.ndarray:
         n = max(n_prev + 1, math.floor(r + 1e-6))
         if n > r + 1e-6:  # never before its deadline: a rounding of the record
             n = n_prev + 1
-        out[i] = max(r - n, 0.0) * period_s * 1e3
+        out[i] = units.to_ms(max(r - n, 0.0) * period_s)
         n_prev = n
     return out
 

@@ -1,0 +1,172 @@
+"""The PLC (device) side of the link, :class:`PlcLink`: what ``hil_sim`` plays."""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections.abc import Iterable, Sequence
+from typing import Any
+
+import can
+import numpy as np
+
+from config import units
+from config.schema import N_CYLINDERS, ProjectConfig
+from plc_bridge.catalog import MessageSpec
+from plc_bridge.link.side import LinkSide, SideRole, indices_of, mask_of
+from plc_bridge.link.words import (
+    ControlWord,
+    FloatArray,
+    HmiTarget,
+    Mode,
+    PlcStatus,
+    Reading,
+    TargetAck,
+)
+from plc_bridge.supervision import RxRecord
+
+log = logging.getLogger("plc_bridge")
+
+
+class PlcLink(LinkSide):
+    """The PLC (device) side, for ``hil_sim``: sends status and sensors at their cycle
+    times (fast for the active group the IPC announces), supervises the IPC commands.
+
+    Critical messages (LOST when stale): ``IPC_Control`` and the valve frames of the
+    active group. A PLC acts on two things: :meth:`command_timeout` (commands stale:
+    spools to centre at once, drives again when fresh frames come back) and
+    :meth:`ipc_timeout` (the loss has lasted longer than ``safety.command_timeout_ms``:
+    latch IPC_TIMEOUT).
+    """
+
+    ROLE = SideRole(
+        node="PLC",
+        heartbeat="IPC_Control",
+        heartbeat_timeout_key="command_timeout_ms",
+        loop_rx_prefix="IPC_ValveCmd_",
+    )
+
+    def __init__(self, cfg: ProjectConfig, bus: can.BusABC | None = None, **kwargs: Any):
+        super().__init__(cfg, bus, role=self.ROLE, **kwargs)
+        self._status = PlcStatus()
+        self._pos_mm = [math.nan] * N_CYLINDERS
+        self._press_mpa = [[math.nan, math.nan] for _ in range(N_CYLINDERS)]
+        self._limits = (0, 0)
+        self._hmi: HmiTarget | None = None
+        self._ctl_rec = self._rx_by_name["IPC_Control"]
+        self._valve = self._loop_rows
+        self._ipc_timeout_s = units.ms(cfg.safety.command_timeout_ms)
+
+    def _on_accepted(self, rec: RxRecord, now: float) -> None:
+        if rec.name == "IPC_Control" and rec.values is not None:
+            i = rec.codec.signal_names.index("FastCylinderMask")
+            act = indices_of(int(rec.values[i]))
+            if act != self._active:
+                log.info("PLC: active group now %s", sorted(act))
+                self._apply_active(act, now)
+
+    # ----------------------------------------------------------------- inputs
+
+    def control(self, now: float | None = None) -> ControlWord | None:
+        """The IPC control word, or None when stale (command timeout)."""
+        v = self._ctl_rec.latest(self._clock() if now is None else now)
+        if v is None:
+            return None
+        d = dict(zip(self._ctl_rec.codec.signal_names, v, strict=True))
+        return ControlWord(
+            mode=Mode(int(d["ModeRequest"])),
+            enable=bool(d["EnableRequest"]),
+            stop=bool(d["StopRequest"]),
+            fault_reset=bool(d["FaultReset"]),
+            ack_seq=int(d["TargetAckSeq"]),
+            ack_status=TargetAck(int(d["TargetAckStatus"])),
+        )
+
+    def valve_commands(self, now: float | None = None) -> Reading:
+        """Spool commands in [-1, 1] by ``can_index``; NaN where stale (centre the spool)."""
+        if now is None:
+            now = self._clock()
+        val = np.full(N_CYLINDERS, math.nan)
+        age = np.full(N_CYLINDERS, math.inf)
+        for rec, slots in self._valve:
+            age[slots] = rec.age_s(now)
+            v = rec.latest(now)
+            if v is not None:
+                val[slots] = v
+        return Reading(value=val, valid=~np.isnan(val), age_s=age)
+
+    def command_timeout(self, now: float | None = None) -> bool:
+        """True when the control word or any valve frame is stale: hold spools at centre."""
+        if now is None:
+            now = self._clock()
+        return not (self._ctl_rec.fresh(now) and all(r.fresh(now) for r, _ in self._valve))
+
+    def ipc_timeout(self, now: float | None = None) -> bool:
+        """True when the control word or a valve frame has not been received for longer
+        than ``safety.command_timeout_ms``: the loss is no longer short (latch a fault)."""
+        if now is None:
+            now = self._clock()
+        limit = self._ipc_timeout_s
+        if self._ctl_rec.age_s(now) > limit:
+            return True
+        return any(r.age_s(now) > limit for r, _ in self._valve)
+
+    # ----------------------------------------------------------------- outputs
+
+    def set_status(self, status: PlcStatus) -> None:
+        self._status = status
+
+    def set_positions_m(self, x: Sequence[float] | FloatArray) -> None:
+        """Rod positions [m] by ``can_index``; NaN is sent as SENSOR_FAULT."""
+        arr = np.asarray(x, dtype=float)
+        if arr.shape != (N_CYLINDERS,):
+            raise ValueError(f"positions: expected {N_CYLINDERS} values, got shape {arr.shape}")
+        self._pos_mm = (arr / units.MM).tolist()
+
+    def set_pressures_pa(self, p: Sequence[Sequence[float]] | FloatArray) -> None:
+        """Pressures [Pa], shape (19, 2): cap, rod side; NaN is sent as SENSOR_FAULT."""
+        arr = np.asarray(p, dtype=float)
+        if arr.shape != (N_CYLINDERS, 2):
+            raise ValueError(f"pressures: expected shape ({N_CYLINDERS}, 2), got {arr.shape}")
+        self._press_mpa = (arr / units.MPA).tolist()
+
+    def set_limit_switches(self, retracted: Iterable[bool], extended: Iterable[bool]) -> None:
+        self._limits = (
+            mask_of(i for i, b in enumerate(retracted) if b),
+            mask_of(i for i, b in enumerate(extended) if b),
+        )
+
+    def set_hmi_target(self, target: HmiTarget | None) -> None:
+        self._hmi = target
+
+    def _values_for(self, spec: MessageSpec, now: float) -> list[float] | None:
+        name = spec.name
+        names = self._codec_by_name[name].signal_names
+        if name.startswith("PLC_RodPos_"):
+            return [self._pos_mm[i] for i in spec.slots]
+        if name.startswith("PLC_Pressure_"):
+            return [v for i in spec.slots for v in self._press_mpa[i]]
+        if name == "PLC_Status":
+            s = self._status
+            d: dict[str, float] = {
+                "ModeActual": int(s.mode),
+                "EStop": int(s.estop),
+                "PumpRunning": int(s.pump_running),
+                "DrivesEnabled": int(s.drives_enabled),
+                "CommandTimeout": int(s.command_timeout or self.command_timeout(now)),
+                "FaultCode": int(s.fault),
+                "SupplyPressure": units.to_mpa(s.supply_pressure_pa),
+            }
+        elif name == "PLC_Limits":
+            d = {"LimitRetractedMask": self._limits[0], "LimitExtendedMask": self._limits[1]}
+        elif name == "PLC_HmiTarget":
+            t = self._hmi
+            d = {
+                "TargetRoll": 0.0 if t is None else units.to_deg(t.roll_rad),
+                "TargetPitch": 0.0 if t is None else units.to_deg(t.pitch_rad),
+                "TargetRequest": 0 if t is None else int(t.request),
+                "TargetSeq": 0 if t is None else t.seq & 0xFF,
+            }
+        else:  # pragma: no cover - the DBC has no other PLC message
+            return None
+        return [d[n] for n in names]
