@@ -113,6 +113,8 @@ class IpcLink(LinkSide):
             "TargetAckStatus": int(c.ack_status),
             "TargetAckSeq": int(c.ack_seq) & 0xFF,
             "FastCylinderMask": mask_of(self._active),
+            "PackMLState": int(c.state),
+            "UnitMode": int(c.unit_mode),
         }
         return [vals[n] for n in self._ctl_codec.signal_names]
 

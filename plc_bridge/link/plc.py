@@ -80,6 +80,8 @@ class PlcLink(LinkSide):
             fault_reset=bool(d["FaultReset"]),
             ack_seq=int(d["TargetAckSeq"]),
             ack_status=TargetAck(int(d["TargetAckStatus"])),
+            state=int(d["PackMLState"]),
+            unit_mode=int(d["UnitMode"]),
         )
 
     def valve_commands(self, now: float | None = None) -> Reading:

@@ -65,6 +65,10 @@ class ControlWord:
     fault_reset: bool = False
     ack_seq: int = 0
     ack_status: TargetAck = TargetAck.NONE
+    #: the IPC service's PackML state and unit mode numbers (``PackMLState``,
+    #: ``UnitMode``; 0: undefined), for the PLC and its HMI to show
+    state: int = 0
+    unit_mode: int = 0
 
 
 #: The field names of :class:`ControlWord` (``IpcLink.set_control`` checks changes by name).
