@@ -38,6 +38,9 @@ class PlantSettings(Strict):
     load_holding_valves: bool = True
     #: a limit switch closes this close to either end of the stroke
     limit_switch_mm: Positive = 2.0
+    #: the walking rig: the body on its eight legs with foot contact on the invert, both
+    #: frames in world x (hil_sim/walking.py; needs the project's frames and walking)
+    contact: bool = False
 
     @property
     def step_s(self) -> float:
@@ -253,6 +256,47 @@ class LoadStep(_Timed):
         return self.force_kn * units.KN
 
 
+class GroundOffset(_Timed):
+    """The invert raised (``offset_mm`` > 0) or lowered (< 0, a hole) over a rectangle of
+    world x and y (base frame): a step at the previous ring's joint, a hole under a foot.
+    Needs ``plant.contact``."""
+
+    kind: Literal["ground"]
+    x_from_m: Annotated[float, Field(ge=-1000, le=1000)]
+    x_to_m: Annotated[float, Field(ge=-1000, le=1000)]
+    y_from_m: Annotated[float, Field(ge=-100, le=100)] = -100.0
+    y_to_m: Annotated[float, Field(ge=-100, le=100)] = 100.0
+    offset_mm: Annotated[float, Field(ge=-10_000, le=1000)]
+
+    @model_validator(mode="after")
+    def _extent(self) -> GroundOffset:
+        if self.x_to_m <= self.x_from_m or self.y_to_m <= self.y_from_m:
+            raise ValueError("x_to_m and y_to_m must be above x_from_m and y_from_m")
+        return self
+
+    @property
+    def row(self) -> tuple[float, float, float, float, float]:
+        return (self.x_from_m, self.x_to_m, self.y_from_m, self.y_to_m, units.mm(self.offset_mm))
+
+
+class FootSlip(_Timed):
+    """A frame's feet on a slippery invert: its friction coefficient becomes this.
+    Needs ``plant.contact``."""
+
+    kind: Literal["foot_slip"]
+    frame: Literal["main", "sub"]
+    friction_coefficient: Annotated[float, Field(ge=0, le=2)]
+
+
+class HoldingValveLeak(_Timed):
+    """A cylinder's load-holding valve leaks: both chambers leak to tank past it, also
+    while it is closed (``leakage_m3_s_pa``, on top of the cylinder's own leakage)."""
+
+    kind: Literal["holding_valve_leak"]
+    cylinder: str
+    leakage_m3_s_pa: Annotated[float, Field(gt=0, le=1e-8)]
+
+
 Event = Annotated[
     EStop
     | HmiTargetEvent
@@ -268,7 +312,10 @@ Event = Annotated[
     | SensorFault
     | Leakage
     | StuckValve
-    | LoadStep,
+    | LoadStep
+    | GroundOffset
+    | FootSlip
+    | HoldingValveLeak,
     Field(discriminator="kind"),
 ]
 
@@ -289,6 +336,9 @@ EVENT_KINDS: tuple[str, ...] = (
     "leakage",
     "stuck_valve",
     "load_step",
+    "ground",
+    "foot_slip",
+    "holding_valve_leak",
 )
 
 

@@ -513,6 +513,90 @@ class Task(Strict):
     assembly_time_min: Annotated[Finite, Field(gt=0, le=10_000)] = 5.0
 
 
+# --------------------------------------------------------------------------- walking
+
+
+class MainFrame(Strict):
+    """Main frame M (walking.md section 1): its legs are the lower layer's (``a_M, b_M``
+    = the lower layer's half-spans); ``bodies`` its own structure, in the lower
+    platform frame."""
+
+    bodies: tuple[Body, ...] = ()
+
+
+class SubFrame(Strict):
+    """Sub frame S inside M: legs ``sub_leg_1..4`` at ``(x_S + s_i a_S, t_i b_S)`` in M's
+    frame; ``bodies`` its structure, in S's frame (origin at the centre of its legs)."""
+
+    half_span_x_m: Annotated[Finite, Field(gt=0, le=20)]
+    half_span_y_m: Annotated[Finite, Field(gt=0, le=20)]
+    bodies: tuple[Body, ...] = ()
+
+    @property
+    def a_m(self) -> float:
+        return self.half_span_x_m
+
+    @property
+    def b_m(self) -> float:
+        return self.half_span_y_m
+
+
+class Frames(Strict):
+    main: MainFrame = MainFrame()
+    sub: SubFrame
+
+
+class FootContact(Strict):
+    """The invert under one foot: a unilateral spring-damper (walking.md section 6)."""
+
+    stiffness_n_m: Annotated[Finite, Field(gt=0, le=1e11)] = 2e8
+    damping_ratio: Annotated[Finite, Field(ge=0, le=10)] = 0.7
+
+
+class Walking(Strict):
+    """The step-through gait (walking.md sections 2, 3 and 6)."""
+
+    #: one step = one ring
+    step_length_mm: Annotated[Finite, Field(gt=0, le=10_000)] = 2000.0
+    #: feet clear of the invert when lifted
+    clearance_mm: Annotated[Finite, Field(gt=0, le=1000)] = 50.0
+    #: travel cylinders: reserve kept at each end of the stroke
+    travel_reserve_mm: Annotated[Finite, Field(ge=0, le=10_000)] = 50.0
+    #: travel cylinders: speed limit of the pair
+    travel_speed_mm_s: Annotated[Finite, Field(gt=0, le=1000)] = 50.0
+    #: touching legs are preloaded to this share of their expected force (phase 3)
+    preload_percent: Annotated[Finite, Field(gt=0, le=100)] = 20.0
+    #: a releasing leg is unloaded below this share of its standing force (phase 4)
+    unloaded_percent: Annotated[Finite, Field(gt=0, le=100)] = 5.0
+    #: leg force ramp during preload and transfer (force control)
+    force_ramp_kn_s: Annotated[Finite, Field(gt=0, le=10_000)] = 50.0
+    #: COG projection to the nearest edge of the standing legs' support, at every instant
+    min_stability_margin_m: Annotated[Finite, Field(gt=0, le=20)] = 0.25
+    #: travel force below this times the standing legs' total normal force (no slip)
+    foot_friction_coefficient: Annotated[Finite, Field(gt=0, le=2)] = 0.4
+    contact: FootContact = FootContact()
+
+    @property
+    def step_length_m(self) -> float:
+        return units.mm(self.step_length_mm)
+
+    @property
+    def clearance_m(self) -> float:
+        return units.mm(self.clearance_mm)
+
+    @property
+    def travel_reserve_m(self) -> float:
+        return units.mm(self.travel_reserve_mm)
+
+    @property
+    def travel_speed_m_s(self) -> float:
+        return units.mm(self.travel_speed_mm_s)
+
+    @property
+    def force_ramp_n_s(self) -> float:
+        return self.force_ramp_kn_s * units.KN
+
+
 # --------------------------------------------------------------------------- project
 
 
@@ -533,6 +617,9 @@ class ProjectConfig(Strict):
     safety: Safety = Safety()
     acceptance: Acceptance
     task: Task = Task()
+    #: the two frames of the walk; without them (and ``walking``) the machine does not walk
+    frames: Frames | None = None
+    walking: Walking | None = None
 
     @model_validator(mode="after")
     def _inventory(self) -> ProjectConfig:
@@ -555,6 +642,16 @@ class ProjectConfig(Strict):
                 f"can.active_groups: unknown cylinder group(s) {unknown_groups}; "
                 f"groups are {sorted({c.group for c in self.cylinders})}"
             )
+        if (self.frames is None) != (self.walking is None):
+            raise ValueError("frames and walking go together: give both sections or neither")
+        if self.walking is not None:
+            travel = [c for c in self.cylinders if c.role == "travel"]
+            usable_mm = min(c.stroke_mm for c in travel) - 2 * self.walking.travel_reserve_mm
+            if self.walking.step_length_mm > usable_mm:
+                raise ValueError(
+                    f"walking.step_length_mm ({self.walking.step_length_mm}) must fit in the "
+                    f"travel stroke less both reserves ({usable_mm} mm)"
+                )
         by_id = {c.id: c for c in self.cylinders}
         for name, layer, ok_roles in (
             ("lower", self.layers.lower, ("main_leg", "sub_leg")),

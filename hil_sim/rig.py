@@ -140,7 +140,7 @@ def _mass_and_gravity(q, body_m, body_c, body_layer, rod_xy, rod_m, origin_u, g_
                 jac[:, 5] = r_l @ (dp_u @ c)
         else:
             j = k - n_bodies
-            m = rod_m
+            m = rod_m[j]
             layer = j // 4
             qo = 3 * layer
             d, j0, j1, j2 = extension_and_jacobian(
@@ -170,7 +170,43 @@ def _mass_and_gravity(q, body_m, body_c, body_layer, rod_xy, rod_m, origin_u, g_
 
 
 @jit
-def _derivative(y, dy, u, ports, f_ext, p, plat_idx, rod_xy, half_stroke, m_inv, q_g, x_out, f_out):
+def cylinder_forces(y, dy, u, ports, leak, f_ext, p, x, v, f_out):
+    """Valves, chambers and rod forces of all cylinders at rod positions ``x``, speeds ``v``.
+
+    Writes the valve and pressure derivatives and, for a standalone rod, ``x' = v``,
+    ``v' = F / m``; ``f_out``: the net rod forces. ``leak``: leakage to tank past a
+    blocked load-holding valve (m^3/s/Pa, both chambers), on top of the ports' own.
+    """
+    for i in range(N):
+        spool = y[_SPOOL + i]
+        rate = y[_RATE + i]
+        p_a = y[_PA + i]
+        p_b = y[_PB + i]
+        d_spool, d_rate = valve_derivative(spool, rate, u[i], p[9, i], p[10, i], p[11, i])
+        q_a, q_b = orifice_flows(spool, p_a, p_b, p[9, i], p[8, i], p[12, i], p[13, i], p[14, i])
+        dp_a, dp_b = chamber_pressure_derivatives(
+            x[i], v[i], p_a, p_b, q_a * ports[i], q_b * ports[i], p[0, i], p[1, i], p[2, i],
+            p[3, i], p[4, i], p[5, i], p[6, i], p[7, i] * ports[i] + leak[i],
+        )  # fmt: skip
+        force = (
+            rod_force_n(p_a, p_b, p[0, i], p[1, i])
+            - friction_force_n(v[i], p[16, i], p[17, i], p[18, i])
+            + end_stop_force_n(x[i], v[i], p[2, i], p[19, i], p[20, i])
+            + f_ext[i]
+        )
+        f_out[i] = force
+        dy[_SPOOL + i] = d_spool
+        dy[_RATE + i] = d_rate
+        dy[_PA + i] = dp_a
+        dy[_PB + i] = dp_b
+        dy[_X + i] = y[_V + i]
+        dy[_V + i] = force / p[15, i]
+
+
+@jit
+def _derivative(
+    y, dy, u, ports, leak, f_ext, p, plat_idx, rod_xy, half_stroke, m_inv, q_g, x_out, f_out
+):
     """``dy = f(y)`` for the whole rig; writes rod positions/velocities and rod forces."""
     q = y[_Q : _Q + 6]
     qd = y[_QD : _QD + 6]
@@ -189,30 +225,7 @@ def _derivative(y, dy, u, ports, f_ext, p, plat_idx, rod_xy, half_stroke, m_inv,
         i = plat_idx[j]
         x[i] = half_stroke[j] + d
         v[i] = j0 * qd[qo] + j1 * qd[qo + 1] + j2 * qd[qo + 2]
-    for i in range(N):
-        spool = y[_SPOOL + i]
-        rate = y[_RATE + i]
-        p_a = y[_PA + i]
-        p_b = y[_PB + i]
-        d_spool, d_rate = valve_derivative(spool, rate, u[i], p[9, i], p[10, i], p[11, i])
-        q_a, q_b = orifice_flows(spool, p_a, p_b, p[9, i], p[8, i], p[12, i], p[13, i], p[14, i])
-        dp_a, dp_b = chamber_pressure_derivatives(
-            x[i], v[i], p_a, p_b, q_a * ports[i], q_b * ports[i], p[0, i], p[1, i], p[2, i],
-            p[3, i], p[4, i], p[5, i], p[6, i], p[7, i] * ports[i],
-        )  # fmt: skip
-        force = (
-            rod_force_n(p_a, p_b, p[0, i], p[1, i])
-            - friction_force_n(v[i], p[16, i], p[17, i], p[18, i])
-            + end_stop_force_n(x[i], v[i], p[2, i], p[19, i], p[20, i])
-            + f_ext[i]
-        )
-        f_out[i] = force
-        dy[_SPOOL + i] = d_spool
-        dy[_RATE + i] = d_rate
-        dy[_PA + i] = dp_a
-        dy[_PB + i] = dp_b
-        dy[_X + i] = y[_V + i]
-        dy[_V + i] = force / p[15, i]
+    cylinder_forces(y, dy, u, ports, leak, f_ext, p, x, v, f_out)
     gen = np.empty(6)
     for a in range(6):
         gen[a] = q_g[a]
@@ -234,7 +247,7 @@ def _derivative(y, dy, u, ports, f_ext, p, plat_idx, rod_xy, half_stroke, m_inv,
 
 @jit
 def _advance(
-    y, u, ports, f_ext, p, plat_idx, rod_xy, half_stroke, body_m, body_c, body_layer, rod_m,
+    y, u, ports, leak, f_ext, p, plat_idx, rod_xy, half_stroke, body_m, body_c, body_layer, rod_m,
     origin_u, g_b, h, n_steps, x_out, f_out,
 ):  # fmt: skip
     """``n_steps`` RK4 steps of ``h`` with commands, port states and forces held.
@@ -254,7 +267,7 @@ def _advance(
     m_inv = np.linalg.inv(m_mat)
     hh = 0.5 * h
     h6 = h / 6.0
-    args = (u, ports, f_ext, p, plat_idx, rod_xy, half_stroke, m_inv, q_g, x_out, f_out)
+    args = (u, ports, leak, f_ext, p, plat_idx, rod_xy, half_stroke, m_inv, q_g, x_out, f_out)
     for _ in range(n_steps):
         _derivative(y, k1, *args)
         for a in range(n):
@@ -344,6 +357,8 @@ class Rig:
         self._body_c = np.array(cogs, dtype=np.float64)
         self._body_layer = np.array(layers, dtype=np.int64)
         self.rod_mass_kg = float(rod_mass_kg)
+        #: moving mass of each platform rod (lower 1..4, upper 1..4) in the platforms' mass
+        self._rod_m = np.full(8, self.rod_mass_kg)
         self._origin_u = np.array(up.origin_in_lower_m, dtype=np.float64)
         r_base = rotation(cfg.base.roll_rad, cfg.base.pitch_rad)
         self.g_base = r_base.T @ np.array([0.0, 0.0, -units.G])
@@ -352,6 +367,8 @@ class Rig:
         self.command = np.zeros(N)
         self.ports_open = np.zeros(N) if load_holding_valves else np.ones(N)
         self.external_force_n = np.zeros(N)
+        #: leakage to tank past a leaking load-holding valve (m^3/s/Pa) per cylinder
+        self.valve_leak = np.zeros(N)
         self._xv = np.zeros((2, N))
         self._force = np.zeros(N)
         self._settle_level()
@@ -367,7 +384,7 @@ class Rig:
             self._body_c,
             self._body_layer,
             self._rod_xy,
-            self.rod_mass_kg,
+            self._rod_m,
             self._origin_u,
             self.g_base,
         )
@@ -442,6 +459,7 @@ class Rig:
             self.y,
             self.command,
             self.ports_open,
+            self.valve_leak,
             self.external_force_n,
             self._p,
             self._plat_idx,
@@ -450,7 +468,7 @@ class Rig:
             self._body_m,
             self._body_c,
             self._body_layer,
-            self.rod_mass_kg,
+            self._rod_m,
             self._origin_u,
             self.g_base,
             self.step_s,

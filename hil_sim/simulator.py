@@ -39,9 +39,12 @@ from config.hil_scenario import (
     DelayFrames,
     DropFrames,
     EStop,
+    FootSlip,
     FreezeCounter,
+    GroundOffset,
     HilScenario,
     HmiTargetEvent,
+    HoldingValveLeak,
     IgnoreCommands,
     Leakage,
     LoadStep,
@@ -54,6 +57,7 @@ from config.hil_scenario import (
 from config.schema import N_CYLINDERS, ProjectConfig
 from hil_sim.rig import LayerTruth, Rig
 from hil_sim.sensors import PositionTransducer, PressureTransducer
+from hil_sim.walking import WalkingRig
 from hil_sim.wire import PLC_TO_IPC, FaultyWire, WireFault, match_messages
 from plc_bridge import (
     ControlWord,
@@ -127,7 +131,7 @@ class HilSimulator:
         plant = self.scenario.plant
         self.cycle_s = plant.plc_cycle_s
         self.steps_per_cycle = round(plant.plc_cycle_ms / plant.step_ms)
-        self.rig = Rig(
+        self.rig = (WalkingRig if plant.contact else Rig)(
             cfg,
             step_s=plant.step_s,
             rod_mass_kg=plant.rod_mass_kg,
@@ -223,10 +227,12 @@ class HilSimulator:
                     key=k,
                 )
             elif (
-                isinstance(ev, SensorFault | Leakage | StuckValve | LoadStep)
+                isinstance(ev, SensorFault | Leakage | StuckValve | LoadStep | HoldingValveLeak)
                 and ev.cylinder is not None
             ):
                 self._cyl_of[k] = self._cyl(ev.cylinder, where)
+            if isinstance(ev, GroundOffset | FootSlip) and not isinstance(self.rig, WalkingRig):
+                raise ValueError(f"{where}: needs plant.contact: true (the walking rig)")
 
     # ----------------------------------------------------------------- time
 
@@ -363,6 +369,11 @@ class HilSimulator:
         for i in range(N_CYLINDERS):
             self.rig.set_internal_leakage(i, None)
         self.rig.external_force_n[:] = 0.0
+        self.rig.valve_leak[:] = 0.0
+        ground: list[tuple[float, float, float, float, float]] = []
+        if isinstance(self.rig, WalkingRig):
+            self.rig.set_friction(0, None)
+            self.rig.set_friction(1, None)
         extra: dict[str, list[tuple[float, tuple[float, float, float]]]] = {
             "lower": [],
             "upper": [],
@@ -371,6 +382,12 @@ class HilSimulator:
             ev = events[k]
             if isinstance(ev, Leakage):
                 self.rig.set_internal_leakage(self._cyl_of[k], ev.internal_leakage_m3_s_pa)
+            elif isinstance(ev, HoldingValveLeak):
+                self.rig.valve_leak[self._cyl_of[k]] += ev.leakage_m3_s_pa
+            elif isinstance(ev, GroundOffset):
+                ground.append(ev.row)
+            elif isinstance(ev, FootSlip) and isinstance(self.rig, WalkingRig):
+                self.rig.set_friction(0 if ev.frame == "main" else 1, ev.friction_coefficient)
             elif isinstance(ev, LoadStep):
                 if ev.cylinder is not None:
                     self.rig.external_force_n[self._cyl_of[k]] -= ev.force_n
@@ -384,6 +401,8 @@ class HilSimulator:
                 else (0.0, 0.0, 0.0)
             )
             self.rig.set_platform_load(layer, m, cog)
+        if isinstance(self.rig, WalkingRig):
+            self.rig.set_ground(ground)
         self.wire.set_faults(
             self._wire_faults[k] for k in sorted(self._active) if k in self._wire_faults
         )

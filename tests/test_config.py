@@ -144,3 +144,70 @@ def test_cli_show_round_trips(tmp_path: Path, capsys: pytest.CaptureFixture[str]
     path = tmp_path / "shown.yaml"
     path.write_text(out)
     assert load_project(path) == load_project()
+
+
+def test_shipped_project_carries_the_walking_values(project: ProjectConfig) -> None:
+    """walking.md section 6."""
+    frames, walk = project.frames, project.walking
+    assert frames is not None and walk is not None
+    assert (frames.sub.a_m, frames.sub.b_m) == (1.9, 0.95)
+    assert [(b.mass_kg, b.cog_m) for b in frames.main.bodies] == [(6000, (0.0, 0.0, 0.3))]
+    assert [(b.mass_kg, b.cog_m) for b in frames.sub.bodies] == [(8000, (0.0, 0.0, 0.4))]
+    robot = (
+        sum(b.mass_kg for b in project.layers.lower.bodies)
+        + sum(b.mass_kg for b in project.layers.upper.bodies if b.name != "workpiece")
+        + sum(b.mass_kg for b in frames.main.bodies + frames.sub.bodies)
+    )
+    assert robot == project.robot.mass_kg == 35000
+    assert walk.step_length_m == pytest.approx(2.0)
+    assert walk.clearance_m == pytest.approx(0.05)
+    assert walk.travel_reserve_m == pytest.approx(0.05)
+    assert walk.travel_speed_m_s == pytest.approx(0.05)
+    assert (walk.preload_percent, walk.unloaded_percent) == (20, 5)
+    assert walk.min_stability_margin_m == 0.25
+    assert walk.foot_friction_coefficient == 0.4
+    assert (walk.contact.stiffness_n_m, walk.contact.damping_ratio) == (2e8, 0.7)
+    assert project.cylinder("travel_1").stroke_mm == 2200
+
+
+@pytest.mark.parametrize(
+    ("mutate", "expected"),
+    [
+        (
+            lambda d: d["walking"].update(step_length_mm=2150),
+            "walking.step_length_mm (2150.0) must fit in the travel stroke less both "
+            "reserves (2100.0 mm)",
+        ),
+        (lambda d: d.pop("frames"), "frames and walking go together"),
+        (
+            lambda d: d["walking"].update(min_stability_margin_m=-0.25),
+            "walking.min_stability_margin_m: got -0.25: expected input should be greater than 0",
+        ),
+        (
+            lambda d: d["walking"]["contact"].update(stiffness_n_m=".inf"),
+            "walking.contact.stiffness_n_m: got '.inf'",
+        ),
+        (
+            lambda d: d["walking"].update(foot_friction_coefficient=4),
+            "walking.foot_friction_coefficient: got 4: expected input should be less than "
+            "or equal to 2",
+        ),
+        (lambda d: d["frames"]["sub"].update(half_span_z_m=1), "frames.sub.half_span_z_m: unknown"),
+        (lambda d: d["frames"]["sub"].pop("half_span_x_m"), "frames.sub.half_span_x_m: missing"),
+    ],
+)
+def test_walking_config_errors(tmp_path: Path, mutate: Any, expected: str) -> None:
+    data = _shipped()
+    mutate(data)
+    path = _write(tmp_path, data)
+    with pytest.raises(ConfigError) as err:
+        load_project(path)
+    assert expected in str(err.value)
+
+
+def test_a_project_without_walking_sections_loads(tmp_path: Path) -> None:
+    data = _shipped()
+    data.pop("frames")
+    data.pop("walking")
+    cfg = load_project(_write(tmp_path, data))
+    assert cfg.frames is None and cfg.walking is None

@@ -16,14 +16,21 @@ from wara.cli import main
 from wara.commands.hil import parse_fault, scenario_with_faults
 
 EXAMPLE = Path(__file__).resolve().parents[1] / "config" / "scenarios" / "hil_faults_example.yaml"
+#: the walking rig's example: the events that need ``plant.contact``
+WALK_EXAMPLE = EXAMPLE.with_name("hil_walk_example.yaml")
+CONTACT_KINDS = {"ground", "foot_slip"}
 
 
 def test_example_scenario_has_every_kind_and_builds(project: ProjectConfig) -> None:
     sc = load_hil_scenario(EXAMPLE)
-    assert {e.kind for e in sc.events} == set(EVENT_KINDS)
-    sim = HilSimulator(project, can.Bus(interface="virtual", channel=uuid.uuid4().hex), sc)
-    sim.step(0.01)
-    sim.close()
+    walk = load_hil_scenario(WALK_EXAMPLE)
+    assert {e.kind for e in sc.events} == set(EVENT_KINDS) - CONTACT_KINDS
+    assert {e.kind for e in walk.events} >= CONTACT_KINDS and walk.plant.contact
+    for scenario in (sc, walk):
+        bus = can.Bus(interface="virtual", channel=uuid.uuid4().hex)
+        sim = HilSimulator(project, bus, scenario)
+        sim.step(0.01)
+        sim.close()
 
 
 def test_scenario_errors_name_file_and_key(tmp_path: Path) -> None:

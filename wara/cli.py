@@ -32,6 +32,7 @@ COMMANDS: tuple[str, ...] = (
     "demo",
     "soak",
     "hil",
+    "walk",
 )
 
 

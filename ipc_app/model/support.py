@@ -1,0 +1,125 @@
+"""Statics of the walking machine on its legs (walking.md section 3).
+
+The body (M and S, level on the base during a walk) with everything it carries is one
+rigid body. Its legs stand at points ``(x_i, y_i)`` of the lower platform frame (M's);
+they push along the base z axis. Equilibrium is model.md section 5's three equations in
+the standing legs' forces; the expected shares are their minimum-norm solution
+(:func:`support_forces`, any number of legs: four of one frame, or all eight). With four
+legs on a rectangle it is :func:`ipc_app.model.statics.rod_forces` at a level platform
+(the tests check it).
+
+The static stability margin is the distance from the COG's projection along gravity to
+the nearest edge of the standing legs' support polygon (their convex hull), negative
+outside it.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from config.schema import Body, ProjectConfig
+from ipc_app.model.kinematics import Array, S, T, Vec, rotate
+from ipc_app.model.statics import MachineStatics, MassProperties, lump
+
+
+class WalkingMachine:
+    """Mass, COG and leg positions of the machine as a function of ``x_S``.
+
+    Frames (walking.md section 1): M's legs at ``(s_i a_M, t_i b_M)``, S's legs at
+    ``(x_S + s_i a_S, t_i b_S)``, in the lower platform frame. The upper platform's
+    attitude relative to the lower one is given (it does not change during a walk).
+    """
+
+    def __init__(
+        self, cfg: ProjectConfig, upper_roll: float = 0.0, upper_pitch: float = 0.0
+    ) -> None:
+        if cfg.frames is None or cfg.walking is None:
+            raise ValueError("the project has no frames and walking sections: it cannot walk")
+        statics = MachineStatics(cfg)
+        self.g_base = statics.g_base
+        mu, cu = statics.upper
+        ru = rotate(upper_roll, upper_pitch, Vec(*(np.asarray(c) for c in cu)))
+        o = statics.origin_upper
+        cog_u = (o[0] + float(ru.x), o[1] + float(ru.y), o[2] + float(ru.z))
+        upper_in_lower = Body(name="upper", mass_kg=mu, cog_m=cog_u) if mu > 0 else None
+        fixed = [b for b in cfg.layers.lower.bodies] + list(cfg.frames.main.bodies)
+        if upper_in_lower is not None:
+            fixed.append(upper_in_lower)
+        #: everything that moves with M (lower platform frame)
+        self.main: MassProperties = lump(tuple(fixed))
+        #: S's structure (S's frame)
+        self.sub: MassProperties = lump(cfg.frames.sub.bodies)
+        lo, sub = cfg.layers.lower, cfg.frames.sub
+        self.main_legs_xy = np.stack([S * lo.a_m, T * lo.b_m], axis=1)
+        self.sub_legs_xy = np.stack([S * sub.a_m, T * sub.b_m], axis=1)
+
+    @property
+    def mass_kg(self) -> float:
+        return self.main.mass_kg + self.sub.mass_kg
+
+    def cog(self, x_s: float) -> Array:
+        """The total COG (3,) in the lower platform frame with S at ``x_s``."""
+        mm, cm = self.main
+        ms, cs = self.sub
+        c = np.array(cm) * mm + (np.array(cs) + np.array([x_s, 0.0, 0.0])) * ms
+        return np.asarray(c / (mm + ms), dtype=np.float64)
+
+    def legs_xy(self, x_s: float) -> Array:
+        """(8, 2): main legs 1..4, then sub legs 1..4, at ``x_s``."""
+        return np.concatenate([self.main_legs_xy, self.sub_legs_xy + np.array([x_s, 0.0])])
+
+
+def support_forces(points_xy: Array, mass_kg: float, cog: Array, g_base: Vec) -> Array:
+    """Minimum-norm leg forces (n,) holding a level body of ``mass_kg`` at ``cog`` on legs
+    at ``points_xy`` (n, 2), pushing along the base z axis; compression positive."""
+    g = np.array([float(g_base.x), float(g_base.y), float(g_base.z)])
+    m = mass_kg
+    rhs = np.array(
+        [-m * g[2], -m * (cog[1] * g[2] - cog[2] * g[1]), -m * (cog[2] * g[0] - cog[0] * g[2])]
+    )
+    a = np.vstack([np.ones(len(points_xy)), points_xy[:, 1], -points_xy[:, 0]])
+    return np.asarray(a.T @ np.linalg.solve(a @ a.T, rhs), dtype=np.float64)
+
+
+def cog_projection(cog: Array, g_base: Vec) -> Array:
+    """The COG's projection along gravity onto the base plane (2,)."""
+    gx, gy, gz = float(g_base.x), float(g_base.y), float(g_base.z)
+    return np.array([cog[0] - cog[2] * gx / gz, cog[1] - cog[2] * gy / gz])
+
+
+def _hull(points: Array) -> Array:
+    """Convex hull, counter-clockwise (monotone chain)."""
+    pts = sorted({(float(p[0]), float(p[1])) for p in points})
+    if len(pts) < 3:
+        return np.array(pts)
+
+    def cross(o: tuple[float, float], a: tuple[float, float], b: tuple[float, float]) -> float:
+        return (a[0] - o[0]) * (b[1] - o[1]) - (a[1] - o[1]) * (b[0] - o[0])
+
+    lower: list[tuple[float, float]] = []
+    for p in pts:
+        while len(lower) >= 2 and cross(lower[-2], lower[-1], p) <= 0:
+            lower.pop()
+        lower.append(p)
+    upper: list[tuple[float, float]] = []
+    for p in reversed(pts):
+        while len(upper) >= 2 and cross(upper[-2], upper[-1], p) <= 0:
+            upper.pop()
+        upper.append(p)
+    return np.array(lower[:-1] + upper[:-1])
+
+
+def stability_margin(points_xy: Array, point: Array) -> float:
+    """Signed distance (m) from ``point`` to the nearest edge of the convex hull of
+    ``points_xy``: positive inside, negative outside."""
+    hull = _hull(points_xy)
+    if len(hull) < 3:
+        return -float("inf")
+    margin = float("inf")
+    for k in range(len(hull)):
+        a, b = hull[k], hull[(k + 1) % len(hull)]
+        edge = b - a
+        # inward normal of a counter-clockwise edge
+        inward = np.array([-edge[1], edge[0]]) / float(np.hypot(edge[0], edge[1]))
+        margin = min(margin, float(inward @ (point - a)))
+    return margin

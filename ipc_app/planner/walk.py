@@ -1,0 +1,493 @@
+"""The walk planner: N steps of walking.md section 2, planned and checked before the
+first phase starts (docs/walking.md).
+
+From a measured state (``x_S``, the legs' extensions, the upper platform's attitude) it
+lays out every phase of every step: what moves, its trajectory (a speed- and
+acceleration-limited trapezoid), the expected leg forces (:mod:`ipc_app.model.support`)
+and the stability margin, sampled along the whole plan. A plan that breaks a constraint
+anywhere is refused with a :class:`Violation`: the constraint, the step, the phase, the
+instant, the value and its limit.
+
+Choices where walking.md is silent:
+- The body stays level on the base during a walk; the invert under the feet is the base
+  plane (the ground offsets of the simulator are what the touch-down handles).
+- Moves (travel, lifting, lowering) are trapezoids: the travel pair at
+  ``walking.travel_speed_mm_s``, the legs at ``planner.trajectory.max_rod_speed_mm_s``,
+  both at ``planner.trajectory.max_rod_accel_mm_s2``.
+- Preload and transfer ramp the leg forces at ``walking.force_ramp_kn_s`` (the largest
+  change of any leg sets the duration). During a transfer the forces move on the straight
+  line from the preloaded to the new standing distribution (every point of it is an
+  equilibrium); the transfer ends when every releasing leg is at ``unloaded_percent`` of
+  its standing share, the rest is shed as it lifts.
+- Rails and guides take no travel force: the travel force is what moves the free frame
+  (its mass times the acceleration, plus gravity along the base x).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from config import units
+from config.schema import ProjectConfig
+from ipc_app.model.kinematics import Array, fit_layer
+from ipc_app.model.support import (
+    WalkingMachine,
+    cog_projection,
+    stability_margin,
+    support_forces,
+)
+
+_SAMPLES = 41  # samples per phase (the margin and forces are checked at each)
+
+PHASES: dict[str, str] = {
+    "1": "advance S",
+    "2": "lower S",
+    "3": "preload S",
+    "4": "transfer to S",
+    "5": "lift M",
+    "6": "advance M",
+    "7a": "lower M",
+    "7b": "preload M",
+    "7c": "transfer to M",
+    "8": "lift S",
+}
+
+
+@dataclass(frozen=True)
+class Move:
+    """A trapezoidal move of ``distance_m`` within ``v_max``, ``a_max``."""
+
+    distance_m: float
+    v_max: float
+    a_max: float
+
+    @property
+    def duration_s(self) -> float:
+        d = abs(self.distance_m)
+        if d == 0.0:
+            return 0.0
+        if d <= self.v_max**2 / self.a_max:  # triangle
+            return 2.0 * math.sqrt(d / self.a_max)
+        return d / self.v_max + self.v_max / self.a_max
+
+    def position(self, t: Array) -> Array:
+        """Distance covered at ``t`` (signed like ``distance_m``)."""
+        d, T = abs(self.distance_m), self.duration_s
+        if T == 0.0:
+            return np.zeros_like(t)
+        v = min(self.v_max, math.sqrt(d * self.a_max))
+        ta = v / self.a_max
+        t = np.clip(t, 0.0, T)
+        s = np.where(
+            t < ta,
+            0.5 * self.a_max * t**2,
+            np.where(
+                t <= T - ta,
+                0.5 * self.a_max * ta**2 + v * (t - ta),
+                d - 0.5 * self.a_max * (T - t) ** 2,
+            ),
+        )
+        return np.asarray(math.copysign(1.0, self.distance_m) * s, dtype=np.float64)
+
+
+@dataclass(frozen=True)
+class Violation:
+    """Why a plan is refused: the first constraint broken along it."""
+
+    constraint: str  #: stability_margin, leg_force_min, pressure, slip, travel_stroke, leg_stroke
+    step: int  #: 1-based
+    phase: str  #: a key of :data:`PHASES`
+    t_s: float  #: from the start of the walk
+    value: float  #: SI (m, N, Pa)
+    limit: float
+    unit: str
+    detail: str
+
+    @property
+    def message(self) -> str:
+        return (
+            f"{self.constraint}: step {self.step} phase {self.phase} ({PHASES[self.phase]}) "
+            f"at t = {self.t_s:.2f} s: {self.detail}"
+        )
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "constraint": self.constraint,
+            "step": self.step,
+            "phase": self.phase,
+            "phase_name": PHASES[self.phase],
+            "t_s": round(self.t_s, 3),
+            "value": self.value,
+            "limit": self.limit,
+            "unit": self.unit,
+            "message": self.message,
+        }
+
+
+@dataclass(frozen=True)
+class Phase:
+    step: int
+    key: str
+    t_start_s: float
+    duration_s: float
+    standing: tuple[str, ...]  #: legs that carry load (ids)
+    moving: tuple[str, ...]  #: cylinders in position control
+    start_m: tuple[float, ...]  #: their positions at the start (x_S for travel; extension)
+    end_m: tuple[float, ...]
+    t_s: Array  #: sample instants (from the walk's start)
+    x_s_m: Array  #: S's position along the rails at the samples
+    leg_forces_n: Array  #: (samples, 8) expected leg forces, main 1..4 then sub 1..4
+    margin_m: Array  #: stability margin at the samples
+    travel_force_n: Array  #: force the travel pair must give at the samples
+    friction_capacity_n: Array  #: foot friction of the standing legs at the samples
+
+    @property
+    def name(self) -> str:
+        return PHASES[self.key]
+
+    def summary(self, leg_ids: tuple[str, ...]) -> dict[str, Any]:
+        return {
+            "step": self.step,
+            "phase": self.key,
+            "name": self.name,
+            "t_start_s": round(self.t_start_s, 3),
+            "duration_s": round(self.duration_s, 3),
+            "standing": list(self.standing),
+            "moving": list(self.moving),
+            "start_mm": [round(units.to_mm(v), 3) for v in self.start_m],
+            "end_mm": [round(units.to_mm(v), 3) for v in self.end_m],
+            "min_stability_margin_m": round(float(self.margin_m.min()), 4),
+            "leg_forces_end_kn": {
+                cid: round(float(f) / units.KN, 2)
+                for cid, f in zip(leg_ids, self.leg_forces_n[-1], strict=True)
+            },
+            "max_travel_force_kn": round(float(np.abs(self.travel_force_n).max()) / units.KN, 3),
+        }
+
+
+@dataclass
+class WalkPlan:
+    steps: int
+    step_length_m: float
+    leg_ids: tuple[str, ...]
+    min_margin_limit_m: float
+    phases: list[Phase] = field(default_factory=list)
+    violations: list[Violation] = field(default_factory=list)
+
+    @property
+    def feasible(self) -> bool:
+        return not self.violations
+
+    @property
+    def refusal(self) -> Violation | None:
+        """The binding constraint: the first violation along the plan."""
+        return min(self.violations, key=lambda v: v.t_s) if self.violations else None
+
+    @property
+    def duration_s(self) -> float:
+        last = self.phases[-1]
+        return last.t_start_s + last.duration_s
+
+    @property
+    def min_margin(self) -> tuple[float, Phase]:
+        ph = min(self.phases, key=lambda p: float(p.margin_m.min()))
+        return float(ph.margin_m.min()), ph
+
+    def to_dict(self) -> dict[str, Any]:
+        margin, where = self.min_margin
+        step_time = [
+            sum(p.duration_s for p in self.phases if p.step == k) for k in range(1, self.steps + 1)
+        ]
+        ref = self.refusal
+        return {
+            "feasible": self.feasible,
+            "steps": self.steps,
+            "distance_m": round(self.steps * self.step_length_m, 6),
+            "duration_s": round(self.duration_s, 3),
+            "step_duration_s": [round(t, 3) for t in step_time],
+            "min_stability_margin_m": round(margin, 4),
+            "min_stability_margin_at": {"step": where.step, "phase": where.key},
+            "min_stability_margin_limit_m": self.min_margin_limit_m,
+            "refusal": ref.to_dict() if ref is not None else None,
+            "violations": [v.to_dict() for v in self.violations[:10]],
+            "phases": [p.summary(self.leg_ids) for p in self.phases],
+        }
+
+
+@dataclass(frozen=True)
+class WalkStart:
+    """The measured state a walk starts from (walking.md section 2's start state)."""
+
+    x_s_m: float
+    main_extensions_m: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 0.0)
+    upper_extensions_m: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 0.0)
+
+
+def start_state(cfg: ProjectConfig) -> WalkStart:
+    """The nominal start: ``x_S`` at the rear end of the step, legs at mid-stroke."""
+    assert cfg.walking is not None
+    return WalkStart(x_s_m=-cfg.walking.step_length_m / 2)
+
+
+class _Planner:
+    def __init__(self, cfg: ProjectConfig, start: WalkStart) -> None:
+        if cfg.frames is None or cfg.walking is None:
+            raise ValueError("the project has no frames and walking sections: it cannot walk")
+        self.cfg = cfg
+        self.walk = cfg.walking
+        up = cfg.layers.upper
+        fit = fit_layer(np.asarray(start.upper_extensions_m), up.a_m, up.b_m)
+        self.machine = WalkingMachine(cfg, float(fit.roll), float(fit.pitch))
+        self.start = start
+        subs = sorted(
+            (c for c in cfg.cylinders if c.role == "sub_leg"), key=lambda c: c.position or 0
+        )
+        self.leg_ids = tuple(cfg.layers.lower.cylinders) + tuple(c.id for c in subs)
+        self.travel_ids = tuple(c.id for c in cfg.cylinders if c.role == "travel")
+        legs = [cfg.cylinder(cid) for cid in self.leg_ids]
+        self.cap_area = np.array([c.cap_area_m2 for c in legs])
+        self.leg_limit = np.array([c.stroke_m / 2 - cfg.layers.lower.reserve_m for c in legs])
+        travel = [cfg.cylinder(cid) for cid in self.travel_ids]
+        self.x_s_limit = min(c.stroke_m for c in travel) / 2 - self.walk.travel_reserve_m
+        traj = cfg.planner.trajectory
+        self.travel_move = (self.walk.travel_speed_m_s, traj.max_rod_accel_m_s2)
+        self.leg_move = (traj.max_rod_speed_m_s, traj.max_rod_accel_m_s2)
+        self.g = self.machine.g_base
+        self.weight_n = self.machine.mass_kg * -float(self.g.z)
+        self.plan = WalkPlan(
+            0, self.walk.step_length_m, self.leg_ids, self.walk.min_stability_margin_m
+        )
+        self.t = 0.0
+
+    # ----------------------------------------------------------------- statics
+
+    def forces(self, x_s: float, legs: list[int]) -> Array:
+        """Expected forces (8,) with ``legs`` (indices) carrying the machine."""
+        out = np.zeros(8)
+        pts = self.machine.legs_xy(x_s)[legs]
+        out[legs] = support_forces(pts, self.machine.mass_kg, self.machine.cog(x_s), self.g)
+        return out
+
+    def preloaded(self, x_s: float, standing: list[int], touching: list[int]) -> Array:
+        """``touching`` at preload_percent of their eight-leg share, ``standing`` the rest."""
+        share8 = self.forces(x_s, list(range(8)))
+        out = np.zeros(8)
+        out[touching] = share8[touching] * self.walk.preload_percent / 100.0
+        # the standing legs carry what is left (minimum norm over them)
+        four = self.forces(x_s, standing)
+        pts = self.machine.legs_xy(x_s)
+        a_t = np.vstack([np.ones(4), pts[touching, 1], -pts[touching, 0]])
+        a_s = np.vstack([np.ones(4), pts[standing, 1], -pts[standing, 0]])
+        residual = a_t @ out[touching]
+        out[standing] = four[standing] - a_s.T @ np.linalg.solve(a_s @ a_s.T, residual)
+        return out
+
+    def margin(self, x_s: float, legs: list[int]) -> float:
+        point = cog_projection(self.machine.cog(x_s), self.g)
+        return stability_margin(self.machine.legs_xy(x_s)[legs], point)
+
+    # ----------------------------------------------------------------- phases
+
+    def add(
+        self,
+        step: int,
+        key: str,
+        duration: float,
+        x_s: Array,
+        forces: Array,
+        support: list[int],
+        moving: tuple[str, ...],
+        start: tuple[float, ...],
+        end: tuple[float, ...],
+        moving_mass: float = 0.0,
+        accel: Array | None = None,
+        min_force_n: float | None = None,
+    ) -> None:
+        n = len(x_s)
+        t = self.t + np.linspace(0.0, duration, n)
+        margin = np.array([self.margin(float(x), support) for x in x_s])
+        normal = forces[:, support].sum(axis=1)
+        a = np.zeros(n) if accel is None else accel
+        travel = moving_mass * (a + float(self.g.x))
+        capacity = self.walk.foot_friction_coefficient * normal
+        phase = Phase(
+            step, key, self.t, duration, tuple(self.leg_ids[i] for i in support), moving,
+            start, end, t, x_s, forces, margin, travel, capacity,
+        )  # fmt: skip
+        self.plan.phases.append(phase)
+        self.check(phase, support, min_force_n)
+        self.t += duration
+
+    def violation(
+        self,
+        phase: Phase,
+        k: int,
+        constraint: str,
+        value: float,
+        limit: float,
+        unit: str,
+        detail: str,
+    ) -> None:
+        self.plan.violations.append(
+            Violation(
+                constraint, phase.step, phase.key, float(phase.t_s[k]), value, limit, unit, detail
+            )
+        )
+
+    def check(self, phase: Phase, support: list[int], min_force_n: float | None) -> None:
+        """The constraints at every sample. ``min_force_n``: the least force of a standing
+        leg (default ``planner.min_rod_force_kn``; 0 while legs are being loaded or
+        unloaded in force control)."""
+        cfg, walk = self.cfg, self.walk
+        k = int(np.argmin(phase.margin_m))
+        if phase.margin_m[k] < walk.min_stability_margin_m - 1e-9:
+            self.violation(
+                phase, k, "stability_margin", float(phase.margin_m[k]),
+                walk.min_stability_margin_m, "m",
+                f"stability margin {phase.margin_m[k]:.3f} m below "
+                f"{walk.min_stability_margin_m:.3f} m (x_S {phase.x_s_m[k]:+.3f} m)",
+            )  # fmt: skip
+        f_min = cfg.planner.min_rod_force_n if min_force_n is None else min_force_n
+        standing = phase.leg_forces_n[:, support]
+        kk, jj = np.unravel_index(int(np.argmin(standing)), standing.shape)
+        if standing[kk, jj] < f_min - 1e-6:
+            cid = self.leg_ids[support[int(jj)]]
+            self.violation(
+                phase, int(kk), "leg_force_min", float(standing[kk, jj]), f_min, "N",
+                f"{cid} force {standing[kk, jj] / units.KN:.1f} kN below "
+                f"{f_min / units.KN:.1f} kN (lifts off)",
+            )  # fmt: skip
+        pressure = phase.leg_forces_n / self.cap_area
+        kk, jj = np.unravel_index(int(np.argmax(pressure)), pressure.shape)
+        p_max = cfg.hydraulics.rated_pressure_pa
+        if pressure[kk, jj] > p_max:
+            self.violation(
+                phase, int(kk), "pressure", float(pressure[kk, jj]), p_max, "Pa",
+                f"{self.leg_ids[int(jj)]} cap pressure {pressure[kk, jj] / 1e6:.2f} MPa above "
+                f"the rated {p_max / 1e6:.2f} MPa",
+            )  # fmt: skip
+        slip = np.abs(phase.travel_force_n) - phase.friction_capacity_n
+        k = int(np.argmax(slip))
+        if slip[k] > 0:
+            self.violation(
+                phase, k, "slip", float(abs(phase.travel_force_n[k])),
+                float(phase.friction_capacity_n[k]), "N",
+                f"travel force {abs(phase.travel_force_n[k]) / units.KN:.2f} kN above the "
+                f"feet's friction {phase.friction_capacity_n[k] / units.KN:.2f} kN",
+            )  # fmt: skip
+
+    def travel(
+        self, step: int, key: str, x0: float, x1: float, moving_mass: float, legs: list[int]
+    ) -> None:
+        move = Move(x1 - x0, *self.travel_move)
+        tt = np.linspace(0.0, move.duration_s, _SAMPLES)
+        x_s = x0 + move.position(tt)
+        accel = np.gradient(np.gradient(x_s, tt), tt) if move.duration_s > 0 else np.zeros(_SAMPLES)
+        # M moving relative to standing S: in the world M's acceleration is -x_S''
+        accel = accel if key == "1" else -accel
+        forces = np.array([self.forces(float(x), legs) for x in x_s])
+        self.add(
+            step, key, move.duration_s, x_s, forces, legs, self.travel_ids, (x0, x0), (x1, x1),
+            moving_mass, accel,
+        )  # fmt: skip
+
+    def legs_move(
+        self, step: int, key: str, x_s: float, moving: list[int], delta: float,
+        start_ext: Array, support: list[int], forces: Array,
+    ) -> Array:  # fmt: skip
+        move = Move(delta, *self.leg_move)
+        end_ext = start_ext.copy()
+        end_ext[moving] += delta
+        ids = tuple(self.leg_ids[i] for i in moving)
+        self.add(
+            step, key, move.duration_s, np.full(_SAMPLES, x_s), np.tile(forces, (_SAMPLES, 1)),
+            support, ids, tuple(start_ext[moving]), tuple(end_ext[moving]),
+        )  # fmt: skip
+        bad = np.abs(end_ext) > self.leg_limit + 1e-9
+        if bad.any():
+            j = int(np.argmax(np.abs(end_ext) - self.leg_limit))
+            phase = self.plan.phases[-1]
+            self.violation(
+                phase, _SAMPLES - 1, "leg_stroke", float(end_ext[j]), float(self.leg_limit[j]), "m",
+                f"{self.leg_ids[j]} extension {units.to_mm(end_ext[j]):+.1f} mm beyond the "
+                f"planning limit ±{units.to_mm(self.leg_limit[j]):.1f} mm",
+            )  # fmt: skip
+        return end_ext
+
+    def ramp(
+        self, step: int, key: str, x_s: float, f0: Array, f1: Array, support: list[int]
+    ) -> None:
+        duration = float(np.abs(f1 - f0).max()) / self.walk.force_ramp_n_s
+        lam = np.linspace(0.0, 1.0, _SAMPLES)[:, None]
+        forces = f0[None, :] * (1 - lam) + f1[None, :] * lam
+        ids = tuple(self.leg_ids[i] for i in support)
+        self.add(
+            step, key, duration, np.full(_SAMPLES, x_s), forces, support, ids,
+            tuple(f0[support]), tuple(f1[support]), min_force_n=0.0,
+        )  # fmt: skip
+
+    def transfer_end(
+        self, pre: Array, final: Array, releasing: list[int], standing: Array
+    ) -> Array:
+        """The point on the line ``pre -> final`` where every releasing leg is at
+        ``unloaded_percent`` of its standing share."""
+        unloaded = self.walk.unloaded_percent / 100.0
+        lam = 0.0
+        for i in releasing:
+            if pre[i] > unloaded * standing[i]:
+                lam = max(lam, 1.0 - unloaded * standing[i] / pre[i])
+        return pre + lam * (final - pre)
+
+    def run(self, steps: int) -> WalkPlan:
+        walk = self.walk
+        self.plan.steps = steps
+        main, sub, every = [0, 1, 2, 3], [4, 5, 6, 7], list(range(8))
+        rear, front = -walk.step_length_m / 2, walk.step_length_m / 2
+        x_s = self.start.x_s_m
+        if abs(x_s) > self.x_s_limit + 1e-9:
+            self.plan.violations.append(
+                Violation(
+                    "travel_stroke", 1, "1", 0.0, x_s, self.x_s_limit, "m",
+                    f"measured x_S {units.to_mm(x_s):+.1f} mm beyond the travel's "
+                    f"±{units.to_mm(self.x_s_limit):.1f} mm",
+                )
+            )  # fmt: skip
+            return self.plan
+        ext = np.zeros(8)
+        ext[:4] = self.start.main_extensions_m
+        ext[4:] = ext[:4] - walk.clearance_m  # S lifted by the clearance
+        m_main, m_sub = self.machine.main.mass_kg, self.machine.sub.mass_kg
+        for step in range(1, steps + 1):
+            self.travel(step, "1", x_s, front, m_sub, main)
+            x_s = front
+            f_m = self.forces(x_s, main)
+            ext = self.legs_move(step, "2", x_s, sub, walk.clearance_m, ext, main, f_m)
+            pre = self.preloaded(x_s, main, sub)
+            self.ramp(step, "3", x_s, f_m, pre, every)
+            f_s = self.forces(x_s, sub)
+            end = self.transfer_end(pre, f_s, main, f_m)
+            self.ramp(step, "4", x_s, pre, end, every)
+            ext = self.legs_move(step, "5", x_s, main, -walk.clearance_m, ext, sub, f_s)
+            self.travel(step, "6", x_s, rear, m_main, sub)
+            x_s = rear
+            f_s = self.forces(x_s, sub)
+            ext = self.legs_move(step, "7a", x_s, main, walk.clearance_m, ext, sub, f_s)
+            pre = self.preloaded(x_s, sub, main)
+            self.ramp(step, "7b", x_s, f_s, pre, every)
+            f_m = self.forces(x_s, main)
+            end = self.transfer_end(pre, f_m, sub, f_s)
+            self.ramp(step, "7c", x_s, pre, end, every)
+            ext = self.legs_move(step, "8", x_s, sub, -walk.clearance_m, ext, main, f_m)
+        return self.plan
+
+
+def plan_walk(cfg: ProjectConfig, steps: int, start: WalkStart | None = None) -> WalkPlan:
+    """Plan ``steps`` steps from ``start`` (default: :func:`start_state`)."""
+    if steps < 1:
+        raise ValueError(f"steps must be at least 1, got {steps}")
+    planner = _Planner(cfg, start if start is not None else start_state(cfg))
+    return planner.run(steps)

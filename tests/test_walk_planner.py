@@ -1,0 +1,227 @@
+"""The walk planner: phases, expected leg shares, the stability margin along the plan,
+and refusals that name the constraint, the phase and the instant; ``wara walk plan``."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+import yaml
+
+from config import ProjectConfig, default_project_path
+from ipc_app.model import rod_forces
+from ipc_app.model.kinematics import Vec
+from ipc_app.model.support import WalkingMachine, stability_margin, support_forces
+from ipc_app.planner.walk import PHASES, Move, WalkStart, plan_walk
+from wara.cli import main
+
+
+def _walking(project: ProjectConfig, **changes: Any) -> ProjectConfig:
+    assert project.walking is not None
+    return project.model_copy(update={"walking": project.walking.model_copy(update=changes)})
+
+
+def test_three_steps_lay_out_every_phase_in_order(project: ProjectConfig) -> None:
+    plan = plan_walk(project, 3)
+    assert plan.feasible and plan.refusal is None
+    keys = [p.key for p in plan.phases]
+    assert keys == list(PHASES) * 3
+    assert [p.step for p in plan.phases] == [k for k in (1, 2, 3) for _ in PHASES]
+    # phases follow each other without gaps
+    for a, b in zip(plan.phases, plan.phases[1:], strict=False):
+        assert b.t_start_s == pytest.approx(a.t_start_s + a.duration_s)
+    d = plan.to_dict()
+    assert d["distance_m"] == pytest.approx(6.0)
+    assert max(d["step_duration_s"]) < 120.0  # the issue's goal: a step within 2 min
+    # x_S: rear -> front in phase 1, front -> rear in phase 6
+    p1 = plan.phases[0]
+    p6 = plan.phases[5]
+    assert (p1.x_s_m[0], p1.x_s_m[-1]) == pytest.approx((-1.0, 1.0))
+    assert (p6.x_s_m[0], p6.x_s_m[-1]) == pytest.approx((1.0, -1.0))
+
+
+def test_travel_move_respects_speed_and_acceleration(project: ProjectConfig) -> None:
+    walk = project.walking
+    assert walk is not None
+    move = Move(2.0, walk.travel_speed_m_s, project.planner.trajectory.max_rod_accel_m_s2)
+    t = np.linspace(0.0, move.duration_s, 20001)
+    x = move.position(t)
+    v = np.gradient(x, t)
+    a = np.gradient(v, t)
+    assert x[-1] == pytest.approx(2.0)
+    assert v.max() == pytest.approx(walk.travel_speed_m_s, rel=1e-3)
+    assert np.abs(a[5:-5]).max() <= project.planner.trajectory.max_rod_accel_m_s2 * 1.01
+    # 2 m at 50 mm/s with 20 mm/s^2: 40 s cruising plus 2.5 s for the ramps
+    assert move.duration_s == pytest.approx(42.5)
+
+
+def test_expected_shares_hold_the_weight_in_every_sample(project: ProjectConfig) -> None:
+    plan = plan_walk(project, 1)
+    machine = WalkingMachine(project)
+    weight = machine.mass_kg * -float(machine.g_base.z)
+    for ph in plan.phases:
+        assert ph.leg_forces_n.sum(axis=1) == pytest.approx(np.full(len(ph.t_s), weight))
+    by_key = {p.key: p for p in plan.phases}
+    # M standing: S's legs carry nothing; S standing: M's legs nothing
+    assert np.all(by_key["1"].leg_forces_n[:, 4:] == 0.0)
+    assert np.all(by_key["6"].leg_forces_n[:, :4] == 0.0)
+    # preload: S's legs at preload_percent of their eight-leg share
+    assert project.walking is not None
+    eight = support_forces(machine.legs_xy(1.0), machine.mass_kg, machine.cog(1.0), machine.g_base)
+    pre = by_key["3"].leg_forces_n[-1]
+    assert pre[4:] == pytest.approx(eight[4:] * project.walking.preload_percent / 100)
+    # transfer ends with M's legs at unloaded_percent of their standing share (the largest)
+    standing = by_key["2"].leg_forces_n[-1]
+    end = by_key["4"].leg_forces_n[-1]
+    ratio = end[:4] / standing[:4]
+    assert ratio.max() == pytest.approx(project.walking.unloaded_percent / 100)
+
+
+def test_four_leg_shares_are_the_model_statics(project: ProjectConfig) -> None:
+    """support_forces on M's rectangle is model.md section 5 (rod_forces, level)."""
+    machine = WalkingMachine(project)
+    lo = project.layers.lower
+    cog = machine.cog(-1.0)
+    ours = support_forces(machine.legs_xy(-1.0)[:4], machine.mass_kg, cog, machine.g_base)
+    theirs = rod_forces(
+        0.0, 0.0, lo.a_m, lo.b_m, machine.mass_kg,
+        Vec(np.asarray(cog[0]), np.asarray(cog[1]), np.asarray(cog[2])), machine.g_base,
+    )  # fmt: skip
+    assert ours == pytest.approx(np.asarray(theirs), rel=1e-12)
+
+
+def test_stability_margin_of_a_rectangle() -> None:
+    pts = np.array([(2.0, 1.0), (-2.0, 1.0), (-2.0, -1.0), (2.0, -1.0)])
+    assert stability_margin(pts, np.array([0.0, 0.0])) == pytest.approx(1.0)
+    assert stability_margin(pts, np.array([1.5, 0.2])) == pytest.approx(0.5)
+    assert stability_margin(pts, np.array([2.5, 0.0])) == pytest.approx(-0.5)
+
+
+def test_margin_in_phase_6_is_measured_against_the_sub_frame(project: ProjectConfig) -> None:
+    """S standing: y margin ``b_S - y_cog``, x margin ``a_S - |x_cog' - x_S|`` with the
+    COG projected along gravity (base pitch), recomputed here from the bodies."""
+    assert project.frames is not None
+    plan = plan_walk(project, 1)
+    p6 = next(p for p in plan.phases if p.key == "6")
+    bodies = [(b.mass_kg, np.array(b.cog_m)) for b in project.layers.lower.bodies]
+    o = np.array(project.layers.upper.origin_in_lower_m)
+    bodies += [(b.mass_kg, o + np.array(b.cog_m)) for b in project.layers.upper.bodies]
+    bodies += [(b.mass_kg, np.array(b.cog_m)) for b in project.frames.main.bodies]
+    m_sub = sum(b.mass_kg for b in project.frames.sub.bodies)
+    tan_p = math.tan(project.base.pitch_rad)
+    for k in (0, 10, 20, 40):
+        x_s = float(p6.x_s_m[k])
+        parts = bodies + [
+            (b.mass_kg, np.array(b.cog_m) + np.array([x_s, 0, 0]))
+            for b in project.frames.sub.bodies
+        ]
+        m = sum(mi for mi, _ in parts)
+        c = sum(mi * ci for mi, ci in parts) / m
+        assert m_sub > 0
+        x_proj = c[0] + c[2] * tan_p  # gravity leans towards +x on the rising invert
+        expected = min(
+            project.frames.sub.a_m - abs(x_proj - x_s), project.frames.sub.b_m - abs(c[1])
+        )
+        assert p6.margin_m[k] == pytest.approx(expected, abs=1e-9)
+
+
+def test_margin_below_the_limit_is_refused_at_the_phase_it_happens(
+    project: ProjectConfig,
+) -> None:
+    """With the shipped frames the least margin is 0.874 m, from phase 5 (S alone) on.
+    A limit of 0.9 m refuses at the first instant of step 1's phase 5; 0.85 m passes."""
+    ok = plan_walk(_walking(project, min_stability_margin_m=0.85), 2)
+    assert ok.feasible
+    margin, where = ok.min_margin
+    assert margin == pytest.approx(0.8736, abs=1e-4)
+    assert (where.step, where.key) == (1, "5")
+    plan = plan_walk(_walking(project, min_stability_margin_m=0.9), 2)
+    ref = plan.refusal
+    assert ref is not None
+    assert (ref.constraint, ref.step, ref.phase) == ("stability_margin", 1, "5")
+    p5 = next(p for p in plan.phases if p.key == "5")
+    assert ref.t_s == pytest.approx(p5.t_start_s)
+    assert ref.value == pytest.approx(margin, abs=1e-9) and ref.limit == 0.9
+    # the plan is checked everywhere: every step's S-standing phases break it too
+    assert {(v.step, v.phase) for v in plan.violations if v.constraint == "stability_margin"} == {
+        (s, k) for s in (1, 2) for k in ("5", "6", "7a")
+    }
+
+
+def test_a_sub_frame_too_short_for_the_step_is_refused(project: ProjectConfig) -> None:
+    assert project.frames is not None
+    short_sub = project.frames.sub.model_copy(update={"half_span_x_m": 0.9})
+    cfg = project.model_copy(
+        update={"frames": project.frames.model_copy(update={"sub": short_sub})}
+    )
+    plan = plan_walk(cfg, 3)
+    assert not plan.feasible
+    ref = plan.refusal
+    assert ref is not None
+    # S's own four-leg share goes into tension before the margin even binds
+    assert (ref.constraint, ref.step, ref.phase) == ("leg_force_min", 1, "4")
+    kinds = {v.constraint for v in plan.violations}
+    assert "stability_margin" in kinds
+
+
+def test_slip_is_refused_where_the_travel_force_exceeds_friction(project: ProjectConfig) -> None:
+    """Moving M (63 t) needs about 2.7 kN (acceleration and the 0.17 deg gradient); S
+    (8 t) 0.34 kN. Friction 0.001 on 71.35 t holds 0.70 kN: S moves, M does not."""
+    plan = plan_walk(_walking(project, foot_friction_coefficient=0.001), 1)
+    ref = plan.refusal
+    assert ref is not None
+    assert (ref.constraint, ref.step, ref.phase) == ("slip", 1, "6")
+    assert ref.value > ref.limit == pytest.approx(0.001 * 71350 * 9.80665, rel=1e-4)
+
+
+def test_start_outside_the_travel_is_refused(project: ProjectConfig) -> None:
+    plan = plan_walk(project, 1, WalkStart(x_s_m=-1.2))
+    ref = plan.refusal
+    assert ref is not None and ref.constraint == "travel_stroke"
+    assert ref.limit == pytest.approx(1.05)
+
+
+def test_leg_stroke_is_checked(project: ProjectConfig) -> None:
+    lo = project.layers.lower
+    low = -lo.extension_limit_m + 0.01  # the main legs nearly retracted: S cannot lift
+    plan = plan_walk(project, 1, WalkStart(x_s_m=-1.0, main_extensions_m=(low,) * 4))
+    ref = plan.refusal
+    assert ref is not None and ref.constraint == "leg_stroke"
+    assert ref.limit == pytest.approx(lo.extension_limit_m)
+
+
+def test_cli_walk_plan(capsys: pytest.CaptureFixture[str], tmp_path: Path) -> None:
+    assert main(["walk", "plan", "--steps", "3", "--json"]) == 0
+    d = json.loads(capsys.readouterr().out)
+    assert d["feasible"] is True and d["distance_m"] == 6.0
+    assert len(d["phases"]) == 30 and d["refusal"] is None
+    assert d["min_stability_margin_m"] >= d["min_stability_margin_limit_m"]
+    assert main(["walk", "plan", "--steps", "1"]) == 0
+    assert "FEASIBLE" in capsys.readouterr().out
+    data = yaml.safe_load(default_project_path().read_text())
+    data["walking"]["min_stability_margin_m"] = 0.9
+    path = tmp_path / "p.yaml"
+    path.write_text(yaml.safe_dump(data))
+    assert main(["walk", "plan", "--steps", "1", "--config", str(path)]) == 3
+    out = capsys.readouterr().out
+    assert "REFUSED" in out and "stability_margin: step 1 phase 5 (lift M)" in out
+    assert main(["walk", "plan", "--steps", "1", "--config", str(path), "--json"]) == 3
+    ref = json.loads(capsys.readouterr().out)["refusal"]
+    assert (ref["constraint"], ref["phase"], ref["limit"]) == ("stability_margin", "5", 0.9)
+
+
+def test_cli_walk_plan_bad_arguments(capsys: pytest.CaptureFixture[str], tmp_path: Path) -> None:
+    assert main(["walk", "plan", "--steps", "0"]) == 2
+    assert "--steps must be within 1..1000" in capsys.readouterr().err
+    assert main(["walk", "plan", "--steps", "1", "--start-main-mm", "1,2"]) == 2
+    data = yaml.safe_load(default_project_path().read_text())
+    data.pop("frames")
+    data.pop("walking")
+    path = tmp_path / "p.yaml"
+    path.write_text(yaml.safe_dump(data))
+    assert main(["walk", "plan", "--steps", "1", "--config", str(path)]) == 2
+    assert "has no frames and walking sections" in capsys.readouterr().err

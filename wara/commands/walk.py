@@ -1,0 +1,106 @@
+"""``wara walk plan``: plan N steps of the walk before anything moves.
+
+    wara walk plan --steps 3
+    wara walk plan --steps 1 --start-x-s-mm -1000 --json
+
+Exit 0: the plan keeps every constraint; 3: refused (the binding constraint: its step,
+phase, instant, value and limit); 2: bad arguments or configuration.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+
+from config import load_project, units
+from ipc_app.planner.walk import WalkPlan, WalkStart, plan_walk, start_state
+from wara.cli import EXIT_INFEASIBLE, EXIT_OK, UsageError
+from wara.commands.plan import parse_four_mm
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "walk",
+        help="the step-through walk (plan N steps)",
+        description="The step-through walk of walking.md.",
+    )
+    verbs = p.add_subparsers(dest="verb", metavar="VERB")
+    verbs.required = True
+    plan = verbs.add_parser(
+        "plan",
+        help="plan N steps: phases, trajectories, leg shares, stability margin",
+        description="Plan N steps from the measured state and check every constraint.",
+    )
+    plan.add_argument("--config", default=None, help="project YAML (default: shipped Shanghai)")
+    plan.add_argument("--steps", type=int, required=True, help="number of steps (1..1000)")
+    plan.add_argument(
+        "--start-x-s-mm",
+        type=float,
+        default=None,
+        help="measured x_S, S's position along the rails, mm (default: the rear end of the step)",
+    )
+    plan.add_argument(
+        "--start-main-mm",
+        default=None,
+        metavar="D1,D2,D3,D4",
+        help="measured main-leg extensions from mid-stroke, mm (default: mid-stroke)",
+    )
+    plan.add_argument(
+        "--start-upper-mm",
+        default=None,
+        metavar="D1,D2,D3,D4",
+        help="measured upper extensions from mid-stroke, mm (default: mid-stroke)",
+    )
+    plan.add_argument("--json", action="store_true", help="print one JSON object")
+    plan.set_defaults(func=run_plan)
+
+
+def run_plan(args: argparse.Namespace) -> int:
+    if not 1 <= args.steps <= 1000:
+        raise UsageError(f"--steps must be within 1..1000, got {args.steps}")
+    if args.start_x_s_mm is not None and not math.isfinite(args.start_x_s_mm):
+        raise UsageError("--start-x-s-mm must be a finite number")
+    cfg = load_project(args.config)
+    if cfg.frames is None or cfg.walking is None:
+        raise UsageError("the project has no frames and walking sections: it cannot walk")
+    nominal = start_state(cfg)
+    start = WalkStart(
+        x_s_m=nominal.x_s_m if args.start_x_s_mm is None else units.mm(args.start_x_s_mm),
+        main_extensions_m=parse_four_mm(args.start_main_mm, "--start-main-mm"),
+        upper_extensions_m=parse_four_mm(args.start_upper_mm, "--start-upper-mm"),
+    )
+    result = plan_walk(cfg, args.steps, start)
+    if args.json:
+        print(json.dumps(result.to_dict(), indent=2))
+    else:
+        print(render(result))
+    return EXIT_OK if result.feasible else EXIT_INFEASIBLE
+
+
+def render(p: WalkPlan) -> str:
+    d = p.to_dict()
+    lines = [
+        f"{p.steps} step(s) of {p.step_length_m:.3f} m: {d['distance_m']:.3f} m "
+        f"in {d['duration_s']:.1f} s ({max(d['step_duration_s']):.1f} s per step)",
+        "FEASIBLE" if p.feasible else "REFUSED",
+        "",
+        f"{'step':>4} {'phase':<6} {'':<14} {'start s':>8} {'dur s':>7} {'margin m':>9} "
+        f"{'travel kN':>9}   leg forces at the end, kN (main 1-4, sub 1-4)",
+    ]
+    for ph in d["phases"]:
+        forces = " ".join(f"{f:6.1f}" for f in ph["leg_forces_end_kn"].values())
+        lines.append(
+            f"{ph['step']:>4} {ph['phase']:<6} {ph['name']:<14} {ph['t_start_s']:8.2f} "
+            f"{ph['duration_s']:7.2f} {ph['min_stability_margin_m']:9.3f} "
+            f"{ph['max_travel_force_kn']:9.2f}   {forces}"
+        )
+    at = d["min_stability_margin_at"]
+    lines += [
+        "",
+        f"least stability margin  {d['min_stability_margin_m']:.3f} m "
+        f"(step {at['step']}, phase {at['phase']}; limit {p.min_margin_limit_m:.3f} m)",
+    ]
+    if p.refusal is not None:
+        lines += ["", f"Refused: {p.refusal.message}"]
+    return "\n".join(lines)
