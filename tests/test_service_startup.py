@@ -1,9 +1,14 @@
-"""Start-up failures of `wara serve` and `wara hil`: one line on stderr, exit 2, no traceback,
-and no run record left behind (the bus and the socket are opened before the recorder)."""
+"""Start-up of `wara serve` and `wara hil`: a failure to start is one line on stderr, exit 2,
+no traceback, and no run record left behind (the bus and the socket are opened before the
+recorder); BOOT ends within its time, in IDLE or in a fault that says why (lockstep); the
+planner processes start under the normal scheduler; `wara ctl status` as text."""
 
 from __future__ import annotations
 
 import logging
+import os
+import subprocess
+import sys
 import tempfile
 from collections.abc import Iterator
 from pathlib import Path
@@ -122,3 +127,57 @@ def test_hil_with_a_bus_that_cannot_open(
     code = main(["hil", "--config", _project(short_tmp, **can), "--duration", "1", "--quiet"])
     err = _one_line(capsys.readouterr().err, "wara hil: error: ")
     assert code == 2 and can["channel"] in err
+
+
+_PLANNER_POLICY = """
+import os, sys, threading, time
+try:
+    os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(1))
+except OSError as exc:
+    print("refused", exc.strerror)
+    sys.exit(0)
+from ipc_app.service.worker import PlannerWorker
+w = PlannerWorker(None)
+w.start()
+end = time.monotonic() + 120
+while not w.ready and time.monotonic() < end:
+    time.sleep(0.05)
+assert w.ready and w.pid is not None
+children = []
+for entry in os.listdir("/proc"):
+    if entry.isdigit():
+        try:
+            stat = open(f"/proc/{entry}/stat").read()
+        except OSError:
+            continue
+        if int(stat.rsplit(")", 1)[1].split()[1]) == os.getpid():
+            children.append(int(entry))
+flag = os.SCHED_RESET_ON_FORK
+print("planner", os.sched_getscheduler(w.pid) & ~flag)
+print("children", *sorted({os.sched_getscheduler(c) & ~flag for c in children}))
+print("supervisor", os.sched_getscheduler(w._thread.native_id) & ~flag)
+print("main", os.sched_getscheduler(0) & ~flag)
+w.close()
+"""
+
+
+@pytest.mark.skipif(not hasattr(os, "SCHED_RESET_ON_FORK"), reason="Linux only")
+def test_planner_processes_start_under_the_normal_scheduler() -> None:
+    """A service whose threads run at SCHED_FIFO (the demo and the soak put every thread
+    there) starts its planner processes (the fork server, its resource tracker, the
+    planner) under the normal scheduler; the supervisor thread keeps its policy."""
+    proc = subprocess.run(
+        [sys.executable, "-c", _PLANNER_POLICY],
+        capture_output=True,
+        text=True,
+        timeout=300,
+        cwd=Path(__file__).resolve().parents[1],
+        check=False,
+    )
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    if proc.stdout.startswith("refused"):
+        pytest.skip(f"SCHED_FIFO not allowed here: {proc.stdout.strip()}")
+    got = dict(line.split(" ", 1) for line in proc.stdout.splitlines() if " " in line)
+    got = {k: v for k, v in got.items() if k in ("planner", "children", "supervisor", "main")}
+    other, fifo = str(os.SCHED_OTHER), str(os.SCHED_FIFO)
+    assert got == {"planner": other, "children": other, "supervisor": fifo, "main": fifo}, got
