@@ -98,6 +98,8 @@ class ServiceCore:
     HOLD_SETTLE_S = 1.0
     #: Cycles of fresh frames before a suspended motion is checked and resumed.
     RESUME_FRESH_CYCLES = 3
+    #: BOOT not complete after this long: FAULT (``start-up``, with what is missing).
+    BOOT_TIMEOUT_S = 5.0
 
     def __init__(
         self,
@@ -106,7 +108,7 @@ class ServiceCore:
         planner: Planner,
         *,
         record: RunRecorder | None = None,
-        boot_timeout_s: float = 5.0,
+        boot_timeout_s: float = BOOT_TIMEOUT_S,
     ) -> None:
         self.cfg = cfg
         self.link = link
@@ -152,6 +154,7 @@ class ServiceCore:
         self._reset_outcome: dict[str, Any] | None = None
         self._submitted = False
         self._boot_since: float | None = None
+        self._booted = False  # IDLE reached once (BOOT complete, or reset after it)
         self._now = 0.0
         self.motion = MotionStats()
         self.last_motion: MotionStats | None = None
@@ -176,6 +179,8 @@ class ServiceCore:
         )
 
     def _on_transition(self, tr: Transition) -> None:
+        if tr.to_mode == Mode.IDLE:
+            self._booted = True
         if self.record is not None:
             self.record.event(
                 self._now,
@@ -294,16 +299,21 @@ class ServiceCore:
             self.modes.estop(status.estop)
 
         present = self._conditions(valid, status, prs.value, prs.valid, pos, now)
-        self._present = present
         losses = self._losses(valid, status, now)
-        if mode == Mode.BOOT:
+        late = False  # start-up not complete in time
+        if not self._booted:
             if self._boot_since is None:
                 self._boot_since = now
+            late = now - self._boot_since > self.boot_timeout_s
+            if late and losses:  # present (a reset refused) until the link is fresh
+                present.append(self._startup_cause(now - self._boot_since, losses))
+        self._present = present
+        if mode == Mode.BOOT:
             # every input fresh, and the PLC hearing our commands
             if not present and not losses:
                 self.modes.boot_complete()
-            elif now - self._boot_since > self.boot_timeout_s:
-                for cause in present:  # no valid PLC data within the start-up time
+            elif late:
+                for cause in present:  # not complete within the start-up time
                     self.modes.fault(cause)
         else:
             for cause in present:  # latched by (interlock, where): repeats only counted
@@ -426,6 +436,14 @@ class ServiceCore:
                 )
                 break
         return out
+
+    def _startup_cause(self, booting_s: float, losses: list[str]) -> Cause:
+        return Cause(
+            Interlock.STARTUP,
+            value=booting_s,
+            limit=self.boot_timeout_s,
+            detail="not complete: " + "; ".join(losses),
+        )
 
     def _losses(self, positions_valid: bool, status: Any, now: float) -> list[str]:
         """Why the link counts as dropped out now (empty: fresh): what suspends a motion."""
