@@ -467,9 +467,11 @@ def fifo_all_threads(priority: int, pid: int | None = None) -> RealtimeReport:
         tids = [int(t) for t in os.listdir(f"/proc/{'self' if pid is None else pid}/task")]
     except OSError as exc:
         return RealtimeReport((), (f"threads: {exc}",))
+    keep = getattr(os, "SCHED_RESET_ON_FORK", 0)  # a thread's own choice (the planner's)
     for tid in tids:
         try:
-            os.sched_setscheduler(tid, policy, os.sched_param(priority))
+            flags = os.sched_getscheduler(tid) & keep
+            os.sched_setscheduler(tid, policy | flags, os.sched_param(priority))
         except OSError as exc:
             refused.append(f"SCHED_FIFO {priority} for thread {tid}: {exc.strerror or exc}")
     if len(refused) < len(tids):

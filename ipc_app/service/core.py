@@ -147,6 +147,8 @@ class ServiceCore:
     HOLD_SETTLE_S = 1.0
     #: Cycles of fresh frames before a suspended motion is checked and resumed.
     RESUME_FRESH_CYCLES = 3
+    #: BOOT not complete after this long: FAULT (``start-up``, with what is missing).
+    BOOT_TIMEOUT_S = 5.0
 
     def __init__(
         self,
@@ -155,7 +157,7 @@ class ServiceCore:
         planner: Planner,
         *,
         record: RunRecorder | None = None,
-        boot_timeout_s: float = 5.0,
+        boot_timeout_s: float = BOOT_TIMEOUT_S,
     ) -> None:
         self.cfg = cfg
         self.link = link
@@ -260,6 +262,14 @@ class ServiceCore:
             self._outcome_cv.wait_for(lambda: self._reset_outcome is not None, timeout=wait_s)
             out = self._reset_outcome
         return out if out is not None else act().to_dict()
+
+    def _startup_cause(self, booting_s: float, losses: list[str]) -> Cause:
+        return Cause(
+            Interlock.STARTUP,
+            value=booting_s,
+            limit=self.boot_timeout_s,
+            detail="not complete: " + "; ".join(losses),
+        )
 
     def _reset_step(self, now: float, present: list[Cause]) -> None:
         """Drive a requested reset or clear (loop thread)."""
@@ -463,16 +473,21 @@ class ServiceCore:
             self.modes.estop(status.estop)
 
         present = present_causes(inp, self.limits)
-        self._present = present
         losses = link_losses(inp)
+        late = False  # start-up not complete in time
         if not self.modes.booted:
             if self._boot_since is None:
                 self._boot_since = now
+            late = now - self._boot_since > self.boot_timeout_s
+            if late and losses:  # present (a reset refused) until the link is fresh
+                present.append(self._startup_cause(now - self._boot_since, losses))
+        self._present = present
+        if not self.modes.booted:
             # every input fresh, and the PLC hearing our commands
             if not present and not losses:
                 self.modes.boot_complete()
-            elif now - self._boot_since > self.boot_timeout_s:
-                for cause in present:  # no valid PLC data within the start-up time
+            elif late:
+                for cause in present:  # not complete within the start-up time
                     self.modes.fault(cause)
         else:
             for cause in present:  # latched by (interlock, where): repeats only counted

@@ -44,6 +44,7 @@ class Applies(StrEnum):
     DRIVEN = "valves driven (EXECUTE, COMPLETE)"
     SUSPENDED = "SUSPENDED, before the motion resumes"
     EVENT = "when the planner answers"
+    STARTUP = "start-up (STOPPED), until IDLE is first reached"
 
 
 class Interlock(StrEnum):
@@ -60,6 +61,7 @@ class Interlock(StrEnum):
     RESUME_CHECK = "resume check"
     PLANNER = "planner"
     CONTROL_CHANNEL = "control channel"
+    STARTUP = "start-up"
 
 
 @dataclass(frozen=True)
@@ -147,6 +149,15 @@ SPECS: dict[Interlock, Spec] = {
         "",
         "the control socket's server thread ended or stalled, or its socket file is gone "
         "(where: the server's state; the service binds it again)",
+    ),
+    Interlock.STARTUP: Spec(
+        None,
+        Applies.STARTUP,
+        "s",
+        "start-up not complete after `ServiceCore.BOOT_TIMEOUT_S` (5 s) because the link "
+        "is not fresh: rod positions or the PLC status stale, or the PLC reporting the "
+        "IPC's commands stale (detail: which); an interlock condition present then is "
+        "latched as itself",
     ),
 }
 

@@ -51,7 +51,7 @@ import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any, Literal, TypeVar
 
 import numpy as np
 import structlog
@@ -64,6 +64,7 @@ from ipc_app.planner.trajectory import Trajectory
 log = structlog.get_logger("wara.service.worker")
 
 Four = tuple[float, float, float, float]
+T = TypeVar("T")
 StartMethod = Literal["forkserver", "spawn"]
 #: The planner function run in the worker: "module:function", called ``fn(cfg, request)``
 #: and returning a :class:`~ipc_app.planner.plan.Plan` (tests point it at fakes).
@@ -304,14 +305,7 @@ class PlannerWorker:
                 self._closing.wait(backoff)
                 if self._closing.is_set():
                     break
-            requests, results = self._ctx.Queue(), self._ctx.Queue()
-            proc = self._ctx.Process(
-                target=_child_main,
-                args=(self._config_path, self._plan_fn, requests, results),
-                name="wara-planner-worker",
-                daemon=True,
-            )
-            proc.start()
+            requests, results, proc = under_normal_scheduler(self._new_process)
             self.pid = proc.pid
             with self._lock:
                 self._sent = False
@@ -331,6 +325,18 @@ class PlannerWorker:
                 "planner_restart", reason=outcome, exitcode=proc.exitcode, backoff_s=backoff
             )
         self._fail_pending("planner worker stopped")
+
+    def _new_process(self) -> tuple[Any, Any, Any]:
+        """The two queues and a started planner process."""
+        requests, results = self._ctx.Queue(), self._ctx.Queue()
+        proc = self._ctx.Process(
+            target=_child_main,
+            args=(self._config_path, self._plan_fn, requests, results),
+            name="wara-planner-worker",
+            daemon=True,
+        )
+        proc.start()
+        return requests, results, proc
 
     def _serve(self, proc: Any, requests: Any, results: Any) -> str:
         """Run one process generation; returns why it ended."""
@@ -386,6 +392,49 @@ class PlannerWorker:
                         f"{self._pending.request_id}; restarted"
                     )
                 return "died_after_ready" if was_ready else "died_at_start"
+
+
+def under_normal_scheduler(fn: Callable[[], T]) -> T:
+    """``fn()`` in a short-lived thread that has ``SCHED_RESET_ON_FORK``, for starting
+    the planner: every process started from there (the queues' resource tracker, the
+    fork server, and through the fork server every planner process) begins under the
+    normal scheduler, whatever real-time policy the service's threads have. A planner
+    process that inherited SCHED_FIFO would keep a CPU from the control loop for as long
+    as it computes (docs/service.md, "Start-up"). The calling thread keeps its policy,
+    and so do the threads it starts later (the request queue's feeder)."""
+    out: list[T] = []
+    failed: list[BaseException] = []
+
+    def run() -> None:
+        children_start_normal()
+        try:
+            out.append(fn())
+        except BaseException as exc:  # re-raised in the caller
+            failed.append(exc)
+
+    t = threading.Thread(target=run, name="wara-planner-start", daemon=True)
+    t.start()
+    t.join()
+    if failed:
+        raise failed[0]
+    return out[0]
+
+
+def children_start_normal() -> bool:
+    """Set ``SCHED_RESET_ON_FORK`` on the calling thread, keeping its own policy: the
+    processes and threads it starts begin under the normal scheduler. False where the
+    system has no such flag or refuses it (logged)."""
+    flag = getattr(os, "SCHED_RESET_ON_FORK", 0)
+    if not flag:
+        return False
+    try:
+        policy = os.sched_getscheduler(0)
+        if not policy & flag:
+            os.sched_setscheduler(0, policy | flag, os.sched_getparam(0))
+    except OSError as exc:
+        log.warning("planner_reset_on_fork_refused", error=exc.strerror or str(exc))
+        return False
+    return True
 
 
 def _four(values: Sequence[float]) -> Four:
