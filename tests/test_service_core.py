@@ -347,7 +347,7 @@ def test_boot_waits_for_fresh_inputs_then_faults_after_the_timeout(
         assert core.modes.mode is Mode.STOPPED
     _update(core, machine_inputs(project, t=core.boot_timeout_s + 0.1, **lost))
     assert core.modes.mode is Mode.ABORTED
-    assert core.modes.fault_interlocks == (Interlock.PLC_HEARTBEAT,)
+    assert set(core.modes.fault_interlocks) == {Interlock.PLC_HEARTBEAT, Interlock.STARTUP}
     core2, _ = _bare_core(project)
     _update(core2, machine_inputs(project))
     assert core2.modes.mode is Mode.IDLE and not core2.modes.valves_enabled
@@ -671,3 +671,25 @@ def test_the_jog_speed_key_sets_the_speed(project: ProjectConfig) -> None:
     _update(core, machine_inputs(fast, t=1.0))
     i = fast.cylinder(cid).can_index
     assert core.attitude.references(1.25)[i] - _mid(fast)[i] == pytest.approx(2e-3)
+
+
+def test_status_carries_the_link_receive_counters(
+    project: ProjectConfig, worker: PlannerWorker
+) -> None:
+    core, rig, clock = _setup(project, worker)
+    _run(core, rig, clock, 0.5)
+    before = core.snapshot()["link_rx"]
+    assert before["received"] == sum(v for k, v in before.items() if k != "received") > 0
+    assert before["crc_error"] == before["unknown_id"] == 0
+    # A PLC_Status with a wrong CRC and a frame of an id nobody sends, from a third node.
+    ch = core.link.bus.channel_id  # type: ignore[attr-defined]  # the virtual bus
+    with can.Bus(interface="virtual", channel=ch) as third:
+        good = rig.plc._codec_by_name["PLC_Status"].encode(7, [1, 0, 1, 1, 0, 0, 16.0])
+        third.send(can.Message(arbitration_id=0x090, data=bytes([good[0] ^ 0x5A]) + good[1:],
+                               is_extended_id=False))  # fmt: skip
+        third.send(can.Message(arbitration_id=0x191, data=bytes(8), is_extended_id=False))
+        _run(core, rig, clock, 0.05)
+    after = core.snapshot()["link_rx"]
+    assert after["crc_error"] - before["crc_error"] == 1
+    assert after["unknown_id"] - before["unknown_id"] == 1
+    assert after["received"] == sum(v for k, v in after.items() if k != "received")

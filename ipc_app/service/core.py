@@ -428,6 +428,8 @@ class ServiceCore:
             twist_mm={k: units.to_mm(m.twist_m) for k, m in pub.metrics.items()},
             motion=self._motion_dict(pub.motion, x),
             link_health={"state": pub.link.name},
+            # read from the link's counters here, in the caller's thread, not per cycle
+            link_rx=self.link.rx_counters(),
             loop=pub.loop,
             ride_through={"suspends": pub.ride[0], "resumes": pub.ride[1]},
         )

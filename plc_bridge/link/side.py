@@ -29,6 +29,7 @@ from plc_bridge.codec import FrameCodec
 from plc_bridge.e2e import COUNTER_MODULO
 from plc_bridge.supervision import (
     RX_FAULTS,
+    RX_OUTCOMES,
     BusHealth,
     BusState,
     LinkState,
@@ -371,6 +372,17 @@ class LinkSide:
         ):
             return LinkState.DEGRADED
         return LinkState.OK
+
+    def rx_counters(self) -> dict[str, int]:
+        """Frames received so far (``received``) and how many ended in each outcome
+        (``accepted``, ``crc_error``, ``counter_invalid``, ``unknown_id``, ...:
+        :data:`~plc_bridge.supervision.RX_OUTCOMES`), zeros included. Safe from another
+        thread than the one polling: one copy of the counter (a C-level dict merge under
+        the GIL), then the sum."""
+        counts = dict(self.rx_outcomes)
+        out = {"received": sum(counts.values())}
+        out.update({k: counts.get(k, 0) for k in RX_OUTCOMES})
+        return out
 
     def health(self, now: float | None = None) -> dict[str, Any]:
         """Counters and per-message supervision, JSON-ready."""

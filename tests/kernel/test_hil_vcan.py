@@ -15,6 +15,7 @@ reached, held, no fault, frames rejected and counted), not timing.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 import os
@@ -38,37 +39,44 @@ from ipc_app.service.ctl import CtlError, request
 from plc_bridge import FrameCodec, load_catalog
 from plc_bridge.e2e import crc8_p01
 from tests.kernel import VM_COMMAND, vcan_skip_reason
-from wara.demo import ATTITUDE_TOL_DEG
 
 REPO = Path(__file__).resolve().parents[2]
 DBC = REPO / "plc_bridge" / "wara_plc.dbc"
 CAT = load_catalog()
 TARGET = (2.0, 1.0)  # Example 1, deg
+#: The demo's attitude tolerance at rest (``wara.demo.ATTITUDE_TOL_DEG``; tests/test_kernel_vm.py
+#: checks they are equal): importing wara.demo here would cost pytest in the guest minutes.
+ATTITUDE_TOL_DEG = 0.01
 STRANGER_ID = 0x191  # no node of the DBC sends it (PLC_HmiTarget is 0x190)
 
-#: The project, slowed down for an emulated CPU: the control loop at 50 Hz instead of
-#: 200 Hz, supervision timeouts that a scheduling gap of the emulator does not trip
-#: (PLC heartbeat and command timeout 3 s, stale after 100 cycles = 2 s: with 10 cycles,
-#: 200 ms, the service's start-up alone starved the loop into a FAULT), and a tracking-error
-#: interlock at 30 mm instead of 10 mm (the simulated rig may fall behind the wall clock
-#: that the service's trajectory runs on).
+#: The project, slowed down for an emulated CPU (the simulator runs at a fraction of real
+#: time in the VM, and an interpreter's start-up or a scheduling gap of the emulator stalls
+#: a process for a second or more): the control loop at 50 Hz instead of 200 Hz; the
+#: trajectory at 5 mm/s and 5 mm/s^2 instead of 20 (a rig slower than the wall clock the
+#: trajectory runs on still follows it); supervision timeouts of 3 s instead of 100 ms
+#: (sensor, PLC heartbeat, command; a message stale after 100 cycles, 2 s; a suspended
+#: motion may wait 5 s); the tracking-error interlock at 30 mm instead of 10 mm.
 SLOW: dict[str, dict[str, Any]] = {
     "control": {"loop_rate_hz": 50.0},
+    "planner": {"trajectory": {"max_rod_speed_mm_s": 5.0, "max_rod_accel_mm_s2": 5.0}},
     "safety": {
+        "sensor_timeout_ms": 3000.0,
         "plc_heartbeat_timeout_ms": 3000.0,
         "command_timeout_ms": 3000.0,
+        "max_suspend_ms": 5000.0,
         "max_tracking_error_mm": 30.0,
     },
     "can": {"interface": "socketcan", "channel": "vcan0", "stale_cycles": 100.0},
 }
-#: The simulator's plant at its coarsest allowed step and PLC scan.
-SCENARIO = {"name": "kernel-vm", "plant": {"step_ms": 0.5, "plc_cycle_ms": 2.0}}
+#: The simulator's plant at its coarsest allowed step, the PLC scan at 5 ms (the
+#: service's loop runs at 20 ms here).
+SCENARIO = {"name": "kernel-vm", "plant": {"step_ms": 0.5, "plc_cycle_ms": 5.0}}
 
 
 @dataclass
 class HilRun:
     dir: Path
-    adjust: subprocess.CompletedProcess[str]
+    adjust: dict[str, Any]
     holding: dict[str, Any]
     after: dict[str, Any]
     rx_before: dict[str, int]
@@ -131,20 +139,6 @@ def _status(sock: Path) -> dict[str, Any] | None:
     return reply if reply.get("ok") else None
 
 
-def _loop_stats(log_path: Path) -> list[dict[str, Any]]:
-    out = []
-    for line in log_path.read_text(errors="replace").splitlines():
-        if '"loop_stats"' not in line:
-            continue
-        try:
-            rec = json.loads(line)
-        except json.JSONDecodeError:
-            continue
-        if rec.get("event") == "loop_stats":
-            out.append(rec)
-    return out
-
-
 def _cansend(frame_id: int, data: bytes) -> None:
     subprocess.run(["cansend", "vcan0", f"{frame_id:03X}#{data.hex().upper()}"], check=True)
 
@@ -173,7 +167,11 @@ def _frames_to_inject() -> tuple[list[tuple[int, bytes]], dict[str, int]]:
 def _write_slow_config(path: Path) -> None:
     data = yaml.safe_load(default_project_path().read_text(encoding="utf-8"))
     for section, keys in SLOW.items():
-        data.setdefault(section, {}).update(keys)
+        for key, value in keys.items():
+            if isinstance(value, dict):
+                data.setdefault(section, {}).setdefault(key, {}).update(value)
+            else:
+                data.setdefault(section, {})[key] = value
     path.write_text(yaml.safe_dump(data, sort_keys=False), encoding="utf-8")
 
 
@@ -219,7 +217,6 @@ def hil_run(tmp_path_factory: pytest.TempPathFactory) -> Iterator[HilRun]:
             raise AssertionError(f"{name} exited {p.returncode}:\n{tail}")
 
     try:
-        start("candump", ["candump", "-L", "vcan0"], "candump.log", stderr_too=False)
         start(
             "hil",
             _wara("hil", "--realtime", "--config", str(cfg), "--scenario", str(scenario),
@@ -231,7 +228,7 @@ def hil_run(tmp_path_factory: pytest.TempPathFactory) -> Iterator[HilRun]:
             alive("hil")
             return len(re.findall(r"t=\s*[0-9.]+ s", (d / "hil.log").read_text())) >= 2
 
-        _wait(sim_running, 600.0, "the simulator to run")
+        _wait(sim_running, 1500.0, "the simulator to run")  # numba compiles once per CPU model
         start(
             "service",
             _wara("serve", "--config", str(cfg), "--socket", str(sock),
@@ -244,9 +241,14 @@ def hil_run(tmp_path_factory: pytest.TempPathFactory) -> Iterator[HilRun]:
             st = _status(sock) if sock.exists() else None
             return st if st and st.get("mode") in ("IDLE", "ABORTED") else None
 
-        st = _wait(idle, 300.0, "the service to come up")
+        st = _wait(idle, 1200.0, "the service to come up")
         assert st["mode"] == "IDLE", st
-        adjust = _ctl(sock, "adjust", "--roll-deg", "2", "--pitch-deg", "1", "--timeout-s", "120")
+        # The bus from here to the end (the motion, the hold, the injections): the
+        # simulator's start-up alone would make a log that takes minutes to decode here.
+        start("candump", ["candump", "-L", "vcan0"], "candump.log", stderr_too=False)
+        # Example 1, over the service's socket (what ``wara ctl adjust`` sends; from this
+        # process: a new interpreter costs a minute on an emulated CPU).
+        adjust = request("adjust", socket_path=sock, timeout_s=600.0, roll_deg=2.0, pitch_deg=1.0)
 
         def holding_target() -> dict[str, Any] | None:
             alive("service")
@@ -256,26 +258,40 @@ def hil_run(tmp_path_factory: pytest.TempPathFactory) -> Iterator[HilRun]:
                 return None
             if s.get("mode") in ("ABORTED", "IDLE"):
                 return s  # finished, wrongly: the tests say why
-            target = (s.get("motion") or {}).get("target_deg") or [math.nan, math.nan]
-            at = abs(target[0] - TARGET[0]) < 1e-9 and abs(target[1] - TARGET[1]) < 1e-9
-            return s if s.get("mode") == "COMPLETE" and at else None
+            motion = s.get("motion") or {}
+            target = motion.get("target_deg") or [math.nan, math.nan]
+            achieved = motion.get("achieved_deg") or [math.nan, math.nan]
+            at = all(abs(t - w) < 1e-9 for t, w in zip(target, TARGET, strict=True))
+            there = all(
+                abs(a - w) <= ATTITUDE_TOL_DEG for a, w in zip(achieved, TARGET, strict=True)
+            )
+            return s if s.get("mode") == "COMPLETE" and at and there else None
 
         holding: dict[str, Any] = {"mode": "never asked"}
-        if adjust.returncode == 0:
-            holding = _wait(holding_target, 600.0, "HOLDING at Example 1's target", poll_s=1.0)
-        n_stats = len(_loop_stats(d / "service.log"))
-        _wait(lambda: len(_loop_stats(d / "service.log")) > n_stats, 120.0, "a loop_stats line")
-        stats = _loop_stats(d / "service.log")
-        rx_before = dict(stats[-1].get("link_rx") or {})
+        if adjust.get("ok"):
+            holding = _wait(holding_target, 900.0, "HOLDING at Example 1's target", poll_s=2.0)
+        rx_before = dict((_status(sock) or {}).get("link_rx") or {})
         frames, injected = _frames_to_inject()
         for fid, data in frames:
             _cansend(fid, data)
             time.sleep(0.05)
-        n_stats = len(_loop_stats(d / "service.log"))  # the next line counts them all
-        _wait(lambda: len(_loop_stats(d / "service.log")) > n_stats, 120.0, "a loop_stats line")
-        rx_after = dict(_loop_stats(d / "service.log")[-1].get("link_rx") or {})
+
+        def counted() -> dict[str, Any] | None:  # every injected frame has been taken in
+            s = _status(sock)
+            rx = (s or {}).get("link_rx") or {}
+            done = all(
+                rx.get(k, 0) - rx_before.get(k, 0) >= injected[k]
+                for k in ("crc_error", "counter_invalid")
+            )
+            return s if done else None
+
+        with contextlib.suppress(AssertionError):  # not counted: the tests say so
+            _wait(counted, 120.0, "the injected frames counted")
         time.sleep(2.0)
-        after = _status(sock) or {}
+        # The status as a user reads it: ``wara ctl status --json``.
+        ctl_status = _ctl(sock, "status", "--json", timeout_s=600.0)
+        after = json.loads(ctl_status.stdout) if ctl_status.returncode == 0 else {}
+        rx_after = dict(after.get("link_rx") or {})
         codes = {name: _stop(procs[name]) for name in ("service", "hil")}
         time.sleep(0.5)
         _stop(procs["candump"])
@@ -291,17 +307,13 @@ def hil_run(tmp_path_factory: pytest.TempPathFactory) -> Iterator[HilRun]:
 
 def test_service_reaches_example_1_and_holds_without_fault(hil_run: HilRun) -> None:
     r = hil_run
-    assert r.adjust.returncode == 0, (
-        r.adjust.stdout,
-        r.adjust.stderr,
-        r.log("service.log")[-3000:],
-    )
+    assert r.adjust.get("ok"), (r.adjust, r.log("service.log")[-3000:])
     st = r.holding
     assert st.get("mode") == "COMPLETE", (st, r.log("service.log")[-3000:])
     assert not st.get("fault_reasons")
     achieved = st["motion"]["achieved_deg"]  # from the measured rod positions
-    assert abs(achieved[0] - TARGET[0]) <= 10 * ATTITUDE_TOL_DEG, st["motion"]
-    assert abs(achieved[1] - TARGET[1]) <= 10 * ATTITUDE_TOL_DEG, st["motion"]
+    assert abs(achieved[0] - TARGET[0]) <= ATTITUDE_TOL_DEG, st["motion"]
+    assert abs(achieved[1] - TARGET[1]) <= ATTITUDE_TOL_DEG, st["motion"]
     # Still holding after the injections, the same target, nothing latched.
     assert r.after.get("mode") == "COMPLETE" and not r.after.get("fault_reasons"), r.after
     assert r.after["motion"]["target_deg"] == st["motion"]["target_deg"]
@@ -314,7 +326,8 @@ def test_wrong_crc_and_counter_on_the_service_ids_are_rejected_and_counted(
 ) -> None:
     r = hil_run
     before, after = r.rx_before, r.rx_after
-    assert after, "the service's loop_stats carry no link_rx"
+    assert after, "`wara ctl status --json` carries no link_rx"
+    assert after["received"] > before["received"] > 1000, (before, after)
     for outcome in ("crc_error", "counter_invalid"):
         assert after.get(outcome, 0) - before.get(outcome, 0) == r.injected[outcome], (
             before,
