@@ -16,8 +16,8 @@ from pathlib import Path
 
 import pytest
 
-from ipc_app.acceptance import report
-from ipc_app.acceptance.example import shipped_example_path
+from acceptance import report
+from acceptance.example import shipped_example_path
 from wara.cli import main
 
 BROWSERS = ("chromium", "chromium-browser", "google-chrome", "google-chrome-stable")

@@ -13,9 +13,9 @@ from pathlib import Path
 from hypothesis import HealthCheck, event, given, settings
 from hypothesis import strategies as st
 
-from ipc_app.acceptance.csv_import import COLUMNS
-from ipc_app.acceptance.items import ITEMS, ITEMS_BY_KEY, MAX_RING
-from ipc_app.acceptance.store import AcceptanceStore
+from acceptance.csv_import import COLUMNS
+from acceptance.items import ITEMS, ITEMS_BY_KEY, MAX_RING
+from acceptance.store import AcceptanceStore
 from tests.cli_helpers import run_main, run_wara
 
 FUZZ = settings(

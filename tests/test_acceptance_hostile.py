@@ -13,8 +13,8 @@ from typing import Any
 
 import pytest
 
-from ipc_app.acceptance.csv_import import COLUMNS, parse_csv_text
-from ipc_app.acceptance.store import AcceptanceStore, RingMeasurement
+from acceptance.csv_import import COLUMNS, parse_csv_text
+from acceptance.store import AcceptanceStore, RingMeasurement
 from tests.cli_helpers import run_wara
 from wara.cli import main
 

@@ -11,8 +11,8 @@ The service attaches the controller's plan to a ring with
 :meth:`AcceptanceStore.attach_plan`.
 """
 
-from ipc_app.acceptance.items import ITEMS, ControlItem
-from ipc_app.acceptance.store import (
+from acceptance.items import ITEMS, ControlItem
+from acceptance.store import (
     AcceptanceStore,
     RingMeasurement,
     StoredPlan,
