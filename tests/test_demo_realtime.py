@@ -16,7 +16,9 @@ from config import load_project
 from config.hil_scenario import HilScenario
 from config.loader import validate_data
 from ipc_app.service.modes import Mode
-from wara.demo import ATTITUDE_TOL_DEG, SYNC_TOL_MM, TWIST_TOL_MM, Demo, failure_reason
+from wara.demo import failure_reason
+from wara.examples import ATTITUDE_TOL_DEG, SYNC_TOL_MM, TWIST_TOL_MM
+from wara.harness import Harness
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -62,7 +64,7 @@ def test_a_latched_fault_ends_the_example_at_once_with_its_reason() -> None:
         {"events": [{"kind": "plc_silent", "start_s": 3.0, "end_s": 4.0}]},
         "test scenario",
     )
-    demo = Demo(cfg, mode="lockstep", scenario=scenario)
+    demo = Harness(cfg, mode="lockstep", scenario=scenario)
     try:
         assert demo.wait_for(Mode.IDLE, 20.0)
         res = demo.run_example(2.0, 1.0)
@@ -100,7 +102,7 @@ def test_failure_reason_names_the_latched_faults() -> None:
 @pytest.mark.parametrize("n", [1, 4097])
 def test_trace_keeps_every_sample_in_arrays(n: int) -> None:
     cfg = load_project()
-    demo = Demo(cfg, mode="lockstep")
+    demo = Harness(cfg, mode="lockstep")
     try:
         for _ in range(n):
             demo.trace.add(demo.sim, demo.core)
@@ -115,7 +117,7 @@ def test_trace_keeps_every_sample_in_arrays(n: int) -> None:
 
 
 def test_fifo_for_every_thread_of_a_process_or_the_refusal() -> None:
-    from wara.demo import fifo_all_threads
+    from wara.harness import fifo_all_threads
 
     child = subprocess.Popen(
         [
