@@ -1,4 +1,4 @@
-"""Ring acceptance records and the quality report (issue 7).
+"""Ring acceptance records and the quality report.
 
 - :mod:`.items`: the control items of paper Table 4, one vocabulary end to end.
 - :mod:`.store`: the durable SQLite store (WAL, append-only history per ring).

@@ -1,4 +1,4 @@
-"""Ring acceptance records (issue 7): tolerance edges, CSV import, history, crash safety,
+"""Ring acceptance records: tolerance edges, CSV import, history, crash safety,
 the report's numbers against a hand count on the synthetic example set."""
 
 from __future__ import annotations
