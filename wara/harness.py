@@ -57,6 +57,16 @@ _MM = units.to_mm(1.0)
 _MPA = units.to_mpa(1.0)
 
 
+class _Series:
+    """A :class:`Trace` attribute: the samples so far of the series of its name."""
+
+    def __set_name__(self, owner: type, name: str) -> None:
+        self.key = name
+
+    def __get__(self, trace: Trace, owner: type | None = None) -> np.ndarray:
+        return trace._series(self.key)
+
+
 class Trace:
     """Time series for the plots (one sample per control period), in preallocated
     NumPy blocks: a sample is copied into arrays, never kept as Python lists, so a long
@@ -115,29 +125,12 @@ class Trace:
             return np.empty((0, w) if w else 0)
         return np.concatenate([blk[key] for blk in self._blocks])[: self._n]
 
-    @property
-    def t(self) -> np.ndarray:
-        return self._series("t")
-
-    @property
-    def roll_deg(self) -> np.ndarray:
-        return self._series("roll_deg")
-
-    @property
-    def pitch_deg(self) -> np.ndarray:
-        return self._series("pitch_deg")
-
-    @property
-    def x_mm(self) -> np.ndarray:
-        return self._series("x_mm")
-
-    @property
-    def sync_mm(self) -> np.ndarray:
-        return self._series("sync_mm")
-
-    @property
-    def p_mpa(self) -> np.ndarray:
-        return self._series("p_mpa")
+    t = _Series()
+    roll_deg = _Series()
+    pitch_deg = _Series()
+    x_mm = _Series()
+    sync_mm = _Series()
+    p_mpa = _Series()
 
 
 class Harness:
