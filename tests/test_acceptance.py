@@ -467,6 +467,7 @@ def example_report(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, dict
     return out, json.loads((out / "summary.json").read_text())
 
 
+@pytest.mark.slow
 def test_report_numbers_match_a_hand_count(
     example_report: tuple[Path, dict[str, Any]],
 ) -> None:
@@ -530,6 +531,7 @@ def test_report_files_and_html_is_self_contained(
     assert page.count("no limit set</td>") == 3
 
 
+@pytest.mark.slow
 def test_report_range_and_cli_json(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     db = tmp_path / "acc.sqlite"
     assert main(["acceptance", "import", str(shipped_example_path()), "--db", str(db)]) == 0
@@ -544,6 +546,7 @@ def test_report_range_and_cli_json(tmp_path: Path, capsys: pytest.CaptureFixture
     assert main(["acceptance", "report", "--db", str(tmp_path / "none.sqlite"), "--out", "x"]) == 2
 
 
+@pytest.mark.slow
 def test_html_escapes_operator_text(tmp_path: Path, project: ProjectConfig) -> None:
     with AcceptanceStore.open(tmp_path / "a.sqlite") as s:
         s.add(

@@ -31,10 +31,13 @@ def _browser() -> str | None:
     return None
 
 
-pytestmark = pytest.mark.skipif(
-    _browser() is None,
-    reason="no headless Chromium on this machine (Debian: apt-get install -y chromium)",
-)
+pytestmark = [
+    pytest.mark.slow,
+    pytest.mark.skipif(
+        _browser() is None,
+        reason="no headless Chromium on this machine (Debian: apt-get install -y chromium)",
+    ),
+]
 
 
 def _open_in_browser(page: Path, profile: Path) -> tuple[str, list[str]]:

@@ -36,6 +36,7 @@ def _fast_tuning(tmp_path: Path) -> ProjectConfig:
     return load_project(path)
 
 
+@pytest.mark.slow
 def test_shipped_tuning_holds_with_the_required_delay(planner: PlannerWorker) -> None:
     run = run_one(load_project(), planner, REQUIRED_MS, hold_s=15.0)
     assert run.reached_target and run.stable, run
@@ -43,6 +44,7 @@ def test_shipped_tuning_holds_with_the_required_delay(planner: PlannerWorker) ->
     assert max(run.hold_sync_error_mm.values()) < 0.02  # mm, far inside 0.07
 
 
+@pytest.mark.slow
 def test_report_margin_and_verdict(tmp_path: Path) -> None:
     """Without delay the fast tuning holds; its margin is 0 and it fails the 20 ms need."""
     cfg = _fast_tuning(tmp_path)

@@ -6,11 +6,11 @@ from __future__ import annotations
 
 import json
 import math
-import os
-import subprocess
-import sys
 from pathlib import Path
 
+import pytest
+
+from tests.cli_helpers import run_wara
 from wara import demo_two_process as d2
 from wara.examples import (
     ATTITUDE_TOL_DEG,
@@ -24,16 +24,9 @@ from wara.examples import (
 REPO = Path(__file__).resolve().parents[1]
 
 
+@pytest.mark.slow
 def test_lockstep_demo_json_and_plot(tmp_path: Path) -> None:
-    proc = subprocess.run(
-        [sys.executable, "-m", "wara", "demo", "--lockstep", "--json", "--plot", str(tmp_path)],
-        capture_output=True,
-        text=True,
-        timeout=600,
-        cwd=REPO,
-        env={**os.environ, "PYTHONPATH": str(REPO)},
-        check=False,
-    )
+    proc = run_wara(["demo", "--lockstep", "--json", "--plot", str(tmp_path)], timeout_s=600)
     assert proc.returncode == 0, proc.stderr[-3000:]
     out = json.loads(proc.stdout)  # nothing but the one object on stdout
     assert out["passed"] is True

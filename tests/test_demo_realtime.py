@@ -16,6 +16,7 @@ from config import load_project
 from config.hil_scenario import HilScenario
 from config.loader import validate_data
 from ipc_app.service.modes import Mode
+from tests.cli_helpers import run_wara
 from wara.demo import failure_reason
 from wara.examples import ATTITUDE_TOL_DEG, SYNC_TOL_MM, TWIST_TOL_MM
 from wara.harness import Harness
@@ -23,16 +24,9 @@ from wara.harness import Harness
 REPO = Path(__file__).resolve().parents[1]
 
 
+@pytest.mark.slow
 def test_realtime_one_process_demo_example_1() -> None:
-    proc = subprocess.run(
-        [sys.executable, "-m", "wara", "demo", "--examples", "1", "--json"],
-        capture_output=True,
-        text=True,
-        timeout=600,
-        cwd=REPO,
-        env={**os.environ, "PYTHONPATH": str(REPO)},
-        check=False,
-    )
+    proc = run_wara(["demo", "--examples", "1", "--json"], timeout_s=600)
     out = json.loads(proc.stdout)  # one JSON object on stdout, pass or fail
     assert out["mode"] == "realtime"
     assert proc.returncode == 0, (failure_reason(out), proc.stderr[-3000:])
@@ -54,6 +48,7 @@ def test_examples_option_is_checked() -> None:
     assert main(["demo", "--examples", "4"]) == 2
 
 
+@pytest.mark.slow
 def test_a_latched_fault_ends_the_example_at_once_with_its_reason() -> None:
     """The PLC goes silent while Example 1 moves: the service latches the fault and the
     demo reports it in the same second of machine time, instead of waiting for the

@@ -29,6 +29,8 @@ from tests.service_helpers import CRASH_ROLL_DEG
 from wara.examples import ATTITUDE_TOL_DEG, SYNC_TOL_MM, TWIST_TOL_MM
 from wara.harness import Harness
 
+pytestmark = pytest.mark.slow
+
 FAULT_AT_S = 3.0  # simulated time of the fault: Example 1 (2, 1) deg is moving then
 
 

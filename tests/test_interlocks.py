@@ -7,6 +7,8 @@ import json
 import re
 from pathlib import Path
 
+import pytest
+
 from config import load_project
 from config.schema import Safety
 from ipc_app.service.interlocks import SPECS, Applies, Cause, Interlock, markdown_table
@@ -54,6 +56,7 @@ def test_cause_text_is_rendered_from_the_data() -> None:
     assert Cause(Interlock.PLC_FAULT, "IPC_TIMEOUT").text() == "plc fault: IPC_TIMEOUT"
 
 
+@pytest.mark.slow
 def test_a_lasting_overpressure_under_sensor_noise_is_latched_once_per_cylinder() -> None:
     """The shipped simulator's pressure noise (10 kPa) on a pressure 50 kPa over the
     limit: 10 s of it latch at most one entry per cylinder, each counted, and the

@@ -182,6 +182,7 @@ def test_cli_json_contract() -> None:
     assert d["method"] == "exact" and d["objective"] == "pump_energy"
 
 
+@pytest.mark.slow
 def test_cli_unreachable_target_exits_3_with_reasons() -> None:
     proc = _run("--roll-deg", "30", "--pitch-deg", "2", "--json")
     assert proc.returncode == 3
@@ -200,6 +201,7 @@ def test_lift_off_is_reported(tmp_path: Path) -> None:
     assert any(r.startswith("lift-off: upper cylinder") for r in p.reasons), p.reasons
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(
     ("args", "message"),
     [
