@@ -515,6 +515,7 @@ def test_report_numbers_match_a_hand_count(
     assert ring17["items"]["pitch_angle_deg"]["status"] == "no limit set"
 
 
+@pytest.mark.slow
 def test_report_files_and_html_is_self_contained(
     example_report: tuple[Path, dict[str, Any]],
 ) -> None:

@@ -57,6 +57,7 @@ def test_follows_example_1_synchronized(project: ProjectConfig) -> None:
     assert worst_tracking < 0.5e-3
 
 
+@pytest.mark.slow
 def test_feedforward_cuts_the_tracking_lag(project: ProjectConfig) -> None:
     """Without the trajectory's speeds fed forward the rods lag by speed / wc."""
     plain = project.model_copy(

@@ -83,6 +83,7 @@ def test_example_1_through_two_processes(netns: None) -> None:
     assert proc.returncode == (0 if out["passed"] else 1)
 
 
+@pytest.mark.slow
 def test_without_a_namespace_tool_exits_2_with_one_line(tmp_path: Path) -> None:
     """No unshare on PATH: exit 2 and one line saying why."""
     bin_dir = tmp_path / "bin"

@@ -158,6 +158,7 @@ def _run(*args: str) -> subprocess.CompletedProcess[str]:
     )
 
 
+@pytest.mark.slow
 def test_cli_json_contract() -> None:
     proc = _run("--roll-deg", "-3", "--pitch-deg", "2", "--json")
     assert proc.returncode == 0, proc.stderr
