@@ -2,11 +2,13 @@
 # Install the W-ARa IPC service on an industrial PC (Debian/Ubuntu with systemd).
 #
 #   sudo deploy/install.sh [--config PROJECT.yaml] [--prefix /opt/wara] [--vcan]
-#                          [--no-start] [--dry-run]
+#                          [--extras sim,plot] [--no-start] [--dry-run]
 #
 # Steps (each printed as "+ command"; --dry-run prints them and changes nothing):
 #   1. system user and group "wara" (no login shell, home /var/lib/wara)
-#   2. a virtualenv under PREFIX/venv with this source tree installed (pip)
+#   2. a virtualenv under PREFIX/venv with this source tree installed (pip): the service
+#      alone; --extras adds optional parts (plot: matplotlib for the acceptance report,
+#      sim: numba for the HIL simulator)
 #   3. /etc/wara/project.yaml (kept if it exists; --config replaces it), validated
 #   4. systemd-networkd files for can0 (BitRate from the project's can.bitrate),
 #      and vcan0 with --vcan
@@ -19,6 +21,7 @@ SRC="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 PREFIX=/opt/wara
 CONFIG=""
 VCAN=0
+EXTRAS=""
 START=1
 DRY=0
 ETC=/etc/wara
@@ -26,13 +29,14 @@ NETDIR=/etc/systemd/network
 UNITDIR=/etc/systemd/system
 USER_NAME=wara
 
-usage() { sed -n '2,16p' "$0" | sed 's/^# \{0,1\}//'; }
+usage() { sed -n '2,18p' "$0" | sed 's/^# \{0,1\}//'; }
 
 while [ $# -gt 0 ]; do
   case "$1" in
     --prefix) PREFIX="$2"; shift 2 ;;
     --config) CONFIG="$2"; shift 2 ;;
     --vcan) VCAN=1; shift ;;
+    --extras) EXTRAS="${2:-}"; shift 2 ;;
     --no-start) START=0; shift ;;
     --dry-run) DRY=1; shift ;;
     -h|--help) usage; exit 0 ;;
@@ -49,6 +53,15 @@ if [ "$DRY" -eq 0 ] && [ "$(id -u)" -ne 0 ]; then
   echo "install.sh: run as root (sudo), or with --dry-run to see the steps" >&2
   exit 2
 fi
+case ",$EXTRAS," in
+  *,,*) [ -z "$EXTRAS" ] || { echo "install.sh: --extras $EXTRAS: an empty name (use e.g. sim,plot)" >&2; exit 2; } ;;
+esac
+for extra in ${EXTRAS//,/ }; do
+  case "$extra" in
+    sim|plot) ;;
+    *) echo "install.sh: --extras: unknown extra '$extra' (known: sim, plot)" >&2; exit 2 ;;
+  esac
+done
 if [ -n "$CONFIG" ] && [ ! -f "$CONFIG" ]; then
   echo "install.sh: --config $CONFIG: file not found" >&2
   exit 2
@@ -65,7 +78,7 @@ fi
 echo "# 2. virtualenv"
 run install -d -m 0755 "$PREFIX"
 run python3 -m venv "$PREFIX/venv"
-run "$PREFIX/venv/bin/pip" install --quiet --upgrade "$SRC"
+run "$PREFIX/venv/bin/pip" install --quiet --upgrade "$SRC${EXTRAS:+[$EXTRAS]}"
 
 echo "# 3. project configuration"
 run install -d -m 0755 "$ETC"

@@ -17,7 +17,7 @@ F = TypeVar("F", bound=Callable[..., Any])
 _numba: Any
 try:
     _numba = importlib.import_module("numba")
-except ImportError:  # pragma: no cover - numba is a declared dependency
+except ImportError:  # pragma: no cover - numba is the optional `sim` extra
     _numba = None
 
 HAVE_NUMBA = _numba is not None

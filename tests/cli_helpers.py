@@ -6,10 +6,14 @@ from __future__ import annotations
 
 import contextlib
 import io
+import os
 import subprocess
 import sys
+from pathlib import Path
 
 from wara.cli import main
+
+REPO = Path(__file__).resolve().parents[1]
 
 
 def run_main(args: list[str]) -> tuple[int, str, str]:
@@ -21,11 +25,14 @@ def run_main(args: list[str]) -> tuple[int, str, str]:
 
 
 def run_wara(args: list[str], timeout_s: float = 120) -> subprocess.CompletedProcess[str]:
-    """``wara ARGS`` as a child process, text output captured, never checked."""
+    """``wara ARGS`` as a child process of this checkout (its directory and PYTHONPATH),
+    text output captured, never checked."""
     return subprocess.run(
         [sys.executable, "-m", "wara", *args],
         capture_output=True,
         text=True,
         timeout=timeout_s,
+        cwd=REPO,
+        env={**os.environ, "PYTHONPATH": str(REPO)},
         check=False,
     )

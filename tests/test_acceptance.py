@@ -1,4 +1,4 @@
-"""Ring acceptance records (issue 7): tolerance edges, CSV import, history, crash safety,
+"""Ring acceptance records: tolerance edges, CSV import, history, crash safety,
 the report's numbers against a hand count on the synthetic example set."""
 
 from __future__ import annotations
@@ -18,29 +18,29 @@ from typing import Any
 import pytest
 import yaml
 
-from config import ProjectConfig, default_project_path, load_project
-from ipc_app.acceptance.csv_import import (
+from acceptance.csv_import import (
     COLUMNS,
     CsvFileError,
     import_csv,
     parse_csv,
     parse_csv_text,
 )
-from ipc_app.acceptance.example import (
+from acceptance.example import (
     ON_THE_LIMIT,
     VERTICAL_FAILURES,
     example_csv_text,
     example_measurements,
     shipped_example_path,
 )
-from ipc_app.acceptance.judge import RingVerdict, Status, judge_value, summarize
-from ipc_app.acceptance.report import ReportMeta, write_report
-from ipc_app.acceptance.store import (
+from acceptance.judge import RingVerdict, Status, judge_value, summarize
+from acceptance.report import ReportMeta, write_report
+from acceptance.store import (
     AcceptanceStore,
     RingMeasurement,
     StoreError,
     default_db_path,
 )
+from config import ProjectConfig, default_project_path, load_project
 from wara.cli import main
 
 REPO = Path(__file__).resolve().parents[1]
@@ -340,9 +340,9 @@ def test_exception_mid_import_writes_nothing(
 _KILL_SCRIPT = textwrap.dedent(
     """
     import os, signal, sys
-    from ipc_app.acceptance.store import AcceptanceStore, RingMeasurement
-    from ipc_app.acceptance.csv_import import import_csv
-    from ipc_app.acceptance.example import shipped_example_path
+    from acceptance.store import AcceptanceStore, RingMeasurement
+    from acceptance.csv_import import import_csv
+    from acceptance.example import shipped_example_path
 
     GOOD = {k: 1.0 for k in ("vertical_misalignment_mm", "horizontal_misalignment_mm",
             "max_gap_mm", "centreline_deviation_x_mm", "centreline_deviation_y_mm")}
@@ -440,7 +440,7 @@ def test_attach_plan_keeps_history_and_shows_in_report(
 
 def test_shipped_example_is_the_generators_output_and_marked_synthetic() -> None:
     text = shipped_example_path().read_text(encoding="utf-8")
-    assert text == example_csv_text(), "regenerate: python -m ipc_app.acceptance.example"
+    assert text == example_csv_text(), "regenerate: python -m acceptance.example"
     assert text.startswith("# SYNTHETIC")
     assert all(m.operator == "synthetic" for m in example_measurements())
 
@@ -467,6 +467,7 @@ def example_report(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, dict
     return out, json.loads((out / "summary.json").read_text())
 
 
+@pytest.mark.slow
 def test_report_numbers_match_a_hand_count(
     example_report: tuple[Path, dict[str, Any]],
 ) -> None:
@@ -514,6 +515,7 @@ def test_report_numbers_match_a_hand_count(
     assert ring17["items"]["pitch_angle_deg"]["status"] == "no limit set"
 
 
+@pytest.mark.slow
 def test_report_files_and_html_is_self_contained(
     example_report: tuple[Path, dict[str, Any]],
 ) -> None:
@@ -530,6 +532,7 @@ def test_report_files_and_html_is_self_contained(
     assert page.count("no limit set</td>") == 3
 
 
+@pytest.mark.slow
 def test_report_range_and_cli_json(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     db = tmp_path / "acc.sqlite"
     assert main(["acceptance", "import", str(shipped_example_path()), "--db", str(db)]) == 0
@@ -544,6 +547,7 @@ def test_report_range_and_cli_json(tmp_path: Path, capsys: pytest.CaptureFixture
     assert main(["acceptance", "report", "--db", str(tmp_path / "none.sqlite"), "--out", "x"]) == 2
 
 
+@pytest.mark.slow
 def test_html_escapes_operator_text(tmp_path: Path, project: ProjectConfig) -> None:
     with AcceptanceStore.open(tmp_path / "a.sqlite") as s:
         s.add(

@@ -16,8 +16,8 @@ from pathlib import Path
 
 import pytest
 
-from ipc_app.acceptance import report
-from ipc_app.acceptance.example import shipped_example_path
+from acceptance import report
+from acceptance.example import shipped_example_path
 from wara.cli import main
 
 BROWSERS = ("chromium", "chromium-browser", "google-chrome", "google-chrome-stable")
@@ -31,10 +31,13 @@ def _browser() -> str | None:
     return None
 
 
-pytestmark = pytest.mark.skipif(
-    _browser() is None,
-    reason="no headless Chromium on this machine (Debian: apt-get install -y chromium)",
-)
+pytestmark = [
+    pytest.mark.slow,
+    pytest.mark.skipif(
+        _browser() is None,
+        reason="no headless Chromium on this machine (Debian: apt-get install -y chromium)",
+    ),
+]
 
 
 def _open_in_browser(page: Path, profile: Path) -> tuple[str, list[str]]:

@@ -10,12 +10,13 @@ import math
 import tempfile
 from pathlib import Path
 
+import pytest
 from hypothesis import HealthCheck, event, given, settings
 from hypothesis import strategies as st
 
-from ipc_app.acceptance.csv_import import COLUMNS
-from ipc_app.acceptance.items import ITEMS, ITEMS_BY_KEY, MAX_RING
-from ipc_app.acceptance.store import AcceptanceStore
+from acceptance.csv_import import COLUMNS
+from acceptance.items import ITEMS, ITEMS_BY_KEY, MAX_RING
+from acceptance.store import AcceptanceStore
 from tests.cli_helpers import run_main, run_wara
 
 FUZZ = settings(
@@ -135,6 +136,7 @@ def _check_import(csv_path: Path, db: Path, code: int, out: str, err: str) -> No
                 assert item.signed or v >= 0
 
 
+@pytest.mark.slow
 @FUZZ
 @given(raw=_csv_bytes())
 def test_random_rows_quotes_and_encodings(raw: bytes) -> None:
@@ -154,6 +156,7 @@ def test_random_rows_quotes_and_encodings(raw: bytes) -> None:
         max_size=5,
     )
 )
+@pytest.mark.slow
 def test_valid_files_import_exactly(rows: list[tuple[float, float, float, float]]) -> None:
     """Values written as Python writes floats (``repr``: exponents too) come back exact."""
     lines = [",".join(COLUMNS)]
@@ -173,6 +176,7 @@ def test_valid_files_import_exactly(rows: list[tuple[float, float, float, float]
         assert got == [(v, gap) for v, gap, _, _ in rows]
 
 
+@pytest.mark.slow
 @settings(max_examples=2, deadline=None, database=None)
 @given(raw=_csv_bytes())
 def test_through_a_subprocess_and_the_report(raw: bytes) -> None:

@@ -13,8 +13,8 @@ from typing import Any
 
 import pytest
 
-from ipc_app.acceptance.csv_import import COLUMNS, parse_csv_text
-from ipc_app.acceptance.store import AcceptanceStore, RingMeasurement
+from acceptance.csv_import import COLUMNS, parse_csv_text
+from acceptance.store import AcceptanceStore, RingMeasurement
 from tests.cli_helpers import run_wara
 from wara.cli import main
 
@@ -172,6 +172,7 @@ def _subprocess_import(tmp_path: Path, path: Path | str) -> CompletedProcess[str
     return proc
 
 
+@pytest.mark.slow
 def test_not_utf8_fifo_dev_zero_and_too_long_are_one_line(tmp_path: Path) -> None:
     latin = tmp_path / "latin.csv"
     latin.write_bytes((HEADER + "\n" + _row(1).replace("op", "Müller") + "\n").encode("latin-1"))

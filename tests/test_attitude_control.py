@@ -5,6 +5,7 @@ linked groups synchronized, and leaves every other valve closed."""
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from config import ProjectConfig
 from hil_sim.hydraulics import CylinderBank, CylinderParams
@@ -47,6 +48,7 @@ def _follow_example_1(project: ProjectConfig) -> tuple[float, float, float]:
     return worst_sync, worst_tracking, float(np.max(np.abs(bank.x_m - ref[idx])))
 
 
+@pytest.mark.slow
 def test_follows_example_1_synchronized(project: ProjectConfig) -> None:
     assert project.control.ladrc.reference_feedforward  # the shipped tuning
     worst_sync, worst_tracking, final = _follow_example_1(project)
@@ -55,6 +57,7 @@ def test_follows_example_1_synchronized(project: ProjectConfig) -> None:
     assert worst_tracking < 0.5e-3
 
 
+@pytest.mark.slow
 def test_feedforward_cuts_the_tracking_lag(project: ProjectConfig) -> None:
     """Without the trajectory's speeds fed forward the rods lag by speed / wc."""
     plain = project.model_copy(

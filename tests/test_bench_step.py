@@ -11,6 +11,7 @@ import structlog
 from wara.cli import main
 
 
+@pytest.mark.slow
 def test_wara_bench_step_reports_every_mode(capsys: pytest.CaptureFixture[str]) -> None:
     root = logging.getLogger()
     handlers, level = list(root.handlers), root.level

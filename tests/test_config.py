@@ -122,6 +122,7 @@ def test_missing_file(tmp_path: Path) -> None:
         load_project(tmp_path / "nope.yaml")
 
 
+@pytest.mark.slow
 def test_cli_validate_ok_and_error_without_traceback(tmp_path: Path) -> None:
     assert main(["config", "validate", str(default_project_path())]) == 0
     data = _shipped()

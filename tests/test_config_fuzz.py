@@ -13,6 +13,7 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
+import pytest
 import yaml
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
@@ -161,6 +162,7 @@ def _floats(obj: Any) -> Iterator[float]:
         yield obj
 
 
+@pytest.mark.slow
 @FUZZ
 @given(text=_data_mutant())
 def test_value_type_and_key_mutations(text: str) -> None:
@@ -170,6 +172,7 @@ def test_value_type_and_key_mutations(text: str) -> None:
         _check_outcome(path, *_validate(path))
 
 
+@pytest.mark.slow
 @FUZZ
 @given(raw=_text_mutant())
 def test_token_duplicate_and_byte_mutations(raw: bytes) -> None:
@@ -191,6 +194,7 @@ def test_arbitrary_text(text: str, nest: int) -> None:
             assert str(path) in str(exc)
 
 
+@pytest.mark.slow
 @settings(max_examples=2, deadline=None, database=None)
 @given(text=_data_mutant())
 def test_through_a_subprocess(text: str) -> None:
@@ -207,6 +211,7 @@ def test_through_a_subprocess(text: str) -> None:
     cog=st.tuples(st.floats(-100, 100), st.floats(-100, 100), st.floats(-100, 100)),
     roll=st.floats(-10, 10),
 )
+@pytest.mark.slow
 def test_accepted_bodies_plan_to_finite_numbers(
     mass: float, cog: tuple[float, float, float], roll: float
 ) -> None:

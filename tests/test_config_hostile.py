@@ -228,12 +228,14 @@ def _one_line_exit_2(path: Path | str, expected: str) -> None:
     assert line.startswith(PREFIX) and expected in line, line
 
 
+@pytest.mark.slow
 def test_not_utf8(tmp_path: Path) -> None:
     p = tmp_path / "latin.yaml"
     p.write_bytes(SHIPPED.replace("Airport Link", "Flughafen Zürich").encode("latin-1"))
     _one_line_exit_2(p, f"{p}: not UTF-8 text (byte ")
 
 
+@pytest.mark.slow
 def test_nested_100k_deep(tmp_path: Path) -> None:
     p = _write_text(tmp_path, "project: " + "[" * 100_000 + "]" * 100_000 + "\n")
     _one_line_exit_2(p, "nesting deeper than")
@@ -243,17 +245,20 @@ def test_nested_100k_deep(tmp_path: Path) -> None:
         load_project(q)
 
 
+@pytest.mark.slow
 def test_fifo_does_not_hang(tmp_path: Path) -> None:
     fifo = tmp_path / "project.yaml"
     os.mkfifo(fifo)
     _one_line_exit_2(fifo, f"{fifo}: a FIFO (named pipe), expected a regular file")
 
 
+@pytest.mark.slow
 def test_dev_zero_and_a_directory(tmp_path: Path) -> None:
     _one_line_exit_2("/dev/zero", "/dev/zero: a device, expected a regular file")
     _one_line_exit_2(tmp_path, "a directory, expected a regular file")
 
 
+@pytest.mark.slow
 def test_longer_than_the_bound(tmp_path: Path) -> None:
     p = _write_text(tmp_path, SHIPPED + "#" * (1024 * 1024) + "\n")
     _one_line_exit_2(p, "longer than 1048576 bytes")

@@ -1,8 +1,8 @@
 """Delay margin of the attitude hold (wara sim delay-margin, docs/control.md).
 
 The shipped tuning must hold Example 1 with 20 ms of extra rod-position delay on the
-wire (more than two processes or the machine's PLC add). The former tuning (wc 12,
-wo 25 rad/s without feed-forward) rocked the loaded lower platform into the
+wire (more than two processes or the machine's PLC add). A fast tuning (wc 12,
+wo 25 rad/s without feed-forward) rocks the loaded lower platform into the
 sync-error interlock with a few ms: the study must say so.
 """
 
@@ -28,14 +28,15 @@ def planner() -> Iterator[PlannerWorker]:
     w.close()
 
 
-def _former_tuning(tmp_path: Path) -> ProjectConfig:
+def _fast_tuning(tmp_path: Path) -> ProjectConfig:
     data = yaml.safe_load(default_project_path().read_text())
     data["control"]["ladrc"].update(wc_rad_s=12, wo_rad_s=25, reference_feedforward=False)
-    path = tmp_path / "former.yaml"
+    path = tmp_path / "fast.yaml"
     path.write_text(yaml.safe_dump(data))
     return load_project(path)
 
 
+@pytest.mark.slow
 def test_shipped_tuning_holds_with_the_required_delay(planner: PlannerWorker) -> None:
     run = run_one(load_project(), planner, REQUIRED_MS, hold_s=15.0)
     assert run.reached_target and run.stable, run
@@ -43,9 +44,10 @@ def test_shipped_tuning_holds_with_the_required_delay(planner: PlannerWorker) ->
     assert max(run.hold_sync_error_mm.values()) < 0.02  # mm, far inside 0.07
 
 
+@pytest.mark.slow
 def test_report_margin_and_verdict(tmp_path: Path) -> None:
-    """Without delay the former tuning holds; its margin is 0 and it fails the 20 ms need."""
-    cfg = _former_tuning(tmp_path)
+    """Without delay the fast tuning holds; its margin is 0 and it fails the 20 ms need."""
+    cfg = _fast_tuning(tmp_path)
     report = run_study(cfg, delays_ms=(0.0, 5.0), hold_s=20.0, required_ms=5.0)
     assert [r["stable"] for r in report["runs"]] == [True, False]
     rocked = report["runs"][1]

@@ -16,21 +16,17 @@ from config import load_project
 from config.hil_scenario import HilScenario
 from config.loader import validate_data
 from ipc_app.service.modes import Mode
-from wara.demo import ATTITUDE_TOL_DEG, SYNC_TOL_MM, TWIST_TOL_MM, Demo, failure_reason
+from tests.cli_helpers import run_wara
+from wara.demo import failure_reason
+from wara.examples import ATTITUDE_TOL_DEG, SYNC_TOL_MM, TWIST_TOL_MM
+from wara.harness import Harness
 
 REPO = Path(__file__).resolve().parents[1]
 
 
+@pytest.mark.slow
 def test_realtime_one_process_demo_example_1() -> None:
-    proc = subprocess.run(
-        [sys.executable, "-m", "wara", "demo", "--examples", "1", "--json"],
-        capture_output=True,
-        text=True,
-        timeout=600,
-        cwd=REPO,
-        env={**os.environ, "PYTHONPATH": str(REPO)},
-        check=False,
-    )
+    proc = run_wara(["demo", "--examples", "1", "--json"], timeout_s=600)
     out = json.loads(proc.stdout)  # one JSON object on stdout, pass or fail
     assert out["mode"] == "realtime"
     assert proc.returncode == 0, (failure_reason(out), proc.stderr[-3000:])
@@ -52,6 +48,7 @@ def test_examples_option_is_checked() -> None:
     assert main(["demo", "--examples", "4"]) == 2
 
 
+@pytest.mark.slow
 def test_a_latched_fault_ends_the_example_at_once_with_its_reason() -> None:
     """The PLC goes silent while Example 1 moves: the service latches the fault and the
     demo reports it in the same second of machine time, instead of waiting for the
@@ -62,7 +59,7 @@ def test_a_latched_fault_ends_the_example_at_once_with_its_reason() -> None:
         {"events": [{"kind": "plc_silent", "start_s": 3.0, "end_s": 4.0}]},
         "test scenario",
     )
-    demo = Demo(cfg, mode="lockstep", scenario=scenario)
+    demo = Harness(cfg, mode="lockstep", scenario=scenario)
     try:
         assert demo.wait_for(Mode.IDLE, 20.0)
         res = demo.run_example(2.0, 1.0)
@@ -100,7 +97,7 @@ def test_failure_reason_names_the_latched_faults() -> None:
 @pytest.mark.parametrize("n", [1, 4097])
 def test_trace_keeps_every_sample_in_arrays(n: int) -> None:
     cfg = load_project()
-    demo = Demo(cfg, mode="lockstep")
+    demo = Harness(cfg, mode="lockstep")
     try:
         for _ in range(n):
             demo.trace.add(demo.sim, demo.core)
@@ -115,7 +112,7 @@ def test_trace_keeps_every_sample_in_arrays(n: int) -> None:
 
 
 def test_fifo_for_every_thread_of_a_process_or_the_refusal() -> None:
-    from wara.demo import fifo_all_threads
+    from wara.harness import fifo_all_threads
 
     child = subprocess.Popen(
         [

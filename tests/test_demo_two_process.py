@@ -17,8 +17,8 @@ from pathlib import Path
 
 import pytest
 
-from wara.demo import ATTITUDE_TOL_DEG, SYNC_TOL_MM, TWIST_TOL_MM
 from wara.demo_two_process import netns_problem
+from wara.examples import ATTITUDE_TOL_DEG, SYNC_TOL_MM, TWIST_TOL_MM
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -30,6 +30,7 @@ def netns() -> None:
         pytest.skip(f"wara demo --two-process needs a private netns: {problem}")
 
 
+@pytest.mark.slow
 def test_example_1_through_two_processes(netns: None) -> None:
     proc = subprocess.run(
         [
@@ -61,7 +62,7 @@ def test_example_1_through_two_processes(netns: None) -> None:
     assert (ex["target_roll_deg"], ex["target_pitch_deg"]) == (2.0, 1.0)
     # Reached through the other process, judged from the service's sensors after a
     # short hold, and still holding: the hold must stay stable with the transport's
-    # extra, varying latency (the former tuning rocked the lower platform into the
+    # extra, varying latency (a faster tuning rocks the lower platform into the
     # sync-error interlock here; docs/control.md, "Delay margin").
     assert out["final_mode"] == "COMPLETE", (out["final_fault_reasons"], proc.stderr[-2000:])
     assert ex["attitude_error_deg"] <= ATTITUDE_TOL_DEG, (ex, proc.stderr[-2000:])
@@ -82,6 +83,7 @@ def test_example_1_through_two_processes(netns: None) -> None:
     assert proc.returncode == (0 if out["passed"] else 1)
 
 
+@pytest.mark.slow
 def test_without_a_namespace_tool_exits_2_with_one_line(tmp_path: Path) -> None:
     """No unshare on PATH: exit 2 and one line saying why."""
     bin_dir = tmp_path / "bin"

@@ -128,14 +128,18 @@ def test_can0_bitrate_matches_the_project(project: ProjectConfig) -> None:
     assert can["RestartSec"].endswith("ms")
 
 
-def test_install_dry_run_shows_steps_and_changes_nothing(tmp_path: Path) -> None:
-    prefix = tmp_path / "opt-wara"
-    proc = subprocess.run(
-        ["bash", str(DEPLOY / "install.sh"), "--dry-run", "--vcan", "--prefix", str(prefix)],
+def _install(*args: str) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        ["bash", str(DEPLOY / "install.sh"), "--dry-run", *args],
         capture_output=True,
         text=True,
         timeout=60,
     )
+
+
+def test_install_dry_run_shows_steps_and_changes_nothing(tmp_path: Path) -> None:
+    prefix = tmp_path / "opt-wara"
+    proc = _install("--vcan", "--prefix", str(prefix))
     assert proc.returncode == 0, proc.stderr
     out = proc.stdout
     for step in (
@@ -150,11 +154,31 @@ def test_install_dry_run_shows_steps_and_changes_nothing(tmp_path: Path) -> None
     assert not prefix.exists()
 
 
+def _pip_line(out: str) -> str:
+    return next(line for line in out.splitlines() if "/venv/bin/pip install" in line)
+
+
+def test_install_takes_no_extras_unless_asked(tmp_path: Path) -> None:
+    """The IPC gets the service alone (no numba, no matplotlib); --extras adds them."""
+    plain = _install("--prefix", str(tmp_path))
+    assert plain.returncode == 0, plain.stderr
+    assert _pip_line(plain.stdout).endswith(str(DEPLOY.parent))
+    asked = _install("--prefix", str(tmp_path), "--extras", "plot")
+    assert asked.returncode == 0, asked.stderr
+    assert _pip_line(asked.stdout).endswith(f"{DEPLOY.parent}[plot]")
+    both = _install("--prefix", str(tmp_path), "--extras", "sim,plot")
+    assert _pip_line(both.stdout).endswith(f"{DEPLOY.parent}[sim,plot]")
+
+
+@pytest.mark.parametrize(
+    ("extras", "message"),
+    [("gui", "unknown extra 'gui' (known: sim, plot)"), ("sim,", "an empty name")],
+)
+def test_install_rejects_unknown_extras(extras: str, message: str) -> None:
+    proc = _install("--extras", extras)
+    assert proc.returncode == 2 and message in proc.stderr, proc.stderr
+
+
 def test_install_rejects_unknown_options() -> None:
-    proc = subprocess.run(
-        ["bash", str(DEPLOY / "install.sh"), "--dry-run", "--frobnicate"],
-        capture_output=True,
-        text=True,
-        timeout=60,
-    )
+    proc = _install("--frobnicate")
     assert proc.returncode == 2 and "unknown option --frobnicate" in proc.stderr

@@ -71,6 +71,7 @@ def short_runs() -> dict:
     return {k: run_study(sc, k, duration_s=25.0) for k in ("ladrc", "pid")}
 
 
+@pytest.mark.slow
 def test_closed_loop_tracks_and_is_reproducible(short_runs: dict) -> None:
     sc = load_scenario()
     run = short_runs["ladrc"]
@@ -83,6 +84,7 @@ def test_closed_loop_tracks_and_is_reproducible(short_runs: dict) -> None:
     assert np.max(np.abs(run.command)) <= 1.0
 
 
+@pytest.mark.slow
 def test_report_fields_and_windows(short_runs: dict) -> None:
     sc = load_scenario()
     report, _ = evaluate(short_runs, sc)
@@ -100,6 +102,7 @@ def test_report_fields_and_windows(short_runs: dict) -> None:
     assert "pid_to_ladrc_sync_error_max_ratio" in report
 
 
+@pytest.mark.slow
 def test_settling_time_is_measured_after_the_last_move(short_runs: dict) -> None:
     sc = load_scenario()
     assert last_move_end_s(sc) == 100.0
@@ -112,6 +115,7 @@ def test_cli_usage_errors(capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["sim", "dual-cylinder", "--plot", "/nonexistent/dir/x.png", "--quiet"]) == 2
 
 
+@pytest.mark.slow
 def test_cli_short_study_json_and_plot(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     png = tmp_path / "study.png"
     code = main(["sim", "dual-cylinder", "--duration-s", "15", "--json", "--plot", str(png)])
@@ -124,6 +128,7 @@ def test_cli_short_study_json_and_plot(tmp_path: Path, capsys: pytest.CaptureFix
     assert png.stat().st_size > 50_000
 
 
+@pytest.mark.slow
 def test_paper_goals_on_the_full_study(capsys: pytest.CaptureFixture[str]) -> None:
     """The issue's goals, measured the way the CLI measures them (the full 120 s)."""
     code = main(["sim", "dual-cylinder", "--json", "--quiet"])
@@ -140,6 +145,7 @@ def test_paper_goals_on_the_full_study(capsys: pytest.CaptureFixture[str]) -> No
     assert code == 0
 
 
+@pytest.mark.slow
 def test_bench_sim_reports_the_realtime_factor(capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["bench", "sim", "--json", "--quick"]) == 0
     result = json.loads(capsys.readouterr().out)

@@ -26,7 +26,10 @@ from ipc_app.service.record import RunRecorder, read_run
 from ipc_app.service.worker import PlannerWorker
 from plc_bridge.link import Fault
 from tests.service_helpers import CRASH_ROLL_DEG
-from wara.demo import ATTITUDE_TOL_DEG, SYNC_TOL_MM, TWIST_TOL_MM, Demo
+from wara.examples import ATTITUDE_TOL_DEG, SYNC_TOL_MM, TWIST_TOL_MM
+from wara.harness import Harness
+
+pytestmark = pytest.mark.slow
 
 FAULT_AT_S = 3.0  # simulated time of the fault: Example 1 (2, 1) deg is moving then
 
@@ -63,7 +66,7 @@ class Run:
 
         self.record = RunRecorder(tmp_path / "run", ServiceCore.record_columns(cfg))
         self.record.start()
-        self.demo = Demo(
+        self.demo = Harness(
             cfg, mode="lockstep", scenario=scenario, record=self.record, planner=planner
         )
         self.cycles = 0

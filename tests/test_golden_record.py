@@ -33,7 +33,8 @@ from config import load_project
 from ipc_app.service.core import ServiceCore
 from ipc_app.service.modes import Mode
 from ipc_app.service.record import EVENTS, SAMPLES, RunRecorder
-from wara.demo import EXAMPLES, Demo
+from wara.examples import EXAMPLES
+from wara.harness import Harness
 
 GOLDEN = Path(__file__).parent / "golden" / "lockstep_example1"
 WALL_CLOCK_KEYS = frozenset({"solve_time_s", "elapsed_s", "first_t_s", "last_t_s"})
@@ -47,7 +48,7 @@ def record_example1(run_dir: Path) -> None:
     cfg = load_project()
     rec = RunRecorder(run_dir, ServiceCore.record_columns(cfg))
     rec.start()
-    demo = Demo(cfg, None, mode="lockstep", record=rec)
+    demo = Harness(cfg, None, mode="lockstep", record=rec)
     try:
         demo.start()
         assert demo.wait_for(Mode.IDLE, 20.0), demo.fault_note()

@@ -76,6 +76,7 @@ def test_wara_hil_bad_fault_is_a_usage_error(capsys: pytest.CaptureFixture[str])
     assert "unknown cylinder 'x'" in capsys.readouterr().err
 
 
+@pytest.mark.slow
 def test_wara_bench_hil_json(capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["bench", "hil", "--json", "--quick"]) == 0
     out = json.loads(capsys.readouterr().out)
@@ -90,6 +91,7 @@ def test_wara_hil_cpus_are_checked(capsys: pytest.CaptureFixture[str]) -> None:
     assert "this process may use" in capsys.readouterr().err
 
 
+@pytest.mark.slow
 def test_wara_hil_runs_on_the_cpus_given() -> None:
     """In a child process (pinning the test runner would outlive the test)."""
     import os

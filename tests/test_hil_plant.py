@@ -132,6 +132,7 @@ def test_blocked_valve_layers_hold_their_load(project: ProjectConfig, bench: Ben
     assert np.abs(res_lo[0]) < 1.0 and np.abs(res_up[0]) < 1.0
 
 
+@pytest.mark.slow
 def test_unsynchronized_cylinders_fight_through_the_oil_and_settle_in_balance(
     project: ProjectConfig,
 ) -> None:

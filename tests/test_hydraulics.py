@@ -61,6 +61,7 @@ def test_signed_sqrt_is_smooth_and_exact_away_from_zero() -> None:
     assert float(signed_sqrt(1.0, reg)) == pytest.approx(1.0 / math.sqrt(reg), rel=1e-6)
 
 
+@pytest.mark.slow
 def test_orifice_flows_switch_edges_with_the_spool_sign(table3: CylinderParams) -> None:
     p = table3.select(0)
     args = (p.spool_max_m, p.orifice_coeff, p.supply_pa, p.tank_pa, p.regularization_pa)
@@ -155,6 +156,7 @@ def test_blocked_valve_leakage_decay_matches_the_linear_solution(table3: Cylinde
     assert sol.sol(2.0)[0] < 0.5 * y0[0]  # the paper's leakage is not small
 
 
+@pytest.mark.slow
 def test_rest_equilibrium_holds_still(table3: CylinderParams) -> None:
     bank = CylinderBank(table3, step_s=0.5e-3)
     load = np.array([88.3e3, 95.1e3])

@@ -84,6 +84,6 @@ def test_script_help_runs_as_a_program() -> None:
 
 def test_hil_test_judges_with_the_demos_attitude_tolerance() -> None:
     from tests.kernel import test_hil_vcan
-    from wara.demo import ATTITUDE_TOL_DEG
+    from wara.examples import ATTITUDE_TOL_DEG
 
     assert test_hil_vcan.ATTITUDE_TOL_DEG == ATTITUDE_TOL_DEG

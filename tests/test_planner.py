@@ -157,6 +157,7 @@ def _run(*args: str) -> subprocess.CompletedProcess[str]:
     )
 
 
+@pytest.mark.slow
 def test_cli_json_contract() -> None:
     proc = _run("--roll-deg", "-3", "--pitch-deg", "2", "--json")
     assert proc.returncode == 0, proc.stderr
@@ -181,6 +182,7 @@ def test_cli_json_contract() -> None:
     assert d["method"] == "exact" and d["objective"] == "pump_energy"
 
 
+@pytest.mark.slow
 def test_cli_unreachable_target_exits_3_with_reasons() -> None:
     proc = _run("--roll-deg", "30", "--pitch-deg", "2", "--json")
     assert proc.returncode == 3
@@ -199,6 +201,7 @@ def test_lift_off_is_reported(tmp_path: Path) -> None:
     assert any(r.startswith("lift-off: upper cylinder") for r in p.reasons), p.reasons
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(
     ("args", "message"),
     [

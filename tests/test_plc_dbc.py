@@ -63,6 +63,7 @@ def test_python_enums_mirror_the_dbc_value_tables(enum: type, message: str, sign
     assert {m.value: m.name for m in enum} == choices  # type: ignore[attr-defined]
 
 
+@pytest.mark.slow
 def test_cantools_dump_reads_it() -> None:
     cmd = [sys.executable, "-m", "cantools"]
     out = subprocess.run([*cmd, "dump", str(DBC_PATH)], capture_output=True, text=True, check=True)

@@ -8,6 +8,7 @@ import math
 
 import can
 import numpy as np
+import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
@@ -67,6 +68,7 @@ def _deterministic_outcome(side: str, msg: can.Message) -> str | None:
     return None
 
 
+@pytest.mark.slow
 @settings(max_examples=150, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(st.lists(_frame(), min_size=1, max_size=60), st.sampled_from(["IPC", "PLC"]))
 def test_receive_path_never_raises_never_lies_counts_everything(

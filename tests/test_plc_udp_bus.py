@@ -114,6 +114,7 @@ def test_open_bus_builds_it_from_config_and_names_bad_channels(project: ProjectC
     bus.shutdown()
 
 
+@pytest.mark.slow
 def test_bench_transport_quick(capsys: pytest.CaptureFixture[str]) -> None:
     from wara.cli import main
     from wara.demo_two_process import netns_problem

@@ -20,6 +20,8 @@ import pytest
 from plc_bridge.bus import DATAGRAM_RCVBUF_BYTES
 from wara.demo_two_process import NETNS_SETUP, UNSHARE, netns_problem
 
+pytestmark = pytest.mark.slow
+
 REPO = Path(__file__).resolve().parents[1]
 
 

@@ -39,6 +39,8 @@ from ipc_app.service.loop import FixedRateLoop
 from ipc_app.service.worker import PlanResult
 from plc_bridge import IpcLink, PlcLink, PlcStatus
 
+pytestmark = pytest.mark.slow
+
 EXAMPLES = int(os.environ.get("WARA_FUZZ_EXAMPLES", "40"))
 FUZZ = settings(
     max_examples=EXAMPLES,

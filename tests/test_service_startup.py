@@ -145,10 +145,10 @@ class _NoPlanner:
 def _lockstep(*events: dict[str, Any]) -> Any:
     from config import load_project
     from config.hil_scenario import HilScenario
-    from wara.demo import Demo
+    from wara.harness import Harness
 
     scenario = HilScenario.model_validate({"events": list(events)})
-    return Demo(load_project(), mode="lockstep", scenario=scenario, planner=_NoPlanner())  # type: ignore[arg-type]
+    return Harness(load_project(), mode="lockstep", scenario=scenario, planner=_NoPlanner())  # type: ignore[arg-type]
 
 
 def test_boot_ends_in_a_fault_when_the_plc_never_hears_the_commands() -> None:

@@ -11,7 +11,11 @@ import time
 from pathlib import Path
 from typing import Any
 
+import pytest
+
 from ipc_app.service.ctl import CtlError, request
+
+pytestmark = pytest.mark.slow
 
 
 def _wait_status(path: Path, timeout_s: float) -> dict[str, Any]:

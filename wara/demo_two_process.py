@@ -20,8 +20,11 @@ so the multicast traffic never reaches the host's network:
 Figures and decisions (documented in docs/service.md, "Two processes over udp_multicast"):
 
 - achieved attitude: the service's ``motion.achieved_deg``, i.e. from the measured rod
-  positions (the sensor view); the simulator's truth is in another process. Tolerances
-  are the in-process demo's (:mod:`wara.demo`).
+  positions (the sensor view); the simulator's truth is in another process. The goals
+  and the judge are the in-process demo's (:func:`wara.examples.judge_example`).
+- readiness: the simulator says ``READY=1`` on ``$NOTIFY_SOCKET`` (sd_notify, a socket
+  of the demo's) after a status interval of steady running; the service is ready when
+  its status over the control socket says IDLE.
 - the loop: the service publishes :meth:`FixedRateLoop.stats` every 5 s (p50/p99/max
   over the last 4096 cycles = 20.5 s at 200 Hz; ``overruns`` counts from the loop's
   start). Start-up is the time up to the stats report in force once the service is IDLE
@@ -39,8 +42,10 @@ import contextlib
 import math
 import os
 import re
+import select
 import shutil
 import signal
+import socket
 import subprocess
 import sys
 import tempfile
@@ -59,13 +64,14 @@ from config.schema import ProjectConfig
 from ipc_app.service.core import ServiceCore
 from ipc_app.service.ctl import CtlError, request
 from plc_bridge.busload import bus_load
-from wara.demo import (
+from wara.examples import (
     ATTITUDE_TOL_DEG,
     EXAMPLES,
     HOLD_MEASURE_S,
     SYNC_TOL_MM,
     TWIST_TOL_MM,
     ExampleResult,
+    judge_example,
 )
 
 REPO = Path(__file__).resolve().parents[1]
@@ -79,7 +85,7 @@ MULTICAST_GROUP = "239.74.163.2"
 NETNS_SETUP = "ip link set lo up && ip link set lo multicast on && ip route add 239.0.0.0/8 dev lo"
 UNSHARE = ("unshare", "--user", "--map-root-user", "--net")
 
-#: Goal of issue 6: compute p99 below this fraction of the period, no overruns.
+#: The loop goal: compute p99 below this fraction of the period, no overruns.
 COMPUTE_P99_GOAL_FRACTION = 0.20
 #: Real-time run the loop goal is judged on (seconds of loop cycles after start-up).
 MIN_RUN_S = 60.0
@@ -267,7 +273,7 @@ def _promote(root_pid: int, stop: threading.Event) -> None:
     demo's SCHED_FIFO priority, as the one-process demo does (docs/service.md), checked
     every 0.5 s for new threads; not the planner processes. Refused: said once, on
     stderr, and the run goes on under the normal scheduler."""
-    from wara.demo import DEMO_RT_PRIORITY, fifo_all_threads
+    from wara.harness import RT_PRIORITY, fifo_all_threads
 
     told = False
     while not stop.wait(0.5):
@@ -278,7 +284,7 @@ def _promote(root_pid: int, stop: threading.Event) -> None:
                 continue
             if len(argv) < 4 or argv[1:3] != [b"-m", b"wara"] or argv[3] not in _PAIR_VERBS:
                 continue
-            rep = fifo_all_threads(DEMO_RT_PRIORITY, pid)
+            rep = fifo_all_threads(RT_PRIORITY, pid)
             if rep.refused and not told:
                 told = True
                 print(f"wara: SCHED_FIFO refused: {rep.refused[0]}", file=sys.stderr)
@@ -316,7 +322,14 @@ def _quote(arg: str) -> str:
 class _Child:
     """One child process with its stderr in a log file."""
 
-    def __init__(self, name: str, argv: Sequence[str], log_path: Path) -> None:
+    def __init__(
+        self,
+        name: str,
+        argv: Sequence[str],
+        log_path: Path,
+        env: dict[str, str] | None = None,
+    ) -> None:
+        """``env``: set in the child's environment besides :func:`_env`."""
         self.name = name
         self.log_path = log_path
         self._log: IO[bytes] = open(log_path, "wb")  # noqa: SIM115 (closed in stop())
@@ -325,7 +338,7 @@ class _Child:
             stdin=subprocess.DEVNULL,
             stdout=self._log,
             stderr=subprocess.STDOUT,
-            env=_env(),
+            env=_env() | (env or {}),
             cwd=REPO,
         )
 
@@ -387,17 +400,29 @@ class _Service:
 SIM_START_TIMEOUT_S = 240.0
 
 
-def _wait_running(sim: _Child, timeout_s: float) -> None:
-    """Until the simulator's second status line (``t=...``) is in its log: the first comes
-    after its first PLC scan, later first-use compiles can still stall it; the second
-    comes after a status interval of steady running."""
-    end = time.monotonic() + timeout_s
-    while time.monotonic() < end:
-        sim.check_alive()
-        if sim.log_path.read_bytes().count(b"t=") >= 2:
-            return
-        time.sleep(0.2)
-    raise TwoProcessError(f"the simulator did not start within {timeout_s:g} s")
+class _NotifySocket:
+    """A socket of ours to give a child as ``$NOTIFY_SOCKET`` (sd_notify's datagrams)."""
+
+    def __init__(self, path: Path) -> None:
+        self.path = path
+        self.sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+        self.sock.bind(str(path))
+
+    def wait_ready(self, child: _Child, timeout_s: float) -> None:
+        """Until ``child`` sends ``READY=1``; :class:`TwoProcessError` if it exits first or
+        does not within ``timeout_s``."""
+        end = time.monotonic() + timeout_s
+        while time.monotonic() < end:
+            child.check_alive()
+            readable = select.select([self.sock], [], [], 0.2)[0]
+            if readable and b"READY=1" in self.sock.recv(4096).split(b"\n"):
+                return
+        raise TwoProcessError(f"the {child.name} was not ready within {timeout_s:g} s")
+
+    def close(self) -> None:
+        self.sock.close()
+        with contextlib.suppress(OSError):
+            self.path.unlink()
 
 
 def _wait_socket(child: _Child, path: Path, timeout_s: float) -> None:
@@ -478,44 +503,24 @@ class _LoopWatch:
 
 
 def _judge(st: dict[str, Any], res: ExampleResult) -> ExampleResult:
+    """The example's figures from the service's status ``motion`` block, judged."""
     m = st.get("motion") or {}
     achieved = m.get("achieved_deg")
     if achieved is not None:
-        res.achieved_roll_deg, res.achieved_pitch_deg = float(achieved[0]), float(achieved[1])
-        res.attitude_error_deg = max(
-            abs(res.achieved_roll_deg - res.target_roll_deg),
-            abs(res.achieved_pitch_deg - res.target_pitch_deg),
-        )
+        res.set_achieved(float(achieved[0]), float(achieved[1]))
     res.max_twist_mm = float(m.get("max_twist_mm", math.nan))
     res.sync_error_mm = float(m.get("hold_sync_error_mm", math.nan))
     res.max_sync_error_mm = float(m.get("max_sync_error_mm", math.nan))
     res.duration_s = float(m.get("duration_s", math.nan))
     mode = st.get("mode")
+    problem = ""
     if mode != "COMPLETE":
-        res.note = f"mode {mode}: {st.get('fault_reasons') or st.get('message', '')}"
+        problem = f"mode {mode}: {st.get('fault_reasons') or st.get('message', '')}"
     elif not m.get("hold_samples"):
-        res.note = "no standstill samples (settle time too short)"
+        problem = "no standstill samples (settle time too short)"
     elif achieved is None:
-        res.note = "no valid rod positions"
-    else:
-        over = [
-            f"{name} {value:.4g} > {tol:g}"
-            for name, value, tol in (
-                ("attitude error deg", res.attitude_error_deg, ATTITUDE_TOL_DEG),
-                ("max twist mm", res.max_twist_mm, TWIST_TOL_MM),
-                ("sync error mm", res.sync_error_mm, SYNC_TOL_MM),
-            )
-            if not value <= tol
-        ]
-        res.note = "; ".join(over)
-    res.passed = (
-        mode == "COMPLETE"
-        and bool(m.get("hold_samples"))
-        and res.attitude_error_deg <= ATTITUDE_TOL_DEG
-        and res.max_twist_mm <= TWIST_TOL_MM
-        and res.sync_error_mm <= SYNC_TOL_MM
-    )
-    return res
+        problem = "no valid rod positions"
+    return judge_example(res, problem=problem)
 
 
 def _run_example(
@@ -578,14 +583,15 @@ def service_and_simulator(
     sim_argv = [*wara, "hil", "--realtime", "--config", config_path, "--status-interval", "2"]
     if sim_cpus:
         sim_argv += ["--cpus", ",".join(map(str, sim_cpus))]
-    sim = _Child("simulator", sim_argv, workdir / "hil.log")
+    notify = _NotifySocket(workdir / "hil-notify.sock")
+    sim = _Child("simulator", sim_argv, workdir / "hil.log", {"NOTIFY_SOCKET": str(notify.path)})
     svc_child: _Child | None = None
     try:
         # The simulator compiles its plant on first use (numba; tens of seconds on a fresh
         # machine): start the service only once the simulated PLC is on the wire, or the
         # service's start-up window would rightly end ABORTED.
         say("waiting for the simulator to run")
-        _wait_running(sim, SIM_START_TIMEOUT_S)
+        notify.wait_ready(sim, SIM_START_TIMEOUT_S)
         svc_child = _Child(
             "service",
             [
@@ -614,6 +620,7 @@ def service_and_simulator(
         if svc_child is not None:
             codes["service"] = svc_child.stop()
         codes["simulator"] = sim.stop()
+        notify.close()
         say(f"stopped: service exit {codes.get('service')}, simulator exit {codes['simulator']}")
 
 

@@ -44,8 +44,9 @@ REPO = Path(__file__).resolve().parents[2]
 DBC = REPO / "plc_bridge" / "wara_plc.dbc"
 CAT = load_catalog()
 TARGET = (2.0, 1.0)  # Example 1, deg
-#: The demo's attitude tolerance at rest (``wara.demo.ATTITUDE_TOL_DEG``; tests/test_kernel_vm.py
-#: checks they are equal): importing wara.demo here would cost pytest in the guest minutes.
+#: The demo's attitude tolerance at rest (``wara.examples.ATTITUDE_TOL_DEG``;
+#: tests/test_kernel_vm.py checks they are equal): importing wara here would cost pytest in
+#: the guest minutes.
 ATTITUDE_TOL_DEG = 0.01
 STRANGER_ID = 0x191  # no node of the DBC sends it (PLC_HmiTarget is 0x190)
 
@@ -269,7 +270,7 @@ def hil_run(tmp_path_factory: pytest.TempPathFactory) -> Iterator[HilRun]:
 
         holding: dict[str, Any] = {"mode": "never asked"}
         if adjust.get("ok"):
-            holding = _wait(holding_target, 900.0, "HOLDING at Example 1's target", poll_s=2.0)
+            holding = _wait(holding_target, 900.0, "COMPLETE at Example 1's target", poll_s=2.0)
         rx_before = dict((_status(sock) or {}).get("link_rx") or {})
         frames, injected = _frames_to_inject()
         for fid, data in frames:

@@ -1,7 +1,7 @@
 """``wara bench step --json``: the CPU of one ``ServiceCore.step`` per mode, in lockstep.
 
 The HIL simulator and the service alternate in one thread on the in-process ``virtual``
-bus (:class:`wara.demo.Demo` in ``lockstep``), with the real planner worker process and a
+bus (:class:`wara.harness.Harness` in ``lockstep``), with the real planner worker process and a
 run record in a temporary directory, as in the service: IDLE, then Example 1 (roll 2,
 pitch 1 deg) through STARTING, EXECUTE and COMPLETE. Logs go to stderr (JSON lines), the
 result to stdout. Each step is timed around
@@ -51,7 +51,7 @@ def _figures(cpu_ns: list[int], wall_ns: list[int]) -> dict[str, Any]:
 
 
 def run(args: argparse.Namespace) -> dict[str, Any]:
-    from wara.demo import Demo  # the simulator: only for this bench
+    from wara.harness import Harness  # the simulator: only for this bench
 
     config_path = getattr(args, "config", None)
     quick = bool(getattr(args, "quick", False))
@@ -63,8 +63,8 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     with tempfile.TemporaryDirectory(prefix="wara-bench-step-") as tmp:
         record = RunRecorder(Path(tmp) / "run", ServiceCore.record_columns(cfg))
         record.start()
-        demo = Demo(cfg, config_path, mode="lockstep", record=record)
-        core = demo.core
+        harness = Harness(cfg, config_path, mode="lockstep", record=record)
+        core = harness.core
         step = core.step
         timing = [False]
         thread_ns = time.thread_time_ns
@@ -86,25 +86,25 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
 
         core.step = timed  # type: ignore[method-assign]
         try:
-            demo.start()
-            if not demo.wait_for(Mode.IDLE, 20.0):
+            harness.start()
+            if not harness.wait_for(Mode.IDLE, 20.0):
                 raise RuntimeError(f"service did not come up: {core.modes.snapshot()}")
-            demo.advance(0.5)  # the first frames of every message, the first status
+            harness.advance(0.5)  # the first frames of every message, the first status
             freeze_startup_heap()
             timing[0] = True
-            demo.advance(idle_s)
+            harness.advance(idle_s)
             out = core.request_adjust(*EXAMPLE)
             if not out.get("ok"):
                 raise RuntimeError(f"adjust refused: {out}")
-            if not demo.wait_for(Mode.EXECUTE, 60.0):
+            if not harness.wait_for(Mode.EXECUTE, 60.0):
                 raise RuntimeError(f"no plan: {core.modes.snapshot()}")
-            if not demo.wait_for(Mode.COMPLETE, 60.0):
+            if not harness.wait_for(Mode.COMPLETE, 60.0):
                 raise RuntimeError(f"did not finish: {core.modes.snapshot()}")
-            demo.advance(hold_s)
+            harness.advance(hold_s)
             final_mode = str(core.modes.mode)
         finally:
             timing[0] = False
-            demo.close()
+            harness.close()
             record.stop()
             logging_handle.stop()
     modes = {m: _figures(*v) for m, v in samples.items() if v[0]}

@@ -15,7 +15,7 @@ Every verb takes ``--db PATH`` (default ``$WARA_DATA_DIR/acceptance.sqlite``, el
 the shipped project). Exit codes: 0 done, 1 nothing to report, 2 bad arguments, rows
 rejected on import (nothing imported), unusable file or database.
 
-The logic lives in :mod:`ipc_app.acceptance`; this module only parses and prints.
+The logic lives in :mod:`acceptance`; this module only parses and prints.
 """
 
 from __future__ import annotations
@@ -29,20 +29,21 @@ from datetime import datetime
 from pathlib import Path
 from typing import Any
 
-from config import default_project_path, load_project
-from config.files import InputFileError, read_input_file
-from ipc_app.acceptance.csv_import import CsvFileError, ImportResult, import_parsed, parse_csv
-from ipc_app.acceptance.example import example_csv_text
-from ipc_app.acceptance.items import ITEMS, ControlItem, parse_ring
-from ipc_app.acceptance.judge import RingVerdict, Status, judge_ring, limits_from, summarize
-from ipc_app.acceptance.report import ReportMeta, report_dict, write_report
-from ipc_app.acceptance.store import (
+from acceptance.csv_import import CsvFileError, ImportResult, import_parsed, parse_csv
+from acceptance.example import example_csv_text
+from acceptance.items import ITEMS, ControlItem, parse_ring
+from acceptance.judge import RingVerdict, Status, judge_ring, limits_from, summarize
+from acceptance.report import ReportMeta, report_dict, write_report
+from acceptance.store import (
     AcceptanceStore,
     RingMeasurement,
     StoreError,
     default_db_path,
 )
+from config import default_project_path, load_project
+from config.files import InputFileError, read_input_file
 from wara.cli import EXIT_FAILED, EXIT_OK, EXIT_USAGE, UsageError
+from wara.extras import require
 
 #: Largest plan or attitude JSON read.
 MAX_JSON_BYTES = 1024 * 1024
@@ -340,6 +341,7 @@ def _summary_for(args: argparse.Namespace, store: AcceptanceStore) -> Any:
 
 
 def _report(args: argparse.Namespace) -> int:
+    require("matplotlib", "wara acceptance report")
     with _open(args, create=False) as store:
         project, summary = _summary_for(args, store)
     if not summary.rings:

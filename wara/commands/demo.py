@@ -16,6 +16,7 @@ import json
 from pathlib import Path
 
 from wara.cli import EXIT_FAILED, EXIT_OK, EXIT_USAGE, UsageError
+from wara.extras import require, require_realtime_simulator
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -71,6 +72,8 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def _run(args: argparse.Namespace) -> int:
+    if not args.lockstep:
+        require_realtime_simulator()
     if args.two_process:
         return _run_two_process(args)
     if args.no_pin:
@@ -78,6 +81,8 @@ def _run(args: argparse.Namespace) -> int:
     for opt in ("settle_s", "min_run_s", "inside_netns", "keep_dir", "transport"):
         if getattr(args, opt) is not None:
             raise UsageError(f"--{opt.replace('_', '-')} goes with --two-process")
+    if args.plot:
+        require("matplotlib", "--plot")
     from ipc_app.service.logs import configure_logging
     from wara.demo import EXAMPLES, failure_reason, render_table, run_demo, stderr_progress
 

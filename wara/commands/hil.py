@@ -11,6 +11,9 @@ Real time (default) is for a controller in another process (``can.interface:
 udp_multicast`` or ``socketcan`` vcan0); lockstep runs in virtual time, deterministic
 from the seed (in-process controllers use :class:`hil_sim.simulator.HilSimulator`).
 A status line shows simulated time, realtime factor, PLC state and the faults active.
+Under ``$NOTIFY_SOCKET`` (systemd ``Type=notify``, ``wara demo --two-process``) it says
+``READY=1`` with the second status line: after its first PLC scans (and the plant's
+first-use compiles) and one status interval of steady running.
 """
 
 from __future__ import annotations
@@ -28,8 +31,10 @@ from config import load_project
 from config.hil_scenario import EVENT_KINDS, HilScenario, load_hil_scenario
 from config.loader import parse_yaml_text, validate_data
 from hil_sim.simulator import HilSimulator
+from ipc_app.service.sdnotify import SystemdNotifier
 from plc_bridge.errors import BridgeError
 from wara.cli import UsageError
+from wara.extras import require_realtime_simulator
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -109,13 +114,21 @@ def _run(args: argparse.Namespace) -> int:
     duration = args.duration if args.duration is not None else scenario.duration_s
     if args.lockstep and duration is None:
         raise UsageError("--lockstep needs --duration (or duration_s in the scenario)")
+    if not args.lockstep:
+        require_realtime_simulator()
     try:
         sim = HilSimulator(cfg, None, scenario, seed=args.seed)
     except (ValueError, BridgeError) as exc:  # a scenario mistake; a bus that cannot open
         raise UsageError(str(exc)) from None
     tty = sys.stderr.isatty()
+    notifier = SystemdNotifier.from_env()
+    shown = 0
 
     def show(s: HilSimulator) -> None:
+        nonlocal shown
+        shown += 1
+        if shown == 2:
+            notifier.ready(f"PLC scanning, t={s.t_s:.1f} s")
         if not args.quiet:
             end = "\r" if tty else "\n"
             print(s.status_line(), end=end, file=sys.stderr, flush=True)
@@ -147,6 +160,7 @@ def _run(args: argparse.Namespace) -> int:
         pass
     finally:
         sim.close()
+        notifier.close()
     if tty and not args.quiet:
         print(file=sys.stderr)
     wall = time.monotonic() - t0

@@ -26,6 +26,7 @@ from typing import Any
 
 from config.scenario import load_scenario
 from wara.cli import EXIT_FAILED, EXIT_OK, UsageError
+from wara.extras import require
 from wara.studies.delay_margin import DEFAULT_DELAYS_MS, REQUIRED_MS
 from wara.studies.dual_cylinder import CONTROLLERS, ControllerKind, StudyRun, evaluate, run_study
 
@@ -162,6 +163,8 @@ def _dual_cylinder(args: argparse.Namespace) -> int:
         )
     if args.plot is not None and not Path(args.plot).parent.exists():
         raise UsageError(f"--plot {args.plot}: directory {Path(args.plot).parent} does not exist")
+    if args.plot is not None:
+        require("matplotlib", "--plot")
     kinds: list[ControllerKind] = (
         list(CONTROLLERS) if args.controller == "both" else [args.controller]
     )

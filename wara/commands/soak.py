@@ -40,6 +40,7 @@ import numpy as np
 
 from config import units
 from wara.cli import EXIT_FAILED, EXIT_OK, EXIT_USAGE, UsageError
+from wara.extras import require_realtime_simulator
 
 #: The workspace the targets are drawn from (the planner bench's), degrees.
 ROLL_DEG = 8.0
@@ -79,6 +80,7 @@ def _run(args: argparse.Namespace) -> int:
 
     if not (math.isfinite(args.minutes) and args.minutes > 0):
         raise UsageError("--minutes must be a positive number")
+    require_realtime_simulator()
     if args.inside_netns is None:
         inner = ["soak", "--minutes", repr(args.minutes), "--seed", str(args.seed)]
         if args.json:

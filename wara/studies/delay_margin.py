@@ -6,10 +6,10 @@ the service in the next control period. On the machine (socketcan, the PLC's sca
 frame cycle unsynchronized with the IPC's loop) and across two processes
 (``wara demo --two-process``) the positions are up to a period or two older, and the
 age varies. A tuning that is stable only without that delay rocks the loaded lower
-platform in its roll mode until the sync-error interlock stops the machine (what issue 6
-saw across two processes with the former LADRC tuning).
+platform in its roll mode until the sync-error interlock stops the machine (as
+``wc 12, wo 25`` without feed-forward does across two processes).
 
-This study runs the lockstep demo once per delay, with the simulator's wire holding
+This study runs the lockstep harness once per delay, with the simulator's wire holding
 every ``PLC_RodPos_*`` frame back by that delay (``delay`` fault of the HIL scenario):
 one target (Example 1 by default), then a hold of ``hold_s``; the hold is *stable* when
 the service is still COMPLETE (holding) at the end and the largest sync error of either layer over
@@ -33,7 +33,8 @@ from config.loader import validate_data
 from config.schema import ProjectConfig
 from ipc_app.service.modes import Mode
 from ipc_app.service.worker import PlannerWorker
-from wara.demo import SYNC_TOL_MM, Demo
+from wara.examples import SYNC_TOL_MM
+from wara.harness import Harness
 
 #: extra position delays tested by default (ms)
 DEFAULT_DELAYS_MS: tuple[float, ...] = (0.0, 10.0, 20.0, 30.0, 40.0, 50.0)
@@ -71,33 +72,33 @@ def run_one(
             {"kind": "delay", "start_s": 0.0, "delay_ms": delay_ms, "messages": ["PLC_RodPos_*"]}
         )
     scenario = validate_data(HilScenario, {"events": events}, "delay-margin scenario")
-    demo = Demo(cfg, mode="lockstep", scenario=scenario, planner=planner)
+    harness = Harness(cfg, mode="lockstep", scenario=scenario, planner=planner)
     out = DelayRun(delay_ms)
     try:
-        if not demo.wait_for(Mode.IDLE, 20.0):
-            raise RuntimeError(f"service did not come up: {demo.core.modes.snapshot()}")
-        res = demo.run_example(*target)
-        out.reached_target = not res.note
+        if not harness.wait_for(Mode.IDLE, 20.0):
+            raise RuntimeError(f"service did not come up: {harness.core.modes.snapshot()}")
+        res = harness.run_example(*target)
+        out.reached_target = harness.core.modes.mode == Mode.COMPLETE
         out.attitude_error_deg = res.attitude_error_deg
         out.max_twist_mm = res.max_twist_mm
-        start = len(demo.trace.t)
+        start = len(harness.trace.t)
         held = 0.0
-        while out.reached_target and held < hold_s and demo.core.modes.mode == Mode.COMPLETE:
+        while out.reached_target and held < hold_s and harness.core.modes.mode == Mode.COMPLETE:
             step = min(1.0, hold_s - held)  # one second at a time: stop at a fault
-            demo.advance(step)
+            harness.advance(step)
             held += step
-        sync = np.asarray(demo.trace.sync_mm[start:])
+        sync = np.asarray(harness.trace.sync_mm[start:])
         if len(sync):
             last_half = sync[len(sync) // 2 :]
             out.hold_sync_error_mm = {
                 "lower": float(last_half[:, 0].max()),
                 "upper": float(last_half[:, 1].max()),
             }
-        out.mode = demo.core.modes.mode.name
-        out.faults = list(demo.core.modes.fault_reasons)
-        out.fault_keys = [(str(f.interlock), f.where) for f in demo.core.modes.faults]
+        out.mode = harness.core.modes.mode.name
+        out.faults = list(harness.core.modes.fault_reasons)
+        out.fault_keys = [(str(f.interlock), f.where) for f in harness.core.modes.faults]
     finally:
-        demo.close()
+        harness.close()
     out.stable = (
         out.reached_target
         and out.mode == Mode.COMPLETE.name

@@ -39,7 +39,7 @@ from pathlib import Path
 from types import TracebackType
 from typing import Any
 
-from ipc_app.acceptance.items import ITEMS, ITEMS_BY_KEY, check_ring
+from acceptance.items import ITEMS, ITEMS_BY_KEY, check_ring
 
 #: Bumped when the table layout changes; a newer database is refused, not guessed at.
 SCHEMA_VERSION = 1
@@ -90,7 +90,7 @@ def parse_time(text: str) -> str:
 class RingMeasurement:
     """One survey of one installed ring, as entered (before it is stored).
 
-    ``values`` maps item keys (see :data:`~ipc_app.acceptance.items.ITEMS`) to the
+    ``values`` maps item keys (see :data:`~acceptance.items.ITEMS`) to the
     measured value; the five linear items are required, the angles may be absent or None
     (not measured). Construction validates and raises ValueError with one reason.
     """

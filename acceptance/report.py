@@ -6,7 +6,8 @@ page embeds the same PNGs as base64 and carries the tables, so it can be mailed 
 client as one file. ``summary.json`` holds the same numbers for machines.
 
 Matplotlib is used through :class:`matplotlib.figure.Figure` directly (no pyplot, no
-global state, no display needed).
+global state, no display needed). It is an optional dependency (the ``plot`` extra):
+imported only when a plot is drawn, so the rest of the package works without it.
 """
 
 from __future__ import annotations
@@ -20,10 +21,7 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
-from matplotlib.backends.backend_agg import FigureCanvasAgg
-from matplotlib.figure import Figure
-
-from ipc_app.acceptance.judge import ItemSummary, RingVerdict, Status, Summary
+from acceptance.judge import ItemSummary, RingVerdict, Status, Summary
 
 HTML_NAME = "report.html"
 JSON_NAME = "summary.json"
@@ -69,7 +67,10 @@ def _num(v: float | None) -> str:
 
 
 def plot_item(summary: Summary, item: ItemSummary) -> bytes:
-    """The Figure-14-style plot of one item as PNG bytes."""
+    """The Figure-14-style plot of one item as PNG bytes (needs matplotlib)."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
     key, unit, limit = item.item.key, item.item.unit, item.limit
     points = [
         (r.ring, r.record.measurement.values[key], r.statuses[key])

@@ -1,4 +1,4 @@
-"""Ring acceptance records and the quality report (issue 7).
+"""Ring acceptance records and the quality report.
 
 - :mod:`.items`: the control items of paper Table 4, one vocabulary end to end.
 - :mod:`.store`: the durable SQLite store (WAL, append-only history per ring).
@@ -11,8 +11,8 @@ The service attaches the controller's plan to a ring with
 :meth:`AcceptanceStore.attach_plan`.
 """
 
-from ipc_app.acceptance.items import ITEMS, ControlItem
-from ipc_app.acceptance.store import (
+from acceptance.items import ITEMS, ControlItem
+from acceptance.store import (
     AcceptanceStore,
     RingMeasurement,
     StoredPlan,

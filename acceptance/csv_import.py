@@ -23,7 +23,7 @@ first cell starts with ``#`` are ignored. One row is one line: a field may not c
 a line break (a quote left open would otherwise swallow the rows after it). Columns:
 ``ring``, ``measured_at`` and the five linear items are required; the three angle items,
 ``operator`` and ``remarks`` are optional. An empty angle cell means "not measured".
-Ring numbers and values: :mod:`ipc_app.acceptance.items` (ASCII digits, sign, decimal
+Ring numbers and values: :mod:`acceptance.items` (ASCII digits, sign, decimal
 point, exponent; a plausible range per item).
 """
 
@@ -35,9 +35,9 @@ import io
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from acceptance.items import ITEM_KEYS, ITEMS, REQUIRED_KEYS, parse_ring
+from acceptance.store import AcceptanceStore, RingMeasurement, StoredRecord
 from config.files import InputFileError, read_text_file
-from ipc_app.acceptance.items import ITEM_KEYS, ITEMS, REQUIRED_KEYS, parse_ring
-from ipc_app.acceptance.store import AcceptanceStore, RingMeasurement, StoredRecord
 
 REQUIRED_COLUMNS: tuple[str, ...] = ("ring", "measured_at", *REQUIRED_KEYS)
 OPTIONAL_COLUMNS: tuple[str, ...] = (

@@ -25,9 +25,9 @@ from dataclasses import dataclass
 from enum import StrEnum
 from typing import Any
 
+from acceptance.items import ITEMS, ControlItem
+from acceptance.store import StoredRecord
 from config.schema import Acceptance
-from ipc_app.acceptance.items import ITEMS, ControlItem
-from ipc_app.acceptance.store import StoredRecord
 
 
 class Status(StrEnum):
