@@ -86,4 +86,4 @@ def test_both_demo_forms_judge_alike() -> None:
     no_hold = d2._judge({"mode": "COMPLETE", "motion": {**motion, "hold_samples": 0}}, _result())
     assert not no_hold.passed and no_hold.note.startswith("no standstill samples")
     faulted = d2._judge({"mode": "ABORTED", "fault_reasons": ["x"]}, _result())
-    assert not faulted.passed and faulted.note == "mode FAULT: ['x']"
+    assert not faulted.passed and faulted.note == "mode ABORTED: ['x']"

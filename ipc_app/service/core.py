@@ -147,7 +147,7 @@ class ServiceCore:
     HOLD_SETTLE_S = 1.0
     #: Cycles of fresh frames before a suspended motion is checked and resumed.
     RESUME_FRESH_CYCLES = 3
-    #: BOOT not complete after this long: FAULT (``start-up``, with what is missing).
+    #: Start-up not complete after this long: ABORTED (``start-up``, with what is missing).
     BOOT_TIMEOUT_S = 5.0
 
     def __init__(
