@@ -483,7 +483,8 @@ def test_interface_down_is_reopened_with_back_off(project: ProjectConfig) -> Non
 
 
 def _reference_array(rows: Any, width: int, si_per_unit: float, now: float) -> Any:
-    """The former IpcLink._array, kept as the definition the faster one must match."""
+    """The reference definition of a received array (stale rows NaN, SI scaling) that
+    IpcLink's receive path must match."""
     vals = [math.nan] * (19 * width)
     ages = [math.inf] * 19
     for rec, slots in rows:
@@ -563,16 +564,16 @@ def test_status_and_hmi_target_follow_each_new_frame(project: ProjectConfig) -> 
     plc.close()
 
 
-def test_valve_commands_match_the_former_numpy_form(project: ProjectConfig) -> None:
+def test_valve_commands_match_their_reference_definition(project: ProjectConfig) -> None:
     """NaN -> 0 and clipping to [-1, 1] on plain floats: the same frames and counts as the
-    former np.where / np.clip form (kept here as the definition)."""
+    np.where / np.clip reference definition (kept here)."""
     rng = np.random.default_rng(7)
     cases = [rng.uniform(-1.5, 1.5, 19) for _ in range(200)]
     for u in cases[:100]:
         u[rng.integers(0, 19, 3)] = [np.nan, np.inf, -np.inf]
     cases += [np.zeros(19), -np.zeros(19), np.full(19, np.nan), np.linspace(-1, 1, 19)]
     link, bus, clock = _ipc(project)
-    ref_link, ref_bus, _ = _ipc(project)  # sent the former form's values: already clean
+    ref_link, ref_bus, _ = _ipc(project)  # sent the reference form's values: already clean
     bus.sent.clear()
     ref_bus.sent.clear()
     nan_total = clipped_total = 0
