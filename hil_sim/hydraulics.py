@@ -16,6 +16,9 @@ Every model function below is pure, takes floats or equally shaped float64 array
 call them with rod positions and velocities imposed by its rigid platforms. They are
 compiled with numba; :class:`CylinderBank` integrates standalone cylinders (rod plus
 lumped load mass) with fixed-step RK4 inside one compiled kernel.
+
+Over 500 lines because the vectorized model and the compiled RK4 kernel of the standalone
+cylinders share one set of formulas, kept in one module.
 """
 
 from __future__ import annotations

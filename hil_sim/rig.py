@@ -36,6 +36,9 @@ plant is what the controller's model is checked against (the demo reports the at
 the simulator reached, not the one the controller believes), ``hil_sim`` never imports
 ``ipc_app``, and these run inside the numba kernel together with their Jacobian, which
 the controller has no use for. Both follow model.md sections 1-3.
+
+Over 500 lines because the rigid platforms' kinematics, their Jacobian and the compiled
+step of all 19 cylinders form one kernel that must see them together.
 """
 
 from __future__ import annotations

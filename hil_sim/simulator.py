@@ -18,6 +18,9 @@ One PLC scan (``plant.plc_cycle_ms``):
 4. PLC logic: mode handshake, E-stop, command timeout, latched faults, drives;
    valve commands applied only with the drives on, never further into a limit switch;
 5. integrate the plant over the scan with commands held.
+
+Over 500 lines because the emulated PLC's scan (frames in, interlocks, frames out) and
+the scenario events it plays are one sequence.
 """
 
 from __future__ import annotations

@@ -60,6 +60,9 @@ replaced; a live one is an error (two services would fight over the valves).
 
 Client: :func:`request` (``wara ctl`` uses it) raises :class:`CtlUnavailable` when no
 service listens; a full listen queue or a ``busy`` answer is retried for a bounded time.
+
+Over 500 lines because the protocol table above, the selector thread, the worker pool
+and the eviction rules are one piece: every limit a rude client meets is here.
 """
 
 from __future__ import annotations

@@ -17,6 +17,9 @@ interlock by its text.
 figures) against the :class:`Limits` of the configuration, returning causes.
 
 :func:`markdown_table` renders the table of docs/service.md (a test keeps the two equal).
+
+Over 500 lines because each interlock's spec and the pure check that trips it are kept
+together, with the table that documents them.
 """
 
 from __future__ import annotations
