@@ -17,7 +17,7 @@ from typing import Any
 
 import numpy as np
 
-from config import load_project
+from config import load_project, units
 from ipc_app.service.modes import Mode
 from wara.examples import (
     ATTITUDE_TOL_DEG,
@@ -72,7 +72,7 @@ def run_demo(
             "skipped_periods": stats.get("skipped_periods"),
             "worst_overrun_cycle_ms": stats.get("worst_overrun_cycle_ms"),
             "cycles": stats.get("cycles"),
-            "period_ms": demo.period * 1e3,
+            "period_ms": units.to_ms(demo.period),
         },
         "realtime": {
             "loop": demo.loop.realtime_report.to_dict() if demo.loop is not None else None,

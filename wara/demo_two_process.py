@@ -58,7 +58,7 @@ from typing import IO, Any
 
 import yaml
 
-from config import load_project
+from config import load_project, units
 from config.loader import default_project_path, read_yaml
 from config.schema import ProjectConfig
 from ipc_app.service.core import ServiceCore
@@ -470,7 +470,7 @@ class _LoopWatch:
             return max(vals) if vals else None
 
         compute_p99 = worst("compute_p99_ms")
-        period_ms = period_s * 1e3
+        period_ms = units.to_ms(period_s)
         overruns_total = last.get("overruns")
         overruns = (
             None

@@ -69,6 +69,7 @@ from typing import Any, Literal, Protocol
 import numpy as np
 import structlog
 
+from config import units
 from config.schema import Realtime
 
 log = structlog.get_logger("wara.service.loop")
@@ -202,9 +203,9 @@ def _pct(ring: _Ring, name: str) -> dict[str, float]:
         return {f"{name}_p50_ms": 0.0, f"{name}_p99_ms": 0.0, f"{name}_max_ms": 0.0}
     p50, p99 = np.percentile(v, [50, 99])
     return {
-        f"{name}_p50_ms": float(p50) * 1e3,
-        f"{name}_p99_ms": float(p99) * 1e3,
-        f"{name}_max_ms": float(v.max()) * 1e3,
+        f"{name}_p50_ms": units.to_ms(float(p50)),
+        f"{name}_p99_ms": units.to_ms(float(p99)),
+        f"{name}_max_ms": units.to_ms(float(v.max())),
     }
 
 
@@ -305,7 +306,7 @@ class FixedRateLoop:
             gc.disable()
         log.info(
             "loop_start",
-            period_ms=self.period_s * 1e3,
+            period_ms=units.to_ms(self.period_s),
             gc_mode=self._gc_mode,
             gc_frozen=gc.get_freeze_count(),
         )
@@ -369,8 +370,8 @@ class FixedRateLoop:
                 "loop_overrun",
                 overruns=c.overruns_since_log,
                 skipped_periods=c.skipped_since_log,
-                last_cycle_ms=round(took_s * 1e3, 3),
-                period_ms=self.period_s * 1e3,
+                last_cycle_ms=round(units.to_ms(took_s), 3),
+                period_ms=units.to_ms(self.period_s),
                 throttle_s=self._overrun_log_every_s,
             )
             c.last_overrun_log = now
@@ -396,11 +397,11 @@ class FixedRateLoop:
         """Counters and p50/p99/max of jitter, period deviation and compute time, ms."""
         c = self._c
         out: dict[str, Any] = {
-            "period_ms": self.period_s * 1e3,
+            "period_ms": units.to_ms(self.period_s),
             "cycles": c.cycles,
             "overruns": c.overruns,
             "skipped_periods": c.skipped_periods,
-            "worst_overrun_cycle_ms": c.worst_overrun_s * 1e3,
+            "worst_overrun_cycle_ms": units.to_ms(c.worst_overrun_s),
             "window_cycles": int(self._compute.values().size),
         }
         out.update(_pct(self._jitter, "jitter"))
