@@ -13,6 +13,8 @@ from __future__ import annotations
 import argparse
 import json
 import math
+from collections.abc import Callable
+from typing import Any
 
 from config import load_project, units
 from ipc_app.planner import METHODS, OBJECTIVES, Plan, plan
@@ -57,6 +59,13 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=run)
 
 
+def report(result: Any, as_json: bool, render: Callable[[Any], str]) -> int:
+    """Print a plan (``to_dict()`` as JSON, or ``render(result)``); exit 0 if it is
+    feasible, else 3 (the plan and walk commands)."""
+    print(json.dumps(result.to_dict(), indent=2) if as_json else render(result))
+    return EXIT_OK if result.feasible else EXIT_INFEASIBLE
+
+
 def parse_four_mm(text: str | None, option: str) -> tuple[float, float, float, float]:
     """``"d1,d2,d3,d4"`` in mm -> four values in m."""
     if text is None:
@@ -89,11 +98,7 @@ def run(args: argparse.Namespace) -> int:
         start_upper_m=parse_four_mm(args.start_upper_mm, "--start-upper-mm"),
         start_lower_m=parse_four_mm(args.start_lower_mm, "--start-lower-mm"),
     )
-    if args.json:
-        print(json.dumps(result.to_dict(), indent=2))
-    else:
-        print(render_table(result))
-    return EXIT_OK if result.feasible else EXIT_INFEASIBLE
+    return report(result, args.json, render_table)
 
 
 def render_table(p: Plan) -> str:

@@ -10,13 +10,12 @@ phase, instant, value and limit); 2: bad arguments or configuration.
 from __future__ import annotations
 
 import argparse
-import json
 import math
 
 from config import load_project, units
 from ipc_app.planner.walk import WalkPlan, WalkStart, plan_walk, start_state
-from wara.cli import EXIT_INFEASIBLE, EXIT_OK, UsageError
-from wara.commands.plan import parse_four_mm
+from wara.cli import UsageError
+from wara.commands.plan import parse_four_mm, report
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -71,11 +70,7 @@ def run_plan(args: argparse.Namespace) -> int:
         upper_extensions_m=parse_four_mm(args.start_upper_mm, "--start-upper-mm"),
     )
     result = plan_walk(cfg, args.steps, start)
-    if args.json:
-        print(json.dumps(result.to_dict(), indent=2))
-    else:
-        print(render(result))
-    return EXIT_OK if result.feasible else EXIT_INFEASIBLE
+    return report(result, args.json, render)
 
 
 def render(p: WalkPlan) -> str:
