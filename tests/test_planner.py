@@ -268,9 +268,13 @@ def test_the_loops_sample_is_the_planned_and_checked_trajectory(
                 np.testing.assert_allclose(v, num, rtol=0, atol=2e-6)
 
 
-def test_a_plan_starts_from_rods_a_sensor_noise_beyond_the_limit(project: ProjectConfig) -> None:
-    """A plan that ends at the planning limit leaves the rods there within micrometres;
-    the next plan starts from there. Further out (1 mm), the start is refused."""
+def test_a_plan_starts_from_rods_in_the_stroke_reserve_and_comes_back(
+    project: ProjectConfig,
+) -> None:
+    """A plan that ends at the planning limit leaves the rods there within micrometres, or
+    a hold settles a little past it: the next plan starts from there and never goes
+    deeper into the reserve; it ends within the limit. A start beyond the stroke itself
+    (a sensor reading no rod can give) is refused with the stroke reason."""
     first = plan(project, 0.19, 3.6)
     second = plan(
         project,
@@ -280,14 +284,29 @@ def test_a_plan_starts_from_rods_a_sensor_noise_beyond_the_limit(project: Projec
         start_lower_m=first.lower.displacement_m,
     )
     lim = project.layers.upper.extension_limit_m
+    half = project.cylinder(project.layers.upper.cylinders[0]).stroke_m / 2
     end = np.asarray(second.upper.displacement_m, dtype=float)
     at_limit = np.isclose(np.abs(end), lim, rtol=0, atol=1e-9)
     assert second.feasible and at_limit.any()
-    for beyond_m, feasible in ((5e-6, True), (1e-3, False)):
+    for beyond_m in (5e-6, 1e-3, 0.5 * (half - lim)):
         start = np.where(at_limit, end + np.sign(end) * beyond_m, end)
-        nxt = plan(
-            project, 0.5, 0.5, start_upper_m=start, start_lower_m=second.lower.displacement_m
-        )
-        assert nxt.feasible is feasible, nxt.reasons
-        if not feasible:
-            assert any(r.startswith("stroke:") or "stroke:" in r for r in nxt.reasons)
+        for roll, pitch in ((0.5, 0.5), (0.0, 0.0), (-5.69, 3.59)):
+            nxt = plan(
+                project,
+                roll,
+                pitch,
+                start_upper_m=start,
+                start_lower_m=second.lower.displacement_m,
+            )
+            assert nxt.feasible, (beyond_m, roll, pitch, nxt.reasons)
+            tr = nxt.trajectory
+            assert tr is not None
+            depth = np.abs(tr.d_upper).max(axis=0)
+            assert np.all(depth <= np.maximum(np.abs(start), lim) + 1e-12)
+            assert np.all(np.abs(tr.d_upper[-1]) <= lim + 1e-12)
+    start = np.where(at_limit, np.sign(end) * (half + 1e-3), end)
+    refused = plan(
+        project, 0.0, 0.0, start_upper_m=start, start_lower_m=second.lower.displacement_m
+    )
+    assert not refused.feasible
+    assert any("stroke:" in r and "planning limit" in r for r in refused.reasons)

@@ -42,20 +42,16 @@ UNSOLVABLE = 1e3
 FEASIBILITY_TOLERANCE = 1e-12
 
 
-#: A measured start at most this far beyond the planning limit (stroke/2 - reserve) is
-#: taken as at the limit. A plan that ends at the limit leaves the rods there within the
-#: sensors' noise and the hold's residual (micrometres), and the next plan must be able to
-#: start from there; the stroke reserve behind the limit is not touched. A start further
-#: out stays as measured, and the plan is refused with the stroke reason.
-START_TOLERANCE_M = 1e-4
+def path_limits(start: ArrayLike, limit_m: float, half_strokes_m: ArrayLike) -> np.ndarray:
+    """Per cylinder, how far from mid-stroke a trajectory from ``start`` may go (m).
 
-
-def start_at_limit(start: ArrayLike, limit_m: float) -> np.ndarray:
-    """The four measured start extensions (m), those within :data:`START_TOLERANCE_M`
-    beyond ±``limit_m`` moved onto the limit."""
-    d = np.asarray(start, dtype=float).reshape(4)
-    over = np.abs(d) - limit_m
-    return np.where((over > 0) & (over <= START_TOLERANCE_M), np.sign(d) * limit_m, d)
+    The planning limit (stroke/2 - reserve), or, for a rod that starts beyond it inside
+    its stroke (a hold that settled a little past a plan that ended at the limit, or
+    a move stopped in the reserve), the start itself: a move may begin in the reserve
+    and come back out of it, never go deeper. The target itself is held to the limit.
+    """
+    d = np.abs(np.asarray(start, dtype=float).reshape(4))
+    return np.where(d < np.asarray(half_strokes_m, float), np.maximum(d, limit_m), limit_m)
 
 
 @dataclass(frozen=True)
@@ -108,8 +104,12 @@ class PlanningProblem:
         self.limit_lower = lo.extension_limit_m
         self.area_upper = np.array([cfg.cylinder(c).cap_area_m2 for c in up.cylinders])
         self.area_lower = np.array([cfg.cylinder(c).cap_area_m2 for c in lo.cylinders])
-        self.start_upper = start_at_limit(start_upper, self.limit_upper)
-        self.start_lower = start_at_limit(start_lower, self.limit_lower)
+        self.start_upper = np.asarray(start_upper, dtype=float).reshape(4)
+        self.start_lower = np.asarray(start_lower, dtype=float).reshape(4)
+        half_upper = [cfg.cylinder(c).stroke_m / 2 for c in up.cylinders]
+        half_lower = [cfg.cylinder(c).stroke_m / 2 for c in lo.cylinders]
+        self.path_limit_upper = path_limits(self.start_upper, self.limit_upper, half_upper)
+        self.path_limit_lower = path_limits(self.start_lower, self.limit_lower, half_lower)
         self.f_min = cfg.planner.min_rod_force_n
         self.p_rated = cfg.hydraulics.rated_pressure_pa
         self.dp_margin = cfg.hydraulics.load_sensing_margin_pa
@@ -165,9 +165,10 @@ class PlanningProblem:
             self.objective_name
         ]
         # Linked extensions computed from an attitude have zero twist exactly (d3 = -d1 to
-        # the last bit), so coplanarity is checked only on extensions given from outside.
-        check_twist = d_lower is not None or d_upper is not None
-        violation = self._violation(du, dl, fu, fl, pu, pl, check_twist)
+        # the last bit), so coplanarity is checked only on extensions given from outside:
+        # trajectory samples, which are held to the path limits, not the planning limit.
+        path = d_lower is not None or d_upper is not None
+        violation = self._violation(du, dl, fu, fl, pu, pl, path)
         violation = violation + np.where(solv, 0.0, UNSOLVABLE)
         return Evaluation(
             ur, up, lr, lp, du, dl, fu, fl, pu, pl, sum_p, peak, energy, objective, violation, solv
@@ -181,17 +182,19 @@ class PlanningProblem:
         fl: Array,
         pu: Array,
         pl: Array,
-        check_twist: bool,
+        path: bool,
     ) -> Array:
-        """Sum of dimensionless constraint violations (0 where all hold)."""
-        v = np.maximum(np.abs(du) - self.limit_upper, 0.0).sum(-1) / self.limit_upper
-        v += np.maximum(np.abs(dl) - self.limit_lower, 0.0).sum(-1) / self.limit_lower
+        """Sum of dimensionless constraint violations (0 where all hold); ``path``: the
+        extensions are trajectory samples (path limits, coplanarity checked)."""
+        lim_u, lim_l = self.stroke_limits(path)
+        v = np.maximum(np.abs(du) - lim_u, 0.0).sum(-1) / self.limit_upper
+        v += np.maximum(np.abs(dl) - lim_l, 0.0).sum(-1) / self.limit_lower
         f = np.minimum(fu.min(-1), fl.min(-1))
         v += np.maximum(self.f_min - fu, 0.0).sum(-1) / self.force_scale * (f < self.f_min)
         v += np.maximum(self.f_min - fl, 0.0).sum(-1) / self.force_scale * (f < self.f_min)
         v += np.maximum(pu - self.p_rated, 0.0).sum(-1) / self.p_rated
         v += np.maximum(pl - self.p_rated, 0.0).sum(-1) / self.p_rated
-        if check_twist:
+        if path:
             for d, a, b in ((du, self.a_upper, self.b_upper), (dl, self.a_lower, self.b_lower)):
                 cop = coplanarity_distance(d, a, b)
                 v += np.maximum(cop - self.coplanarity_tol, 0.0) / self.coplanarity_tol
@@ -226,20 +229,32 @@ class PlanningProblem:
 
     # ------------------------------------------------------------------ reporting
 
-    def reasons(self, ev: Evaluation, index: int | tuple[int, ...] = ()) -> list[str]:
-        """Human-readable list of the constraints violated by one candidate."""
+    def stroke_limits(self, path: bool) -> tuple[Array, Array]:
+        """(upper, lower) extension limits per cylinder (m): of a target, or of a
+        trajectory sample (``path``, :func:`path_limits`)."""
+        if path:
+            return self.path_limit_upper, self.path_limit_lower
+        return np.full(4, self.limit_upper), np.full(4, self.limit_lower)
+
+    def reasons(
+        self, ev: Evaluation, index: int | tuple[int, ...] = (), path: bool = False
+    ) -> list[str]:
+        """Human-readable list of the constraints violated by one candidate (``path``: a
+        trajectory sample, held to the path limits)."""
         out: list[str] = []
         if not bool(np.asarray(ev.solvable)[index]):
             out.append(
                 "composition: no lower attitude reaches the target normal with this upper attitude"
             )
         cfg = self.cfg
-        for layer, d, f, p, lim, a, b in (
+        lim_u, lim_l = self.stroke_limits(path)
+        for layer, d, f, p, lim, plan_lim, a, b in (
             (
                 "upper",
                 ev.d_upper[index],
                 ev.f_upper[index],
                 ev.p_upper[index],
+                lim_u,
                 self.limit_upper,
                 self.a_upper,
                 self.b_upper,
@@ -249,6 +264,7 @@ class PlanningProblem:
                 ev.d_lower[index],
                 ev.f_lower[index],
                 ev.p_lower[index],
+                lim_l,
                 self.limit_lower,
                 self.a_lower,
                 self.b_lower,
@@ -263,10 +279,15 @@ class PlanningProblem:
                 )
             for i in range(4):
                 name = f"{layer} cylinder {i + 1} ({ids[i]})"
-                if abs(d[i]) > lim:
+                if abs(d[i]) > lim[i] and lim[i] > plan_lim:
+                    out.append(
+                        f"stroke: {name} extension {units.to_mm(d[i]):+.1f} mm deeper into the "
+                        f"stroke reserve than its start ±{units.to_mm(lim[i]):.1f} mm"
+                    )
+                elif abs(d[i]) > lim[i]:
                     out.append(
                         f"stroke: {name} extension {units.to_mm(d[i]):+.1f} mm beyond the "
-                        f"planning limit ±{units.to_mm(lim):.1f} mm (stroke/2 - reserve)"
+                        f"planning limit ±{units.to_mm(lim[i]):.1f} mm (stroke/2 - reserve)"
                     )
                 if f[i] < self.f_min:
                     out.append(

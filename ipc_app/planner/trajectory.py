@@ -236,7 +236,9 @@ def plan_trajectory(
     bad = np.nonzero(ev.violation > FEASIBILITY_TOLERANCE)[0]
     reasons: list[str] = []
     for k in bad[:3]:
-        reasons.extend(f"trajectory at t = {t[k]:.2f} s: {r}" for r in problem.reasons(ev, int(k)))
+        reasons.extend(
+            f"trajectory at t = {t[k]:.2f} s: {r}" for r in problem.reasons(ev, int(k), path=True)
+        )
     if bad.size > 3:
         reasons.append(f"trajectory: {bad.size} of {t.size} samples violate constraints")
     return Trajectory(

@@ -4,7 +4,8 @@ The simulator and the service run as two processes on a UDP multicast CAN bus in
 private network namespace (as ``wara demo --two-process``, :mod:`wara.demo_two_process`).
 The soak moves the machine from target to target across the reachable workspace
 (roll ``±ROLL_DEG``, pitch ``±PITCH_DEG``): each target is drawn at random (``--seed``)
-and kept only if the planner finds it feasible from where the previous one ends; it goes
+and kept only if the planner finds it feasible from where the previous one ends (after
+:data:`MAX_DRAWS` infeasible draws, the move to level); it goes
 to the service through its control socket (as ``wara ctl adjust``), the soak waits for
 COMPLETE, holds ``HOLD_S`` and draws the next, until the time is up.
 
@@ -98,7 +99,7 @@ def _run(args: argparse.Namespace) -> int:
             return EXIT_USAGE
     try:
         summary = soak(Path(args.inside_netns), args.config, args.minutes * 60.0, args.seed)
-    except (d2.TwoProcessError, d2.CtlError, NoTarget) as exc:
+    except (d2.TwoProcessError, d2.CtlError) as exc:
         print(f"wara soak: failed: {exc}", file=sys.stderr)
         if args.json:
             print(json.dumps({"passed": False, "error": str(exc)}))
@@ -124,6 +125,8 @@ class TargetDrawer:
         self.upper: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 0.0)
         self.lower: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 0.0)
         self.infeasible = 0
+        #: Moves to level taken because :data:`MAX_DRAWS` draws were all infeasible.
+        self.to_level = 0
 
     def start_from(self, status: dict[str, Any]) -> None:
         """The next target is planned from the rods' measured positions (the service's
@@ -153,7 +156,15 @@ class TargetDrawer:
                 self.lower = tuple(p.lower.displacement_m)  # type: ignore[assignment]
                 return roll, pitch
             self.infeasible += 1
-        raise NoTarget(f"no feasible target in {MAX_DRAWS} draws")
+        # A pose from which the random draws are all infeasible (rods near their planning
+        # limits) still has a way back: the move to level.
+        p = plan(self.cfg, 0.0, 0.0, start_upper_m=self.upper, start_lower_m=self.lower)
+        if p.feasible:
+            self.upper = tuple(p.upper.displacement_m)  # type: ignore[assignment]
+            self.lower = tuple(p.lower.displacement_m)  # type: ignore[assignment]
+            self.to_level += 1
+            return 0.0, 0.0
+        raise NoTarget(f"no feasible target in {MAX_DRAWS} draws, nor the move to level")
 
 
 def latency_ms(t_s: np.ndarray, period_s: float) -> np.ndarray:
@@ -215,6 +226,7 @@ def soak(workdir: Path, config_path: str, duration_s: float, seed: int) -> dict[
     refused: list[str] = []
     faults: list[dict[str, Any]] = []
     final: dict[str, Any] = {}
+    stopped: str | None = None
     last_progress = 0.0
 
     def progress(st: dict[str, Any], force: bool = False) -> None:
@@ -257,7 +269,12 @@ def soak(workdir: Path, config_path: str, duration_s: float, seed: int) -> dict[
             return back is not None
 
         while time.monotonic() < end:
-            roll, pitch = drawer.next()
+            try:
+                roll, pitch = drawer.next()
+            except NoTarget as exc:
+                stopped = str(exc)
+                _say(f"stopped: {exc}")
+                break
             t0 = time.monotonic()
             reply = svc.call("adjust", roll_deg=roll, pitch_deg=pitch)
             if not reply.get("ok"):
@@ -345,6 +362,8 @@ def soak(workdir: Path, config_path: str, duration_s: float, seed: int) -> dict[
         "moves": len(moves),
         "moves_refused": refused,
         "targets_infeasible_skipped": drawer.infeasible,
+        "moves_to_level": drawer.to_level,
+        "stopped_early": stopped,
         "cycles": loop.get("measured_cycles"),
         "overruns": loop.get("overruns"),
         "overruns_startup": loop.get("overruns_startup"),
@@ -359,7 +378,7 @@ def soak(workdir: Path, config_path: str, duration_s: float, seed: int) -> dict[
         "final_mode": final.get("mode"),
         "exit_codes": codes,
         "per_move": moves,
-        "passed": not faults and not refused and bool(moves),
+        "passed": not faults and not refused and stopped is None and bool(moves),
     }
 
 
@@ -377,6 +396,7 @@ def render(s: dict[str, Any]) -> str:
             + "".join(
                 f"\n  at {f['at_s']:g} s: {'; '.join(f['reasons'])}" for f in s["latched_faults"]
             ),
+            *([f"stopped early: {s['stopped_early']}"] if s["stopped_early"] else []),
             "PASSED" if s["passed"] else "FAILED",
         ]
     )
