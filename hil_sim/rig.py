@@ -112,6 +112,13 @@ def extension_and_jacobian(z, roll, pitch, px, py):
 
 
 @jit
+def _matvec3(a, x, out):
+    """``out = a @ x`` for a (3, 3) matrix (written out: no BLAS call, cheap to compile)."""
+    for r in range(3):
+        out[r] = a[r, 0] * x[0] + a[r, 1] * x[1] + a[r, 2] * x[2]
+
+
+@jit
 def _mass_and_gravity(q, body_m, body_c, body_layer, rod_xy, rod_m, origin_u, g_b):
     """Mass matrix ``M`` (6, 6) and generalized gravity ``Q_g`` (6,) at ``q``."""
     m_mat = np.zeros((6, 6))
@@ -122,6 +129,8 @@ def _mass_and_gravity(q, body_m, body_c, body_layer, rod_xy, rod_m, origin_u, g_
     dr_u, dp_u = _rotation_partials(q[4], q[5])
     jac = np.zeros((3, 6))
     w = np.zeros(3)
+    t = np.zeros(3)
+    col = np.zeros(3)
     n_bodies = body_m.shape[0]
     for k in range(n_bodies + 8):
         jac[:, :] = 0.0
@@ -130,17 +139,27 @@ def _mass_and_gravity(q, body_m, body_c, body_layer, rod_xy, rod_m, origin_u, g_
             c = body_c[k]
             if body_layer[k] == 0:
                 jac[2, 0] = 1.0
-                jac[:, 1] = dr_l @ c
-                jac[:, 2] = dp_l @ c
+                _matvec3(dr_l, c, col)
+                jac[:, 1] = col
+                _matvec3(dp_l, c, col)
+                jac[:, 2] = col
             else:
-                w[:] = origin_u + r_u @ c
+                _matvec3(r_u, c, w)
+                for a in range(3):
+                    w[a] += origin_u[a]
                 w[2] += q[3]
                 jac[2, 0] = 1.0
-                jac[:, 1] = dr_l @ w
-                jac[:, 2] = dp_l @ w
+                _matvec3(dr_l, w, col)
+                jac[:, 1] = col
+                _matvec3(dp_l, w, col)
+                jac[:, 2] = col
                 jac[:, 3] = r_l[:, 2]
-                jac[:, 4] = r_l @ (dr_u @ c)
-                jac[:, 5] = r_l @ (dp_u @ c)
+                _matvec3(dr_u, c, t)
+                _matvec3(r_l, t, col)
+                jac[:, 4] = col
+                _matvec3(dp_u, c, t)
+                _matvec3(r_l, t, col)
+                jac[:, 5] = col
         else:
             j = k - n_bodies
             m = rod_m[j]
@@ -156,17 +175,52 @@ def _mass_and_gravity(q, body_m, body_c, body_layer, rod_xy, rod_m, origin_u, g_
                 w[1] = origin_u[1] + rod_xy[j, 1]
                 w[2] = origin_u[2] + d
                 jac[2, 0] = 1.0
-                jac[:, 1] = dr_l @ w
-                jac[:, 2] = dp_l @ w
+                _matvec3(dr_l, w, col)
+                jac[:, 1] = col
+                _matvec3(dp_l, w, col)
+                jac[:, 2] = col
                 for a in range(3):
                     jac[a, 3] = r_l[a, 2] * j0
                     jac[a, 4] = r_l[a, 2] * j1
                     jac[a, 5] = r_l[a, 2] * j2
         if m == 0.0:
             continue
-        m_mat += m * (jac.T @ jac)
-        q_g += m * (jac.T @ g_b)
+        for a in range(6):
+            q_g[a] += m * (jac[0, a] * g_b[0] + jac[1, a] * g_b[1] + jac[2, a] * g_b[2])
+            for b in range(6):
+                m_mat[a, b] += m * (
+                    jac[0, a] * jac[0, b] + jac[1, a] * jac[1, b] + jac[2, a] * jac[2, b]
+                )
     return m_mat, q_g
+
+
+@jit
+def inverse(a):
+    """Inverse of a small nonsingular matrix (Gauss-Jordan, partial pivoting): the mass
+    matrix, symmetric positive definite, so the pivots stay large."""
+    n = a.shape[0]
+    w = a.copy()
+    inv = np.eye(n)
+    for c in range(n):
+        piv = c
+        for r in range(c + 1, n):
+            if abs(w[r, c]) > abs(w[piv, c]):
+                piv = r
+        if piv != c:
+            for k in range(n):
+                w[c, k], w[piv, k] = w[piv, k], w[c, k]
+                inv[c, k], inv[piv, k] = inv[piv, k], inv[c, k]
+        f = 1.0 / w[c, c]
+        for k in range(n):
+            w[c, k] *= f
+            inv[c, k] *= f
+        for r in range(n):
+            if r != c and w[r, c] != 0.0:
+                g = w[r, c]
+                for k in range(n):
+                    w[r, k] -= g * w[c, k]
+                    inv[r, k] -= g * inv[c, k]
+    return inv
 
 
 # --------------------------------------------------------------------------- dynamics
@@ -267,7 +321,7 @@ def _advance(
     m_mat, q_g = _mass_and_gravity(
         y[_Q : _Q + 6], body_m, body_c, body_layer, rod_xy, rod_m, origin_u, g_b
     )
-    m_inv = np.linalg.inv(m_mat)
+    m_inv = inverse(m_mat)
     hh = 0.5 * h
     h6 = h / 6.0
     args = (u, ports, leak, f_ext, p, plat_idx, rod_xy, half_stroke, m_inv, q_g, x_out, f_out)

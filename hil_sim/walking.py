@@ -54,6 +54,7 @@ from hil_sim.rig import (
     _mass_and_gravity,
     cylinder_forces,
     extension_and_jacobian,
+    inverse,
 )
 
 #: offsets of the walking state after the rig's: foot heights, foot speeds, X_M, V_M, X_S, V_S
@@ -185,7 +186,7 @@ def _walk_advance(
     m_mat, q_g = _mass_and_gravity(
         y[_Q : _Q + 6], body_m, body_c, body_layer, rod_xy, rod_m, origin_u, g_b
     )
-    m_inv = np.linalg.inv(m_mat)
+    m_inv = inverse(m_mat)
     hh = 0.5 * h
     h6 = h / 6.0
     args = (

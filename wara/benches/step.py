@@ -13,11 +13,25 @@ heap is frozen, as the service's loop does.
 ``--quick``: 0.5 s of IDLE and 1 s of COMPLETE instead of 3 s and 4 s (the motion takes
 its 6.1 s either way). Compare figures as ratios within one run or between runs close
 in time: the machine is shared.
+
+``--baseline DIR [--runs N]``: this checkout against another revision's checkout in DIR
+(e.g. ``git worktree add /tmp/base REV``), in one run: N rounds, each a bench of this
+one and one of DIR's (in that order, alternating first), each in a fresh interpreter
+on this interpreter's packages, with DIR's project packages first on ``sys.path``. The
+result: per round and as the median over rounds, the ratio this / baseline of the CPU
+p50 and p99 of all steps and of each mode. The modes are paired by their order in the
+bench's sequence (idle, planning, motion, hold), so revisions that name them
+differently compare too. Interleaving cancels the machine's drift; the spread of the
+per-round ratios says how far to trust the median.
 """
 
 from __future__ import annotations
 
 import argparse
+import json
+import os
+import subprocess
+import sys
 import tempfile
 import time
 from pathlib import Path
@@ -51,6 +65,8 @@ def _figures(cpu_ns: list[int], wall_ns: list[int]) -> dict[str, Any]:
 
 
 def run(args: argparse.Namespace) -> dict[str, Any]:
+    if getattr(args, "baseline", None) is not None:
+        return run_against(args)
     from wara.harness import Harness  # the simulator: only for this bench
 
     config_path = getattr(args, "config", None)
@@ -118,4 +134,77 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         "modes": modes,
         "all": _figures(all_cpu, all_wall),
         "quick": quick,
+    }
+
+
+def _bench_in(checkout: Path | None, quick: bool, config_path: str | None) -> dict[str, Any]:
+    """One ``wara bench step --json`` in a fresh interpreter; ``checkout`` first on the
+    path (None: this one)."""
+    where = (checkout or Path(__file__).resolve().parents[2]).resolve()
+    env = dict(os.environ, PYTHONPATH=str(where))
+    cmd = [sys.executable, "-m", "wara", "bench", "step", "--json"]
+    if quick:
+        cmd.append("--quick")
+    if config_path:
+        cmd += ["--config", str(Path(config_path).resolve())]
+    # cwd: `-m` puts the working directory first on sys.path, ahead of PYTHONPATH
+    out = subprocess.run(cmd, env=env, cwd=where, capture_output=True, text=True, check=False)
+    if out.returncode != 0:
+        tail = out.stderr.strip().splitlines()[-1:] or ["no output"]
+        raise RuntimeError(f"bench step in {where} failed: {tail[0]}")
+    result: dict[str, Any] = json.loads(out.stdout)
+    return result
+
+
+def _ratios(cur: dict[str, Any], base: dict[str, Any]) -> dict[str, dict[str, float]]:
+    pairs = [("all", cur["all"], base["all"])]
+    if len(cur["modes"]) == len(base["modes"]):  # else the sequences differ: all only
+        pairs += [
+            (name, cur["modes"][name], b)
+            for name, b in zip(cur["modes"], base["modes"].values(), strict=True)
+        ]
+    out: dict[str, dict[str, float]] = {}
+    for name, c, b in pairs:
+        out[name] = {k: c[k] / b[k] for k in ("cpu_p50_ms", "cpu_p99_ms") if b.get(k)}
+    return out
+
+
+def run_against(args: argparse.Namespace) -> dict[str, Any]:
+    """``--baseline DIR``: this checkout and DIR's, interleaved (module docstring)."""
+    base_dir = Path(args.baseline)
+    if not (base_dir / "wara" / "benches" / "step.py").is_file():
+        raise RuntimeError(f"--baseline {base_dir}: not a checkout with wara/benches/step.py")
+    rounds = int(args.runs or 5)
+    quick = bool(getattr(args, "quick", False))
+    config_path = getattr(args, "config", None)
+    per_round: list[dict[str, dict[str, float]]] = []
+    for i in range(rounds):
+        order = (None, base_dir) if i % 2 == 0 else (base_dir, None)
+        res = {str(d): _bench_in(d, quick, config_path) for d in order}
+        per_round.append(_ratios(res["None"], res[str(base_dir)]))
+        print(f"wara bench step: round {i + 1}/{rounds}: {per_round[-1]['all']}", file=sys.stderr)
+    median = {
+        name: {
+            k: round(float(np.median([r[name][k] for r in per_round])), 3)
+            for k in per_round[0][name]
+        }
+        for name in per_round[0]
+    }
+    spread = {
+        name: {
+            k: [
+                round(min(r[name][k] for r in per_round), 3),
+                round(max(r[name][k] for r in per_round), 3),
+            ]
+            for k in per_round[0][name]
+        }
+        for name in per_round[0]
+    }
+    return {
+        "bench": "step",
+        "against": str(base_dir),
+        "rounds": rounds,
+        "quick": quick,
+        "ratio_median": median,
+        "ratio_range": spread,
     }

@@ -32,7 +32,17 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--json", action="store_true", help="JSON output (the only format)")
     p.add_argument("--quick", action="store_true", help="smaller run, for smoke tests")
     p.add_argument(
-        "--runs", type=int, default=None, metavar="N", help="demo: how many runs (default 5)"
+        "--runs",
+        type=int,
+        default=None,
+        metavar="N",
+        help="demo: how many runs (default 5); step with --baseline: rounds (default 5)",
+    )
+    p.add_argument(
+        "--baseline",
+        default=None,
+        metavar="DIR",
+        help="step: a checkout of another revision, measured in turn with this one",
     )
     p.add_argument(
         "--cpu-hog",
@@ -43,10 +53,16 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def _run(args: argparse.Namespace) -> int:
-    if args.name != "demo" and (args.runs is not None or args.cpu_hog):
-        from wara.cli import UsageError
+    from wara.cli import UsageError
 
-        raise UsageError("--runs and --cpu-hog go with `wara bench demo`")
+    if args.name != "demo" and args.cpu_hog:
+        raise UsageError("--cpu-hog goes with `wara bench demo`")
+    if args.baseline is not None and args.name != "step":
+        raise UsageError("--baseline goes with `wara bench step`")
+    if args.runs is not None and not (args.name == "demo" or args.baseline is not None):
+        raise UsageError("--runs goes with `wara bench demo` or `wara bench step --baseline`")
+    if args.runs is not None and args.runs < 1:
+        raise UsageError("--runs must be at least 1")
     module_name, func_name = BENCHES[args.name].split(":")
     func = getattr(importlib.import_module(module_name), func_name)
     result: dict[str, Any] = func(args)
