@@ -26,7 +26,7 @@ from ipc_app.model.placement import (
     to_ring_frame,
     yaw_of_pair,
 )
-from ipc_app.planner.placement import check_moves, plan_from_deviation, plan_target
+from ipc_app.planner.placement import check_moves, home_pose, plan_from_deviation, plan_target
 from ipc_app.planner.survey import SurveyError, fit_survey, format_survey, parse_survey_text
 from tests.cli_helpers import run_main
 
@@ -54,9 +54,12 @@ def test_shipped_project_carries_the_placement_values(project: ProjectConfig) ->
     assert pl.rotation_lever_arm_m == 1.5
     assert pl.target_gap_mm == 5
     assert (pl.max_correction_per_ring_mm, pl.max_correction_per_ring_deg) == (2, 0.05)
-    assert project.tunnel.alignment.gradient_percent == 0.3
-    # the design axis of the reference project is the base pitch of model.md
+    assert project.tunnel.alignment.gradient_percent == -0.3
+    # the design axis of the reference project is the base pitch of model.md (a positive
+    # pitch turns x down: the axis falls along the chainage)
     assert units.to_deg(math.atan(0.003)) == pytest.approx(project.base.pitch_deg, abs=0.002)
+    home = home_pose(project, 5)
+    assert abs(units.to_deg(home.pitch)) < 0.002 and home.roll == 0.0
     for role in ("rotation", "lateral", "central_axis"):
         assert {c.stroke_mm for c in project.cylinders if c.role == role} == {200}
 
