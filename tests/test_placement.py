@@ -315,3 +315,14 @@ def test_plan_target_takes_the_previous_pose_in_the_new_ring_frame(project: Proj
     a = plan_target(project, prev, 5)
     b = plan_from_deviation(project, 5, Pose())
     assert np.allclose(a.target, b.target, atol=1e-9)
+
+
+def test_the_slide_controller_refuses_a_move_beyond_the_strokes(project: ProjectConfig) -> None:
+    from ipc_app.control.slide import SlideController
+
+    s = SlideController(project, project.control.period_s)
+    x = np.array([c.stroke_m / 2 for c in project.cylinders_by_can_index])
+    with pytest.raises(ValueError, match=r"stroke: central_axis extension \+96.0 mm"):
+        s.engage(x, 0.0, {"central_axis": (0.096,)})
+    assert s.check({"lateral": (0.01,)}) == ["lateral: 1 extensions for 2 cylinders"]
+    assert s.engage(x, 0.0, {"lateral": (0.004, 0.004)}) > 0.0

@@ -108,6 +108,12 @@ class PlacementPlan:
     attitude_world_deg: tuple[float, float] = (0.0, 0.0)
     solve_time_s: float = 0.0
     judged: dict[str, dict[str, Any]] = field(default_factory=dict)
+    #: the lower layer's common heave from the home pose to the target (m)
+    heave_m: float = 0.0
+
+    @property
+    def heave_mm(self) -> float:
+        return units.to_mm(self.heave_m)
 
     def to_dict(self) -> dict[str, Any]:
         dev = deviation(self.target, self.design)
@@ -127,6 +133,7 @@ class PlacementPlan:
                 "pitch_deg": self.attitude_world_deg[1],
             },
             "actuators": [a.to_dict() for a in self.actuators],
+            "heave_mm": self.heave_mm,
             "binding": None
             if self.binding is None
             else {
@@ -378,6 +385,7 @@ def plan_target(cfg: ProjectConfig, previous: Pose, ring: int) -> PlacementPlan:
         attitude_world_deg=world,
         solve_time_s=time.perf_counter() - t0,
         judged=judge(cfg, figures),
+        heave_m=compose(inverse(home_pose(cfg, ring)), target).z,
     )
 
 

@@ -13,6 +13,7 @@ configuration. docs/placement.md.
 from __future__ import annotations
 
 import argparse
+import json
 import math
 from typing import Any
 
@@ -23,7 +24,7 @@ from config.schema import ProjectConfig
 from ipc_app.model.placement import Pose, compose, design_pose, to_ring_frame
 from ipc_app.planner.placement import PlacementPlan, plan_from_deviation, plan_target
 from ipc_app.planner.survey import SurveyError, read_survey
-from wara.cli import UsageError
+from wara.cli import EXIT_FAILED, EXIT_INFEASIBLE, EXIT_OK, UsageError
 from wara.commands.plan import report
 
 
@@ -59,6 +60,25 @@ def register(sub: argparse._SubParsersAction) -> None:
     plan.add_argument("--db", default=None, metavar="PATH", help="acceptance database")
     plan.add_argument("--json", action="store_true", help="print one JSON object")
     plan.set_defaults(func=run_plan)
+    run = verbs.add_parser(
+        "run",
+        help="plan and move to the target on the HIL simulator (lockstep)",
+        description="Plan the target and move there on the HIL simulator in simulated time; "
+        "judge the simulator's truth against the goals.",
+    )
+    run.add_argument("--config", default=None, help="project YAML (default: shipped Shanghai)")
+    run.add_argument("--ring", type=int, default=2, help="the ring to place (default 2)")
+    run.add_argument(
+        "--previous-deviation",
+        default=None,
+        metavar="Y_MM,Z_MM,ROLL_DEG,PITCH_DEG,YAW_DEG",
+        help="the previous part's deviation from its design (default: none)",
+    )
+    run.add_argument(
+        "--lockstep", action="store_true", required=True, help="simulated time, one thread"
+    )
+    run.add_argument("--json", action="store_true", help="print one JSON object")
+    run.set_defaults(func=run_move)
 
 
 def _placement_config(path: str | None) -> ProjectConfig:
@@ -183,4 +203,42 @@ def render(p: PlacementPlan) -> str:
         lines.append(f"  {a['group']:<34} {ext}  ({'ok' if a['ok'] else 'REFUSED'})")
     if p.reasons:
         lines += ["", *(f"Refused: {r}" for r in p.reasons)]
+    return "\n".join(lines)
+
+
+def run_move(args: argparse.Namespace) -> int:
+    from wara.placement_run import run_placement_lockstep  # the simulator: only here
+
+    cfg = _placement_config(args.config)
+    if not 2 <= args.ring <= 99_999:
+        raise UsageError(f"--ring must be within 2..99999, got {args.ring}")
+    dev = Pose() if args.previous_deviation is None else parse_deviation(args.previous_deviation)
+    result = run_placement_lockstep(cfg, args.ring, dev)
+    if args.json:
+        print(json.dumps(result, indent=2))
+    else:
+        print(render_move(result))
+    if not result["plan"]["feasible"]:
+        return EXIT_INFEASIBLE
+    return EXIT_OK if result["passed"] else EXIT_FAILED
+
+
+def render_move(r: dict[str, Any]) -> str:
+    if "goals" not in r:
+        return "REFUSED: " + "; ".join(r.get("reasons", []))
+    e = r["error_from_target"]
+    lines = [
+        f"ring {r['ring']}: {'PASSED' if r['passed'] else 'FAILED'} "
+        f"(phases: {', '.join(f'{k} {v:.2f} s' for k, v in r['phase_times_s'].items())})",
+        "error from the target on the simulator's truth: "
+        + ", ".join(f"{k} {v:+.4f}" for k, v in e.items()),
+        f"gap error {r['gap_error_mm']:+.4f} mm; largest sync error "
+        f"{r['max_sync_error_mm']:.3f} mm",
+        "goals: " + ", ".join(f"{k} {'ok' if v else 'MISSED'}" for k, v in r["goals"].items()),
+        "",
+        f"{'Table 4 item (truth)':<28} {'value':>10} {'limit':>8}",
+    ]
+    for key, item in r["table4_truth"].items():
+        lim = "-" if item["limit"] is None else f"{item['limit']:g}"
+        lines.append(f"{key:<28} {item['value']:>10.3f} {lim:>8}")
     return "\n".join(lines)
