@@ -238,6 +238,8 @@ def test_bad_survey_points_are_named_by_line(project: ProjectConfig) -> None:
     good = _survey(project, 4, design_pose(project, 4)).splitlines()
     with pytest.raises(SurveyError, match="3 point"):
         parse_survey_text("\n".join(good[:4]) + "\n")
+    with pytest.raises(SurveyError, match="line 3: a field runs over a line break"):
+        parse_survey_text(good[0] + "\n" + good[1] + '\nP9,"1\n2",1,1,1,1\n')
     with pytest.raises(SurveyError, match="missing column"):
         parse_survey_text("point,face_y_m,x_m,y_m,z_m\n")
 

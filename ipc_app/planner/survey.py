@@ -2,7 +2,8 @@
 section 3; docs/placement.md, "The survey file").
 
 Format: UTF-8 CSV, one header row naming the columns (any order, case-insensitive),
-blank lines and lines starting with ``#`` ignored, one point per line:
+blank lines and lines starting with ``#`` ignored, one point per line (a field may not
+run over a line break):
 
 - ``point``: the target's name on the face (unique in the file);
 - ``face_y_m``, ``face_z_m``: where the target sits on the front joint face, in the
@@ -108,9 +109,16 @@ def parse_survey_text(text: str, source: str = "<survey>") -> list[SurveyPoint]:
     points: list[SurveyPoint] = []
     errors: list[str] = []
     seen: dict[str, int] = {}
+    prev_end = 0
     try:
         for cells in rows:
             line = rows.line_num
+            start, prev_end = prev_end + 1, line
+            if any("\n" in c or "\r" in c for c in cells):
+                errors.append(
+                    f"{source}: line {start}: a field runs over a line break (a quote left open?)"
+                )
+                continue
             if not cells or all(not c.strip() for c in cells) or cells[0].lstrip().startswith("#"):
                 continue
             if header is None:
