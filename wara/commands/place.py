@@ -31,7 +31,7 @@ from wara.commands.plan import report
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
         "place",
-        help="place the arc part in six degrees of freedom (plan the target)",
+        help="place the arc part in six DOF: plan the target, move there on the simulator",
         description="Placing the arc part: the target pose from the survey (docs/placement.md).",
     )
     verbs = p.add_subparsers(dest="verb", metavar="VERB")
