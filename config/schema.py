@@ -12,6 +12,7 @@ switching an interlock off or reaching the planner.
 
 from __future__ import annotations
 
+import itertools
 from collections import Counter
 from typing import Annotated, Literal
 
@@ -65,10 +66,46 @@ class ProjectInfo(Strict):
     description: str = ""
 
 
+class AlignmentPoint(Strict):
+    """One row of a design-axis table: the centreline at a chainage, project coordinates
+    (x, y horizontal, z up)."""
+
+    chainage_m: Annotated[Finite, Field(ge=-1e6, le=1e6)]
+    x_m: Annotated[Finite, Field(ge=-1e7, le=1e7)]
+    y_m: Annotated[Finite, Field(ge=-1e7, le=1e7)]
+    z_m: Annotated[Finite, Field(ge=-1e4, le=1e4)]
+
+
+class Alignment(Strict):
+    """The design axis (placement.md section 1; docs/placement.md): a straight axis with a
+    gradient, or a table of centreline points (linear between rows), in project
+    coordinates. ``first_ring_chainage_m``: the chainage of ring 1's rear joint face; ring
+    ``n``'s is ``n - 1`` ring widths further."""
+
+    first_ring_chainage_m: Annotated[Finite, Field(ge=-1e6, le=1e6)] = 0.0
+    #: straight axis through the project origin, rising this much per 100 m of chainage
+    gradient_percent: Annotated[Finite, Field(ge=-10, le=10)] | None = None
+    points: tuple[AlignmentPoint, ...] = ()
+
+    @model_validator(mode="after")
+    def _one_form(self) -> Alignment:
+        if (self.gradient_percent is None) == (not self.points):
+            raise ValueError("give either gradient_percent (a straight axis) or points (a table)")
+        if self.points:
+            if len(self.points) < 2:
+                raise ValueError("points: a table needs at least two rows")
+            ch = [p.chainage_m for p in self.points]
+            if any(b <= a for a, b in itertools.pairwise(ch)):
+                raise ValueError("points: chainage_m must increase from row to row")
+        return self
+
+
 class Tunnel(Strict):
     outer_diameter_m: Annotated[Finite, Field(gt=0, le=30)]
     inner_diameter_m: Annotated[Finite, Field(gt=0, le=30)]
     ring_width_m: Annotated[Finite, Field(gt=0, le=10)]
+    #: the design axis; without it the machine cannot place (no ``placement``)
+    alignment: Alignment | None = None
 
     @model_validator(mode="after")
     def _inner_smaller(self) -> Tunnel:
@@ -597,6 +634,58 @@ class Walking(Strict):
         return self.force_ramp_kn_s * units.KN
 
 
+# --------------------------------------------------------------------------- placement
+
+
+class PlacementWeights(Strict):
+    """Weights of the target planner's objective (placement.md section 3), each on a
+    square in mm^2: the joint step at the face corners, the centreline deviation, the
+    gap's distance from its target, and the angles from the design (as mm at the part's
+    half-length). Dimensionless; only their ratios matter."""
+
+    misalignment: Annotated[Finite, Field(ge=0, le=1e6)] = 1.0
+    centreline_deviation: Annotated[Finite, Field(ge=0, le=1e6)] = 1.0
+    gap: Annotated[Finite, Field(ge=0, le=1e6)] = 1.0
+    angle: Annotated[Finite, Field(ge=0, le=1e6)] = 1.0
+
+
+class Placement(Strict):
+    """Placing an arc part in six degrees of freedom (placement.md; docs/placement.md)."""
+
+    #: r_yaw: the rotation pair acts at this lever arm about the upper platform's z axis
+    rotation_lever_arm_m: Annotated[Finite, Field(gt=0, le=20)] = 1.5
+    #: height of the part's reference point (bottom-face centre) above the design centreline
+    reference_height_m: Annotated[Finite, Field(ge=-20, le=20)] = 0.0
+    #: the gap the planner aims for between the previous part's front face and the new one's
+    target_gap_mm: Annotated[Finite, Field(ge=0, le=100)] = 5.0
+    #: steering back: the new part's deviation from the design differs from the
+    #: previous part's by at most this per ring (each of y, z; each angle)
+    max_correction_per_ring_mm: Annotated[Finite, Field(gt=0, le=100)] = 2.0
+    max_correction_per_ring_deg: Annotated[Finite, Field(gt=0, le=10)] = 0.05
+    weights: PlacementWeights = PlacementWeights()
+    #: a survey fit whose RMS point residual is larger is refused
+    survey_max_residual_mm: Annotated[Finite, Field(gt=0, le=100)] = 3.0
+    #: sliding friction of the part's carriage on the upper platform: the force the
+    #: lateral, rotation and central-axis cylinders need (their pressure check)
+    slide_friction_coefficient: Annotated[Finite, Field(ge=0, le=1)] = 0.05
+
+    @property
+    def target_gap_m(self) -> float:
+        return units.mm(self.target_gap_mm)
+
+    @property
+    def max_correction_per_ring_m(self) -> float:
+        return units.mm(self.max_correction_per_ring_mm)
+
+    @property
+    def max_correction_per_ring_rad(self) -> float:
+        return units.deg(self.max_correction_per_ring_deg)
+
+    @property
+    def survey_max_residual_m(self) -> float:
+        return units.mm(self.survey_max_residual_mm)
+
+
 # --------------------------------------------------------------------------- project
 
 
@@ -620,6 +709,14 @@ class ProjectConfig(Strict):
     #: the two frames of the walk; without them (and ``walking``) the machine does not walk
     frames: Frames | None = None
     walking: Walking | None = None
+    #: placing the part in six degrees of freedom; needs ``tunnel.alignment``
+    placement: Placement | None = None
+
+    @model_validator(mode="after")
+    def _placement_needs_alignment(self) -> ProjectConfig:
+        if self.placement is not None and self.tunnel.alignment is None:
+            raise ValueError("placement needs the design axis: give tunnel.alignment")
+        return self
 
     @model_validator(mode="after")
     def _inventory(self) -> ProjectConfig:

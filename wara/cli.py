@@ -33,6 +33,8 @@ COMMANDS: tuple[str, ...] = (
     "soak",
     "hil",
     "walk",
+    "place",
+    "survey",
 )
 
 

@@ -80,6 +80,14 @@ class AttitudeController:
         #: The references of the last :meth:`update` (all 19 cylinders), or None.
         self.last_references: FloatArray | None = None
 
+    def set_offset(self, layer: str, offset_m: float) -> None:
+        """Shift a layer's references by ``offset_m`` on every cylinder:
+        ``x_ref = stroke / 2 + offset + d(t)`` (a placement's height on the lower layer;
+        0 by default). Set it before :meth:`engage` with a trajectory planned from the
+        measured start less the offset, so that the move starts where the rods are."""
+        idx = self.layers[layer]
+        self._half_lists[layer] = (self.half_stroke[idx] + offset_m).tolist()
+
     # ------------------------------------------------------------------ engage
 
     def engage(self, x_rod_m: FloatArray, t_now: float, trajectory: Trajectory | None) -> None:
