@@ -58,6 +58,7 @@ from config.hil_scenario import (
     WireStall,
 )
 from config.schema import N_CYLINDERS, ProjectConfig
+from config.stall import StallTrace
 from hil_sim.rig import LayerTruth, Rig
 from hil_sim.sensors import PositionTransducer, PressureTransducer
 from hil_sim.walking import WalkingRig
@@ -280,22 +281,25 @@ class HilSimulator:
         next_status = start
         overruns = 0
         k = 0
-        while duration_s is None or self.t_s - t_start < duration_s - 1e-12:
-            if should_stop is not None and should_stop():
-                break
-            due = start + k * self.cycle_s
-            now = time.monotonic()
-            if due - now > 0:
-                time.sleep(due - now)
-            elif now - due > 0.1:
-                overruns += 1
-                start = now - k * self.cycle_s
-            self.wire.set_arrival_horizon(start + to_epoch + k * self.cycle_s)
-            self.step(self.cycle_s)
-            k += 1
-            if on_status is not None and time.monotonic() >= next_status:
-                on_status(self)
-                next_status += status_interval_s
+        # WARA_STALL_TRACE_MS: the stacks of a scan that stalls (config.stall)
+        with StallTrace() as stall:
+            while duration_s is None or self.t_s - t_start < duration_s - 1e-12:
+                if should_stop is not None and should_stop():
+                    break
+                due = start + k * self.cycle_s
+                now = time.monotonic()
+                if due - now > 0:
+                    time.sleep(due - now)
+                elif now - due > 0.1:
+                    overruns += 1
+                    start = now - k * self.cycle_s
+                self.wire.set_arrival_horizon(start + to_epoch + k * self.cycle_s)
+                stall.arm()
+                self.step(self.cycle_s)
+                k += 1
+                if on_status is not None and time.monotonic() >= next_status:
+                    on_status(self)
+                    next_status += status_interval_s
         self.wire.set_arrival_horizon(None)
         wall = time.monotonic() - start
         return {

@@ -71,6 +71,7 @@ import structlog
 
 from config import units
 from config.schema import Realtime
+from config.stall import StallTrace
 
 log = structlog.get_logger("wara.service.loop")
 
@@ -301,6 +302,8 @@ class FixedRateLoop:
             self.realtime_report = apply_realtime(self._realtime, self._os_api)
         if self._freeze_heap:
             freeze_startup_heap()
+        # WARA_STALL_TRACE_MS: the stacks of a cycle that stalls (config.stall)
+        self._stall = StallTrace()
         gc_was_enabled = gc.isenabled()
         if self._gc_mode == "slack":
             gc.disable()
@@ -316,6 +319,7 @@ class FixedRateLoop:
             self.error = exc
             log.exception("loop_step_failed", error=repr(exc))
         finally:
+            self._stall.close()
             if self._gc_mode == "slack" and gc_was_enabled:
                 gc.enable()
             log.info("loop_stop", **self.stats())
@@ -327,6 +331,7 @@ class FixedRateLoop:
         prev_wake: float | None = None
         next_stats = deadline + self._stats_every_s
         c = self._c
+        stall = self._stall
         while not stop.is_set():
             now = clock()
             if now < deadline:
@@ -339,6 +344,7 @@ class FixedRateLoop:
             if prev_wake is not None:
                 self._period_dev.add(abs(wake - prev_wake - period))
             prev_wake = wake
+            stall.arm()
             self._step(index, wake)
             end = clock()
             self._compute.add(end - wake)
