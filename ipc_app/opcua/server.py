@@ -29,6 +29,7 @@ from typing import Any
 
 import structlog
 from asyncua import Server, ua
+from asyncua.common.utils import ServiceError
 from asyncua.crypto.permission_rules import USER_TYPES, PermissionRuleset, UserRole
 from asyncua.crypto.permission_rules import User as UaUser
 from asyncua.crypto.truststore import TrustStore
@@ -136,6 +137,37 @@ class _Rules(PermissionRuleset):
         return action_type in _READ_ONLY
 
 
+class _TrustDir:
+    """Client certificates must be in ``trusted/`` (read again whenever it changes, so
+    ``wara opcua cert --trust`` needs no restart); an empty store trusts nobody."""
+
+    def __init__(self, path: Path) -> None:
+        self.path = path
+        path.mkdir(parents=True, exist_ok=True, mode=0o700)
+        self._stamp: tuple[int, tuple[str, ...]] | None = None
+        self._validator: CertificateValidator | None = None
+
+    async def __call__(self, cert: Any, app: ua.ApplicationDescription) -> None:
+        files = tuple(
+            sorted(f.name for f in self.path.iterdir() if f.suffix.lower() in (".der", ".pem"))
+        )
+        stamp = (self.path.stat().st_mtime_ns, files)
+        if stamp != self._stamp:
+            self._stamp, self._validator = stamp, None
+            if files:
+                store = TrustStore([self.path], [])
+                await store.load()
+                self._validator = CertificateValidator(
+                    CertificateValidatorOptions.TRUSTED_VALIDATION
+                    | CertificateValidatorOptions.PEER_CLIENT,
+                    store,
+                )
+        if self._validator is None:
+            log.warning("opcua_certificate_refused", reason=f"nothing trusted in {self.path}")
+            raise ServiceError(ua.StatusCodes.BadCertificateUntrusted)
+        await self._validator(cert, app)
+
+
 def endpoint_url(opc: OpcUa, host: str | None = None) -> str:
     h = host or (socket.gethostname() if opc.host in ("0.0.0.0", "::") else opc.host)
     return f"opc.tcp://{h}:{opc.port}/wara/"
@@ -193,17 +225,7 @@ class OpcUaServer:
         srv.set_identity_tokens(tokens)
         await srv.load_certificate(str(cert))
         await srv.load_private_key(str(key))
-        trusted = pki.trusted_dir(opc.pki_dir)
-        trusted.mkdir(parents=True, exist_ok=True, mode=0o700)
-        store = TrustStore([trusted], [])
-        await store.load()
-        srv.set_certificate_validator(
-            CertificateValidator(
-                CertificateValidatorOptions.TRUSTED_VALIDATION
-                | CertificateValidatorOptions.PEER_CLIENT,
-                store,
-            )
-        )
+        srv.set_certificate_validator(_TrustDir(pki.trusted_dir(opc.pki_dir)))
         await self._model(srv)
         self.server = srv
         return srv
