@@ -95,25 +95,9 @@ def free_port() -> int:
 
 
 def make_client_cert(path_dir: Path, name: str = "client") -> tuple[Path, Path]:
-    """A client application certificate and its key (both PEM) for CLIENT_URI."""
-    from asyncua.crypto import cert_gen
-    from cryptography import x509
-    from cryptography.hazmat.primitives.serialization import Encoding
-    from cryptography.x509.oid import ExtendedKeyUsageOID
+    from ipc_app.opcua import pki
 
-    key = cert_gen.generate_private_key()
-    cert = cert_gen.generate_self_signed_app_certificate(
-        key,
-        f"wara test {name}",
-        {},
-        [x509.UniformResourceIdentifier(CLIENT_URI), x509.DNSName("localhost")],
-        extended=[ExtendedKeyUsageOID.CLIENT_AUTH],
-    )
-    path_dir.mkdir(parents=True, exist_ok=True)
-    c, k = path_dir / f"{name}.pem", path_dir / f"{name}-key.pem"
-    c.write_bytes(cert.public_bytes(Encoding.PEM))
-    k.write_bytes(cert_gen.dump_private_key_as_pem(key))
-    return c, k
+    return pki.client_cert(path_dir, name, CLIENT_URI)
 
 
 @dataclass

@@ -105,3 +105,29 @@ def trust(pki_dir: str | Path, cert_file: str | Path) -> Path:
     dst = dst_dir / src.name
     shutil.copyfile(src, dst)
     return dst
+
+
+def client_cert(out_dir: str | Path, name: str, uri: str) -> tuple[Path, Path]:
+    """A client application certificate and its key (both PEM) for ``uri`` (for test and
+    benchmark clients; a real client makes its own)."""
+    from asyncua.crypto import cert_gen
+    from cryptography import x509
+    from cryptography.hazmat.primitives.serialization import Encoding
+    from cryptography.x509.oid import ExtendedKeyUsageOID
+
+    key = cert_gen.generate_private_key()
+    cert = cert_gen.generate_self_signed_app_certificate(
+        key,
+        name,
+        {},
+        [x509.UniformResourceIdentifier(uri), x509.DNSName("localhost")],
+        extended=[ExtendedKeyUsageOID.CLIENT_AUTH],
+    )
+    d = Path(out_dir)
+    d.mkdir(parents=True, exist_ok=True, mode=0o700)
+    c, k = d / f"{name}.pem", d / f"{name}-key.pem"
+    c.write_bytes(cert.public_bytes(Encoding.PEM))
+    fd = os.open(k, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
+    with os.fdopen(fd, "wb") as f:
+        f.write(cert_gen.dump_private_key_as_pem(key))
+    return c, k
