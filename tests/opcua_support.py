@@ -172,7 +172,7 @@ def node_available() -> str | None:
     return None
 
 
-def run_node(script: str, *args: str, timeout_s: float = 120.0) -> subprocess.CompletedProcess[str]:
+def run_node(script: str, *args: str, timeout_s: float = 300.0) -> subprocess.CompletedProcess[str]:
     return subprocess.run(
         ["node", str(NODE_DIR / script), *args],
         capture_output=True,

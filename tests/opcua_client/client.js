@@ -48,6 +48,9 @@ async function main() {
     endpointMustExist: false,
     connectionStrategy: { maxRetry: 0, initialDelay: 100, maxDelay: 200 },
     requestedSessionTimeout: 30000,
+    // generous: the tests run on shared, loaded machines
+    transportTimeout: 60000,
+    defaultTransactionTimeout: 60000,
   });
   const t0 = Date.now();
   await client.connect(url);

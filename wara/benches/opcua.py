@@ -28,8 +28,6 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-import yaml
-
 from config import load_project, units
 from wara import demo_two_process as d2
 from wara.demo import stderr_progress
@@ -64,7 +62,7 @@ def run(args: argparse.Namespace) -> dict[str, Any] | None:
         return dict(json.loads(out.read_text()))
 
 
-def _prepare(work: Path, config_path: str) -> tuple[list[str], list[str]]:
+def _prepare(work: Path) -> tuple[list[str], list[str]]:
     """Users, certificates and the port; the server's and the clients' arguments."""
     from ipc_app.opcua import pki
     from ipc_app.opcua.users import add_user
@@ -76,9 +74,6 @@ def _prepare(work: Path, config_path: str) -> tuple[list[str], list[str]]:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         port = int(s.getsockname()[1])
-    data = yaml.safe_load(Path(config_path).read_text())
-    data.setdefault("opcua", {})["host"] = "127.0.0.1"
-    Path(config_path).write_text(yaml.safe_dump(data))
     server = ["--users-file", str(work / "users.json"), "--pki-dir", str(work / "pki"),
               "--port", str(port), "--host", "127.0.0.1"]  # fmt: skip
     url = f"opc.tcp://127.0.0.1:{port}/wara/"
@@ -130,7 +125,7 @@ def inside(work: Path, config_path: str, cycles: int) -> dict[str, Any]:
     from ipc_app.opcua.process import OpcUaProcess
 
     say = stderr_progress
-    server_args, client_args = _prepare(work, config_path)
+    server_args, client_args = _prepare(work)
     cfg_period = load_project(config_path).control.period_s
     codes: dict[str, int] = {}
     phases: dict[str, Any] = {}
