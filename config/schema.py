@@ -524,6 +524,39 @@ class Safety(Strict):
     max_suspend_ms: TimeoutMs = 250.0
 
 
+# --------------------------------------------------------------------------- OPC UA
+
+
+class OpcUa(Strict):
+    """The OPC UA server beside the service (ipc_app.opcua; docs/opcua.md).
+
+    Off unless ``enabled``. Relative paths are taken from the service's working
+    directory (under systemd: its ``StateDirectory``); ``deploy/install.sh`` creates the
+    server certificate and ``wara opcua adduser`` the users file.
+    """
+
+    enabled: bool = False
+    #: the address the server listens on (``0.0.0.0``: every interface)
+    host: str = Field(
+        default="0.0.0.0", min_length=1, max_length=253, pattern=r"^[A-Za-z0-9.:\-]+$"
+    )
+    port: Annotated[int, Field(ge=1024, le=65535)] = 4840
+    #: the only security policy offered, always with SignAndEncrypt
+    security_policy: Literal["Basic256Sha256", "Aes128_Sha256_RsaOaep", "Aes256_Sha256_RsaPss"] = (
+        "Basic256Sha256"
+    )
+    #: users with their scrypt password hashes and roles (outside the project YAML, 0600)
+    users_file: str = Field(default="opcua/users.json", min_length=1)
+    #: the PKI directory: ``own/cert.der``, ``own/key.pem``, ``trusted/`` (client certificates)
+    pki_dir: str = Field(default="opcua/pki", min_length=1)
+    #: a session without a user name may browse, read and subscribe (never call a method)
+    anonymous_read_only: bool = False
+    #: how often the server takes the service's status (the variables' update period)
+    update_period_ms: Annotated[Finite, Field(ge=20, le=10_000)] = 50.0
+    #: at most this many client connections at once (one beyond is refused)
+    max_connections: Annotated[int, Field(ge=1, le=1000)] = 32
+
+
 # --------------------------------------------------------------------------- acceptance
 
 
@@ -717,6 +750,7 @@ class ProjectConfig(Strict):
         if self.placement is not None and self.tunnel.alignment is None:
             raise ValueError("placement needs the design axis: give tunnel.alignment")
         return self
+    opcua: OpcUa = OpcUa()
 
     @model_validator(mode="after")
     def _inventory(self) -> ProjectConfig:

@@ -2,13 +2,14 @@
 # Install the W-ARa IPC service on an industrial PC (Debian/Ubuntu with systemd).
 #
 #   sudo deploy/install.sh [--config PROJECT.yaml] [--prefix /opt/wara] [--vcan]
-#                          [--extras sim,plot] [--no-start] [--dry-run]
+#                          [--extras sim,plot,opcua] [--no-start] [--dry-run]
 #
 # Steps (each printed as "+ command"; --dry-run prints them and changes nothing):
 #   1. system user and group "wara" (no login shell, home /var/lib/wara)
 #   2. a virtualenv under PREFIX/venv with this source tree installed (pip): the service
 #      alone; --extras adds optional parts (plot: matplotlib for the acceptance report,
-#      sim: numba for the HIL simulator)
+#      sim: numba for the HIL simulator, opcua: the OPC UA server; with opcua the
+#      server certificate is created under /var/lib/wara/opcua/pki, owned by wara)
 #   3. /etc/wara/project.yaml (kept if it exists; --config replaces it), validated
 #   4. systemd-networkd files for can0 (BitRate from the project's can.bitrate),
 #      and vcan0 with --vcan
@@ -58,8 +59,8 @@ case ",$EXTRAS," in
 esac
 for extra in ${EXTRAS//,/ }; do
   case "$extra" in
-    sim|plot) ;;
-    *) echo "install.sh: --extras: unknown extra '$extra' (known: sim, plot)" >&2; exit 2 ;;
+    sim|plot|opcua) ;;
+    *) echo "install.sh: --extras: unknown extra '$extra' (known: sim, plot, opcua)" >&2; exit 2 ;;
   esac
 done
 if [ -n "$CONFIG" ] && [ ! -f "$CONFIG" ]; then
@@ -90,6 +91,18 @@ else
   run install -m 0644 "$SRC/config/projects/shanghai_airport_link.yaml" "$ETC/project.yaml"
 fi
 run "$PREFIX/venv/bin/wara" config validate "$ETC/project.yaml"
+
+case ",$EXTRAS," in
+  *,opcua,*)
+    # The OPC UA server's certificate (kept if present), in the service's state directory,
+    # where the project's relative opcua.pki_dir points (WorkingDirectory=%S/wara).
+    echo "# 3b. OPC UA server certificate"
+    run install -d -m 0700 -o "$USER_NAME" -g "$USER_NAME" /var/lib/wara /var/lib/wara/opcua
+    run runuser -u "$USER_NAME" -- "$PREFIX/venv/bin/wara" opcua cert \
+      --pki-dir /var/lib/wara/opcua/pki
+    echo "# add users: sudo -u $USER_NAME $PREFIX/venv/bin/wara opcua adduser NAME --role operator --users-file /var/lib/wara/opcua/users.json"
+    ;;
+esac
 
 # The CAN bit rate comes from the project (can.bitrate); read it with the installed
 # package, or from the file to install when nothing is installed yet (dry run).

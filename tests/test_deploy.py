@@ -172,11 +172,20 @@ def test_install_takes_no_extras_unless_asked(tmp_path: Path) -> None:
 
 @pytest.mark.parametrize(
     ("extras", "message"),
-    [("gui", "unknown extra 'gui' (known: sim, plot)"), ("sim,", "an empty name")],
+    [("gui", "unknown extra 'gui' (known: sim, plot, opcua)"), ("sim,", "an empty name")],
 )
 def test_install_rejects_unknown_extras(extras: str, message: str) -> None:
     proc = _install("--extras", extras)
     assert proc.returncode == 2 and message in proc.stderr, proc.stderr
+
+
+def test_install_with_opcua_creates_the_server_certificate(tmp_path: Path) -> None:
+    plain = _install("--prefix", str(tmp_path))
+    assert "wara opcua cert" not in plain.stdout
+    asked = _install("--prefix", str(tmp_path), "--extras", "opcua")
+    assert asked.returncode == 0, asked.stderr
+    assert _pip_line(asked.stdout).endswith(f"{DEPLOY.parent}[opcua]")
+    assert f"{tmp_path}/venv/bin/wara opcua cert --pki-dir /var/lib/wara/opcua/pki" in asked.stdout
 
 
 def test_install_rejects_unknown_options() -> None:

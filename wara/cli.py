@@ -35,6 +35,7 @@ COMMANDS: tuple[str, ...] = (
     "walk",
     "place",
     "survey",
+    "opcua",
 )
 
 

@@ -8,6 +8,7 @@ The two-process form is :mod:`wara.demo_two_process`.
 
 from __future__ import annotations
 
+import contextlib
 import math
 import sys
 from collections.abc import Callable
@@ -36,6 +37,7 @@ def run_demo(
     examples: tuple[tuple[float, float], ...] = EXAMPLES,
     plot_dir: Path | None = None,
     progress: Callable[[str], None] | None = None,
+    opcua: bool = False,
 ) -> dict[str, Any]:
     """Run the examples; returns the JSON-ready summary (``passed`` tells the verdict)."""
     cfg = load_project(config_path)
@@ -43,7 +45,12 @@ def run_demo(
     demo = Harness(cfg, config_path, mode=mode, progress=say)
     results: list[ExampleResult] = []
     error: str | None = None
+    stack = contextlib.ExitStack()
     try:
+        if opcua:  # the OPC UA server for the demo's duration, up before the simulator
+            from wara.demo_opcua import serve_opcua
+
+            stack.enter_context(serve_opcua(demo.core, config_path, say))
         demo.start()
         say("starting: waiting for the PLC")
         if not demo.wait_for(Mode.IDLE, 20.0):
@@ -60,6 +67,7 @@ def run_demo(
                 break
         stats = demo.loop.stats() if demo.loop is not None else {}
     finally:
+        stack.close()
         demo.close()
     summary: dict[str, Any] = {
         "mode": mode,

@@ -3,8 +3,8 @@ to install when a command needs one that is missing.
 
 ``sim`` (numba) compiles the HIL simulator's plant; without it the same source runs as
 plain Python (:mod:`hil_sim._jit`), only slower. ``plot`` (matplotlib) draws ``--plot``
-figures and the acceptance report. The IPC's install (``deploy/install.sh``) has neither
-unless asked for.
+figures and the acceptance report; ``opcua`` (asyncua) runs the OPC UA server. The IPC's
+install (``deploy/install.sh``) has none unless asked for.
 """
 
 from __future__ import annotations
@@ -14,7 +14,7 @@ import importlib
 from wara.cli import UsageError
 
 #: The extra that installs each optional module.
-EXTRA_OF = {"numba": "sim", "matplotlib": "plot"}
+EXTRA_OF = {"numba": "sim", "matplotlib": "plot", "asyncua": "opcua"}
 
 
 def install_hint(module: str) -> str:

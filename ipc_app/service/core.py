@@ -406,6 +406,14 @@ class ServiceCore:
             return {"ok": True, "mode": str(self.modes.mode), "note": "still planning"}
         return result
 
+    def audit(self, user: str, action: str, result: str) -> dict[str, Any]:
+        """One entry of a front end's audit trail (the OPC UA server's method calls):
+        logged and put into the run record as an ``audit`` event."""
+        log.info("audit", user=user, action=action, result=result)
+        if self.record is not None:
+            self.record.event(self._now, "audit", user=user, action=action, result=result)
+        return {}
+
     def snapshot(self) -> dict[str, Any]:
         """The last cycle's status (safe to call from any thread).
 
@@ -433,6 +441,14 @@ class ServiceCore:
             loop=pub.loop,
             ride_through={"suspends": pub.ride[0], "resumes": pub.ride[1]},
         )
+        inp = self._inputs  # the same or the next cycle's reading (one reference)
+        if inp is not None:
+            p, ok = inp.pressures.value, inp.positions.valid
+            snap["pressures_pa"] = {
+                cid: [float(v) if math.isfinite(v) else None for v in p[i].tolist()]
+                for i, cid in self._active_ids
+            }
+            snap["positions_valid"] = {cid: bool(ok[i]) for i, cid in self._active_ids}
         return snap
 
     # ------------------------------------------------------------------ the step

@@ -20,6 +20,9 @@ unit_mode  ``{"cmd": "unit_mode", "unit_mode": U}``     ``mode`` (U: PRODUCTION,
                                                         MANUAL)
 jog        ``{"cmd": "jog", "cylinder": ID,             ``mode``
            "distance_mm": D}``
+audit      ``{"cmd": "audit", "user": U, "action": A,  nothing: the entry is in the log and
+           "result": R}``                               the run record (the OPC UA server's
+                                                        method calls: who, what, result)
 =========  ===========================================  =====================================
 
 A refused or failed request answers ``{"ok": false, "error": "one line", "code": C}`` with
@@ -92,7 +95,20 @@ log = structlog.get_logger("wara.service.ctl")
 SOCKET_NAME = "ctl.sock"
 SYSTEM_RUNTIME_DIR = Path("/run/wara")
 MAX_LINE_BYTES = 64 * 1024
-COMMANDS = ("adjust", "status", "stop", "reset", "clear", "hold", "unhold", "unit_mode", "jog")
+COMMANDS = (
+    "adjust",
+    "status",
+    "stop",
+    "reset",
+    "clear",
+    "hold",
+    "unhold",
+    "unit_mode",
+    "jog",
+    "audit",
+)
+#: The longest ``result`` an ``audit`` entry may carry.
+MAX_AUDIT_CHARS = 400
 #: The longest cylinder id a ``jog`` request may name.
 MAX_ID_CHARS = 40
 #: Commands answered by the I/O thread itself: quick, and never queued behind others.
@@ -147,6 +163,8 @@ class CtlHandlers:
     unhold: Callable[[], Reply] | None = None
     unit_mode: Callable[[str], Reply] | None = None
     jog: Callable[[str, float], Reply] | None = None
+    #: an entry of another front end's audit trail (user, action, result)
+    audit: Callable[[str, str, str], Reply] | None = None
 
 
 def _error(code: str, message: str) -> Reply:
@@ -212,6 +230,16 @@ def parse(line: bytes) -> Request | Reply:
     if cmd == "jog":
         try:
             return Request(cmd, (_name(req, "cylinder"), _number(req, "distance_mm", "mm")))
+        except ValueError as exc:
+            return _error("bad_request", str(exc))
+    if cmd == "audit":
+        try:
+            result = req.get("result")
+            if not isinstance(result, str) or len(result) > MAX_AUDIT_CHARS:
+                raise ValueError(
+                    f"'result' must be a string of at most {MAX_AUDIT_CHARS} characters"
+                )
+            return Request(cmd, (_name(req, "user"), _name(req, "action"), result))
         except ValueError as exc:
             return _error("bad_request", str(exc))
     if cmd != "adjust":
@@ -717,7 +745,9 @@ class CtlServer:
 
     def _answer(self, conn: _Conn, reply: Reply, line: bytes) -> None:
         self.counters["requests"] += 1
-        log.info(
+        # a status answered is debug: the OPC UA server asks for one every 50 ms
+        quiet = reply.get("ok") is True and line.startswith(b'{"cmd": "status"}')
+        (log.debug if quiet else log.info)(
             "ctl_request",
             request=line[:200].decode(errors="replace").strip(),
             ok=reply.get("ok"),

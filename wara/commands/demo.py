@@ -14,6 +14,7 @@ from __future__ import annotations
 import argparse
 import json
 from pathlib import Path
+from typing import Any
 
 from wara.cli import EXIT_FAILED, EXIT_OK, EXIT_USAGE, UsageError
 from wara.extras import require, require_realtime_simulator
@@ -64,6 +65,12 @@ def register(sub: argparse._SubParsersAction) -> None:
         metavar="N",
         help="run only the first N examples (a shorter run)",
     )
+    p.add_argument(
+        "--opcua",
+        action="store_true",
+        help="serve the OPC UA server for the demo's duration (prints the endpoint URL, "
+        "a demo operator user and its password file; needs the opcua extra)",
+    )
     # Hidden: for tests and the re-execution inside the namespace.
     p.add_argument("--min-run-s", type=float, default=None, help=argparse.SUPPRESS)
     p.add_argument("--inside-netns", default=None, metavar="DIR", help=argparse.SUPPRESS)
@@ -74,6 +81,10 @@ def register(sub: argparse._SubParsersAction) -> None:
 def _run(args: argparse.Namespace) -> int:
     if not args.lockstep:
         require_realtime_simulator()
+    if args.opcua:
+        if args.two_process or args.lockstep:
+            raise UsageError("--opcua goes with the real-time one-process demo")
+        require("asyncua", "--opcua")
     if args.two_process:
         return _run_two_process(args)
     if args.no_pin:
@@ -84,7 +95,7 @@ def _run(args: argparse.Namespace) -> int:
     if args.plot:
         require("matplotlib", "--plot")
     from ipc_app.service.logs import configure_logging
-    from wara.demo import EXAMPLES, failure_reason, render_table, run_demo, stderr_progress
+    from wara.demo import EXAMPLES, failure_reason, render_table, stderr_progress
 
     n = _examples(args.examples, len(EXAMPLES))
 
@@ -92,12 +103,13 @@ def _run(args: argparse.Namespace) -> int:
     # progress lines tell the rest), never into the table or the JSON on stdout.
     logs = configure_logging("WARNING")
     try:
-        summary = run_demo(
+        summary = _run_demo(
             args.config,
             mode="lockstep" if args.lockstep else "realtime",
             examples=EXAMPLES[:n],
             plot_dir=Path(args.plot) if args.plot else None,
             progress=stderr_progress,
+            opcua=args.opcua,
         )
     finally:
         logs.stop()
@@ -105,6 +117,20 @@ def _run(args: argparse.Namespace) -> int:
         stderr_progress(f"FAILED: {failure_reason(summary)}")
     print(json.dumps(summary, indent=2) if args.json else render_table(summary))
     return EXIT_OK if summary["passed"] else EXIT_FAILED
+
+
+def _run_demo(*args: Any, **kwargs: Any) -> dict[str, Any]:
+    """:func:`wara.demo.run_demo`; an OPC UA server that does not start is one line."""
+    from wara.demo import run_demo
+
+    if not kwargs.get("opcua"):
+        return run_demo(*args, **kwargs)
+    from ipc_app.opcua.process import OpcUaStartError
+
+    try:
+        return run_demo(*args, **kwargs)
+    except OpcUaStartError as exc:
+        raise UsageError(str(exc)) from None
 
 
 def _examples(n: int | None, available: int) -> int:

@@ -1,4 +1,5 @@
-"""``wara serve``: run the IPC service (what the systemd unit starts)."""
+"""``wara serve``: run the IPC service (what the systemd unit starts), and beside it, in
+its own process, the OPC UA server when the project's ``opcua.enabled`` (docs/opcua.md)."""
 
 from __future__ import annotations
 
@@ -28,6 +29,18 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def _run(args: argparse.Namespace) -> int:
+    from config import load_project
+
+    opcua = None
+    if load_project(args.config).opcua.enabled:
+        from ipc_app.opcua.process import OpcUaProcess, OpcUaStartError
+        from ipc_app.service.ctl import default_socket_path
+
+        opcua = OpcUaProcess(args.config, args.socket or default_socket_path())
+        try:
+            opcua.start()
+        except OpcUaStartError as exc:
+            raise UsageError(str(exc)) from None
     try:
         return run_service(
             args.config,
@@ -38,3 +51,6 @@ def _run(args: argparse.Namespace) -> int:
         )
     except StartupError as exc:  # bus, socket or record directory: one line, exit 2
         raise UsageError(str(exc)) from None
+    finally:
+        if opcua is not None:
+            opcua.stop()

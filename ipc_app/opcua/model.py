@@ -1,0 +1,286 @@
+"""The OPC UA information model as data: every variable, where it sits, its unit, and
+how its value is read from the service's status (``wara ctl status``).
+
+No asyncua here: :mod:`ipc_app.opcua.server` builds the address space from
+:func:`variables` and writes :func:`values` of each status it takes. Values are SI
+(metres, radians, pascals, seconds); the status's millimetres, degrees and milliseconds
+are converted through :mod:`config.units`. docs/opcua.md has the table.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass
+from typing import Any
+
+from config import units
+from config.schema import ProjectConfig
+from ipc_app.service.interlocks import Interlock
+from ipc_app.service.modes import PACKML_STATES, UNIT_MODES, UnitMode
+
+#: The namespaces of the model (the companion specifications' URIs, and ours).
+NS_MACHINERY = "http://opcfoundation.org/UA/Machinery/"
+NS_PACKML = "http://opcfoundation.org/UA/PackML/"
+NS_WARA = "urn:wara:ipc"
+
+Status = Mapping[str, Any]
+
+
+@dataclass(frozen=True)
+class Unit:
+    """A UNECE unit (OPC 10000-8 EUInformation: the UnitId is the common code packed)."""
+
+    code: str
+    symbol: str
+    name: str
+
+    @property
+    def unit_id(self) -> int:
+        uid = 0
+        for ch in self.code:
+            uid = (uid << 8) | ord(ch)
+        return uid
+
+
+METRE = Unit("MTR", "m", "metre")
+RADIAN = Unit("C81", "rad", "radian")
+PASCAL = Unit("PAL", "Pa", "pascal")
+SECOND = Unit("SEC", "s", "second")
+ONE = Unit("C62", "1", "one")
+
+
+@dataclass(frozen=True)
+class Var:
+    """One variable: its path of browse names (``ns`` of each), type, unit, getter."""
+
+    path: tuple[str, ...]
+    kind: str  #: "Double", "Boolean", "String", "LocalizedText", "Int32", "UInt32"
+    read: Callable[[Status], Any]
+    unit: Unit | None = None
+    ns: str = NS_WARA
+
+
+#: MachineryItemState (OPC 40001-1 MachineryItemState_StateMachineType) of each mode.
+ITEM_STATE = {
+    "STOPPED": "NotExecuting",
+    "IDLE": "NotExecuting",
+    "COMPLETE": "NotExecuting",
+    "STARTING": "Executing",
+    "EXECUTE": "Executing",
+    "HELD": "NotExecuting",
+    "SUSPENDED": "NotExecuting",
+    "ABORTED": "OutOfService",
+}
+#: MachineryOperationMode (OPC 40001-1) of each unit mode.
+OPERATION_MODE = {
+    str(UnitMode.PRODUCTION): "Processing",
+    str(UnitMode.MAINTENANCE): "Maintenance",
+    str(UnitMode.MANUAL): "Setup",
+}
+UNIT_MODE_CODES = {str(k): v for k, v in UNIT_MODES.items()}
+
+
+def _get(st: Status, *keys: str) -> Any:
+    v: Any = st
+    for k in keys:
+        if not isinstance(v, Mapping):
+            return None
+        v = v.get(k)
+    return v
+
+
+def _num(v: Any, scale: Callable[[float], float] = float) -> float:
+    """A status number in SI; NaN where the status has none (a stale sensor)."""
+    if isinstance(v, bool) or not isinstance(v, int | float):
+        return math.nan
+    return float(scale(float(v)))
+
+
+def _mm(v: Any) -> float:
+    return _num(v, units.mm)
+
+
+def _deg(v: Any) -> float:
+    return _num(v, units.deg)
+
+
+def _ms(v: Any) -> float:
+    return _num(v, units.ms)
+
+
+def _pick(seq: Any, i: int) -> Any:
+    return seq[i] if isinstance(seq, list | tuple) and len(seq) > i else None
+
+
+def _latched(st: Status, lock: Interlock) -> list[dict[str, Any]]:
+    return [f for f in _get(st, "faults") or () if f.get("interlock") == str(lock)]
+
+
+def _field(conv: Callable[[Any], Any], *keys: str) -> Callable[[Status], Any]:
+    return lambda s: conv(_get(s, *keys))
+
+
+def _side(i: int) -> Callable[[Any], float]:
+    return lambda v: _num(_pick(v, i))
+
+
+def _is_latched(lock: Interlock) -> Callable[[Status], bool]:
+    return lambda s: bool(_latched(s, lock))
+
+
+def _cause(lock: Interlock) -> Callable[[Status], str]:
+    return lambda s: "; ".join(str(f.get("text", "")) for f in _latched(s, lock))
+
+
+def mode(st: Status) -> str:
+    m = st.get("mode")
+    return m if isinstance(m, str) else "STOPPED"
+
+
+def variables(cfg: ProjectConfig) -> list[Var]:
+    """Every variable of the model for this project (the attitude cylinders by id)."""
+    out: list[Var] = [
+        # OPC 40001-1 Machinery building blocks
+        Var(
+            ("MachineryBuildingBlocks", "MachineryItemState", "CurrentState"),
+            "LocalizedText",
+            lambda s: ITEM_STATE.get(mode(s), "NotAvailable"),
+            ns=NS_MACHINERY,
+        ),
+        Var(
+            ("MachineryBuildingBlocks", "MachineryOperationMode", "CurrentState"),
+            "LocalizedText",
+            lambda s: OPERATION_MODE.get(str(s.get("unit_mode")), "None"),
+            ns=NS_MACHINERY,
+        ),
+        # OPC 30050 PackML: the state machine and its status
+        Var(
+            ("PackML", "Status", "StateCurrent"),
+            "Int32",
+            lambda s: PACKML_STATES.get(mode(s), 0),
+            ns=NS_PACKML,
+        ),
+        Var(("PackML", "Status", "StateCurrentName"), "String", mode, ns=NS_PACKML),
+        Var(
+            ("PackML", "Status", "UnitModeCurrent"),
+            "Int32",
+            lambda s: UNIT_MODE_CODES.get(str(s.get("unit_mode")), 0),
+            ns=NS_PACKML,
+        ),
+        Var(
+            ("PackML", "Status", "UnitModeCurrentName"),
+            "String",
+            lambda s: str(s.get("unit_mode") or ""),
+            ns=NS_PACKML,
+        ),
+        Var(
+            ("PackML", "Status", "StateSince"),
+            "Double",
+            lambda s: _num(s.get("since_s")),
+            SECOND,
+            ns=NS_PACKML,
+        ),
+        # the walk or ring cycle: present only when the service reports it
+        Var(
+            ("PackML", "Status", "CycleStep"),
+            "Int32",
+            lambda s: int(v) if isinstance(v := _get(s, "cycle", "step"), int) else -1,
+            ns=NS_PACKML,
+        ),
+        Var(
+            ("PackML", "Status", "CyclePhase"),
+            "String",
+            lambda s: str(_get(s, "cycle", "phase") or ""),
+            ns=NS_PACKML,
+        ),
+        Var(
+            ("PackML", "Status", "Message"),
+            "String",
+            lambda s: str(s.get("message") or ""),
+            ns=NS_PACKML,
+        ),
+        # the workpiece's attitude
+        Var(
+            ("Attitude", "TargetRoll"),
+            "Double",
+            lambda s: _deg(_pick(_get(s, "target_deg"), 0)),
+            RADIAN,
+        ),
+        Var(
+            ("Attitude", "TargetPitch"),
+            "Double",
+            lambda s: _deg(_pick(_get(s, "target_deg"), 1)),
+            RADIAN,
+        ),
+        Var(
+            ("Attitude", "MeasuredRoll"),
+            "Double",
+            lambda s: _deg(_pick(_get(s, "motion", "achieved_deg"), 0)),
+            RADIAN,
+        ),
+        Var(
+            ("Attitude", "MeasuredPitch"),
+            "Double",
+            lambda s: _deg(_pick(_get(s, "motion", "achieved_deg"), 1)),
+            RADIAN,
+        ),
+        Var(("Attitude", "ValvesEnabled"), "Boolean", lambda s: bool(s.get("valves_enabled"))),
+        Var(("Attitude", "EStopActive"), "Boolean", lambda s: bool(s.get("estop_active"))),
+        # the link to the PLC
+        Var(("Link", "State"), "String", lambda s: str(s.get("link") or "")),
+        Var(
+            ("Link", "Suspends"), "UInt32", lambda s: int(_get(s, "ride_through", "suspends") or 0)
+        ),
+        Var(("Link", "Resumes"), "UInt32", lambda s: int(_get(s, "ride_through", "resumes") or 0)),
+        # the fixed-rate loop's figures (the last report)
+        Var(("Loop", "Period"), "Double", lambda s: _ms(_get(s, "loop", "period_ms")), SECOND),
+        Var(
+            ("Loop", "ComputeP99"),
+            "Double",
+            lambda s: _ms(_get(s, "loop", "compute_p99_ms")),
+            SECOND,
+        ),
+        Var(
+            ("Loop", "JitterP99"), "Double", lambda s: _ms(_get(s, "loop", "jitter_p99_ms")), SECOND
+        ),
+        Var(("Loop", "Cycles"), "UInt32", lambda s: int(_get(s, "loop", "cycles") or 0)),
+        Var(("Loop", "Overruns"), "UInt32", lambda s: int(_get(s, "loop", "overruns") or 0)),
+    ]
+    for group in ("lower", "upper"):
+        out += [
+            Var(
+                ("Groups", group, "SyncError"), "Double", _field(_mm, "sync_error_mm", group), METRE
+            ),
+            Var(("Groups", group, "Twist"), "Double", _field(_mm, "twist_mm", group), METRE),
+        ]
+    ids = [*cfg.layers.lower.cylinders, *cfg.layers.upper.cylinders]
+    for cid in ids:
+        out += [
+            Var(("Cylinders", cid, "Position"), "Double", _field(_mm, "positions_mm", cid), METRE),
+            Var(
+                ("Cylinders", cid, "CapPressure"),
+                "Double",
+                _field(_side(0), "pressures_pa", cid),
+                PASCAL,
+            ),
+            Var(
+                ("Cylinders", cid, "RodPressure"),
+                "Double",
+                _field(_side(1), "pressures_pa", cid),
+                PASCAL,
+            ),
+            Var(("Cylinders", cid, "Valid"), "Boolean", _field(bool, "positions_valid", cid)),
+        ]
+    for lock in Interlock:
+        name = lock.name.title().replace("_", "")
+        out += [
+            Var(("Interlocks", name, "Latched"), "Boolean", _is_latched(lock)),
+            Var(("Interlocks", name, "Cause"), "String", _cause(lock)),
+        ]
+    return out
+
+
+def values(model: list[Var], status: Status) -> list[Any]:
+    """The value of each of ``model``'s variables in ``status`` (same order)."""
+    return [v.read(status) for v in model]

@@ -1,0 +1,489 @@
+"""The OPC UA server process (asyncua), beside the IPC service.
+
+It never runs in the service's process: it takes the service's status over the control
+socket every ``opcua.update_period_ms`` (``status`` is answered by the control channel's
+I/O thread from the loop's last published snapshot, so the loop never waits for it) and
+sends the methods' commands down the same socket (``adjust``, ``stop``, ``hold``,
+``unhold``, ``reset``, ``clear``), each followed by an ``audit`` entry (who, what,
+result) that the service logs and writes into its run record.
+
+Security: one endpoint, the configured policy with SignAndEncrypt; client certificates
+must be in the trust store (``pki_dir/trusted``); a user name and password is required
+(scrypt hashes, :mod:`ipc_app.opcua.users`) unless ``anonymous_read_only`` lets an
+anonymous session browse, read and subscribe. Methods: operator and engineer; a viewer
+or an anonymous session is refused with BadUserAccessDenied. Writes to the address space
+are refused to everyone (every variable is read-only). docs/opcua.md has the model.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextvars
+import logging
+import math
+import socket
+import time
+from collections.abc import Awaitable, Callable
+from pathlib import Path
+from typing import Any
+
+import structlog
+from asyncua import Server, ua
+from asyncua.common.utils import ServiceError
+from asyncua.crypto.permission_rules import USER_TYPES, PermissionRuleset, UserRole
+from asyncua.crypto.permission_rules import User as UaUser
+from asyncua.crypto.truststore import TrustStore
+from asyncua.crypto.validator import CertificateValidator, CertificateValidatorOptions
+from asyncua.server.user_managers import UserManager
+
+from config.schema import OpcUa, ProjectConfig
+from ipc_app.opcua import model as m
+from ipc_app.opcua import pki
+from ipc_app.opcua.users import CONTROL_ROLES, Users, UsersError, load_users
+from ipc_app.service.ctl import CtlError, request
+
+log = structlog.get_logger("wara.opcua")
+
+POLICIES = {
+    "Basic256Sha256": ua.SecurityPolicyType.Basic256Sha256_SignAndEncrypt,
+    "Aes128_Sha256_RsaOaep": ua.SecurityPolicyType.Aes128Sha256RsaOaep_SignAndEncrypt,
+    "Aes256_Sha256_RsaPss": ua.SecurityPolicyType.Aes256Sha256RsaPss_SignAndEncrypt,
+}
+VARIANT = {
+    "Double": ua.VariantType.Double,
+    "Boolean": ua.VariantType.Boolean,
+    "String": ua.VariantType.String,
+    "LocalizedText": ua.VariantType.LocalizedText,
+    "Int32": ua.VariantType.Int32,
+    "UInt32": ua.VariantType.UInt32,
+}
+INITIAL = {"Double": math.nan, "Boolean": False, "String": "", "Int32": 0, "UInt32": 0}
+MACHINE = "W-ARa"
+#: The largest message a client may send (the model's largest read is a few KiB).
+MAX_MESSAGE_BYTES = 4 * 1024 * 1024
+#: A session unused for longer is closed by the server (a client that vanished).
+MAX_SESSION_TIMEOUT_MS = 60_000
+#: How long a method waits for the service (adjust waits for the planner's verdict).
+METHOD_TIMEOUT_S = 20.0
+
+#: The caller of the request being processed (set by the permission check, which runs in
+#: the same task just before the call).
+_caller: contextvars.ContextVar[UaUser | None] = contextvars.ContextVar("caller", default=None)
+
+
+def _nid(ident: str | int, ns: int = 0) -> ua.NodeId:
+    """A NodeId (asyncua annotates its fields with its own integer and string types)."""
+    return ua.NodeId(ident, ns)  # type: ignore[arg-type]
+
+
+def _status(code: int) -> ua.StatusCode:
+    return ua.StatusCode(code)  # type: ignore[arg-type]
+
+
+class OpcUaError(Exception):
+    """The server cannot start (one line: the file or setting and what is wrong)."""
+
+
+class _Users(UserManager):
+    """Password users from the users file; anonymous only when allowed (read-only)."""
+
+    def __init__(self, users: Users, anonymous: bool) -> None:
+        self.users = users
+        self.anonymous = anonymous
+        self.roles: dict[str, str] = {}
+
+    def get_user(
+        self,
+        iserver: Any,
+        username: str | None = None,
+        password: str | None = None,
+        certificate: Any = None,
+    ) -> UaUser | None:
+        if username is None and password is None:
+            if self.anonymous:
+                return UaUser(role=UserRole.Anonymous, name=None)
+            log.warning("opcua_login_refused", user=None, reason="anonymous")
+            return None
+        user = self.users.check(username, password)
+        if user is None:
+            log.warning("opcua_login_refused", user=username, reason="wrong user or password")
+            return None
+        self.roles[user.name] = user.role
+        log.info("opcua_login", user=user.name, role=user.role)
+        return UaUser(role=UserRole.User, name=user.name)
+
+
+_READ_ONLY = frozenset(
+    _nid(t)
+    for t in USER_TYPES
+    if t
+    not in (
+        ua.ObjectIds.WriteRequest_Encoding_DefaultBinary,
+        ua.ObjectIds.CallRequest_Encoding_DefaultBinary,
+    )
+)
+_AUTHENTICATED = frozenset(
+    _nid(t) for t in USER_TYPES if t != ua.ObjectIds.WriteRequest_Encoding_DefaultBinary
+)
+
+
+class _Rules(PermissionRuleset):
+    """Which services a session may use; remembers the caller for the methods."""
+
+    def check_validity(self, user: Any, action_type: Any, body: Any) -> bool:
+        _caller.set(user)
+        if user is not None and user.role == UserRole.User:
+            return action_type in _AUTHENTICATED
+        return action_type in _READ_ONLY
+
+
+class _TrustDir:
+    """Client certificates must be in ``trusted/`` (read again whenever it changes, so
+    ``wara opcua cert --trust`` needs no restart); an empty store trusts nobody."""
+
+    def __init__(self, path: Path) -> None:
+        self.path = path
+        path.mkdir(parents=True, exist_ok=True, mode=0o700)
+        self._stamp: tuple[int, tuple[str, ...]] | None = None
+        self._validator: CertificateValidator | None = None
+
+    async def __call__(self, cert: Any, app: ua.ApplicationDescription) -> None:
+        files = tuple(
+            sorted(f.name for f in self.path.iterdir() if f.suffix.lower() in (".der", ".pem"))
+        )
+        stamp = (self.path.stat().st_mtime_ns, files)
+        if stamp != self._stamp:
+            self._stamp, self._validator = stamp, None
+            if files:
+                store = TrustStore([self.path], [])
+                await store.load()
+                self._validator = CertificateValidator(
+                    CertificateValidatorOptions.TRUSTED_VALIDATION
+                    | CertificateValidatorOptions.PEER_CLIENT,
+                    store,
+                )
+        if self._validator is None:
+            log.warning("opcua_certificate_refused", reason=f"nothing trusted in {self.path}")
+            raise ServiceError(ua.StatusCodes.BadCertificateUntrusted)
+        await self._validator(cert, app)
+
+
+def endpoint_url(opc: OpcUa, host: str | None = None) -> str:
+    h = host or (socket.gethostname() if opc.host in ("0.0.0.0", "::") else opc.host)
+    return f"opc.tcp://{h}:{opc.port}/wara/"
+
+
+class OpcUaServer:
+    """The server: build the model, feed it from the service, serve the methods."""
+
+    def __init__(
+        self,
+        cfg: ProjectConfig,
+        ctl_socket: str | Path | None,
+        *,
+        opc: OpcUa | None = None,
+    ) -> None:
+        self.cfg = cfg
+        self.opc = opc or cfg.opcua
+        self.ctl_socket = ctl_socket
+        self.model = m.variables(cfg)
+        self.nodes: list[Any] = []
+        self.last: list[Any] = []
+        self.reachable: Any = None
+        self.updates = 0
+        self.server: Server | None = None
+        self._users: _Users | None = None
+
+    async def build(self) -> Server:
+        opc = self.opc
+        try:
+            users = load_users(opc.users_file)
+        except UsersError as exc:
+            raise OpcUaError(f"opcua.users_file: {exc}") from None
+        cert, key = pki.own_cert(opc.pki_dir), pki.own_key(opc.pki_dir)
+        if not (cert.exists() and key.exists()):
+            raise OpcUaError(
+                f"opcua.pki_dir: no server certificate {cert} (create it with `wara opcua cert`)"
+            )
+        self._users = _Users(users, opc.anonymous_read_only)
+        srv = Server(user_manager=self._users)
+        srv.limits.max_message_size = MAX_MESSAGE_BYTES
+        srv.limits.max_chunk_count = math.ceil(MAX_MESSAGE_BYTES / srv.limits.max_recv_buffer)
+        await srv.init()
+        srv.iserver.max_connections = opc.max_connections
+        srv.iserver.max_session_timeout_ms = MAX_SESSION_TIMEOUT_MS
+        srv.set_endpoint(f"opc.tcp://{opc.host}:{opc.port}/wara/")
+        srv.set_server_name(f"W-ARa IPC ({self.cfg.project.name})")
+        host = socket.gethostname()
+        await srv.set_application_uri(pki.application_uri(host))
+        srv.product_uri = "urn:wara:ipc"
+        srv.manufacturer_name = "W-ARa"
+        srv.set_security_policy([POLICIES[opc.security_policy]], permission_ruleset=_Rules())  # type: ignore[arg-type]
+        tokens: list[type] = [ua.UserNameIdentityToken]
+        if opc.anonymous_read_only:
+            tokens.append(ua.AnonymousIdentityToken)
+        srv.set_identity_tokens(tokens)
+        await srv.load_certificate(str(cert))
+        await srv.load_private_key(str(key))
+        srv.set_certificate_validator(_TrustDir(pki.trusted_dir(opc.pki_dir)))
+        await self._model(srv)
+        self.server = srv
+        return srv
+
+    async def _model(self, srv: Server) -> None:
+        ns = {
+            uri: await srv.register_namespace(uri)
+            for uri in (m.NS_WARA, m.NS_MACHINERY, m.NS_PACKML)
+        }
+        w = ns[m.NS_WARA]
+        machines = await srv.nodes.objects.add_folder(
+            _nid("Machines", w), ua.QualifiedName("Machines", ns[m.NS_MACHINERY])
+        )
+        machine = await machines.add_object(_nid(MACHINE, w), ua.QualifiedName(MACHINE, w))
+        ident = await machine.add_object(
+            _nid(f"{MACHINE}.Identification", w),
+            ua.QualifiedName("Identification", ns[m.NS_MACHINERY]),
+        )
+        from importlib.metadata import PackageNotFoundError, version
+
+        try:
+            sw = version("wara-control")
+        except PackageNotFoundError:
+            sw = "unknown"
+        for name, val in (
+            ("Manufacturer", ua.LocalizedText("W-ARa")),
+            ("Model", ua.LocalizedText("W-ARa walk-through arc-part robot")),
+            ("ProductInstanceUri", pki.application_uri()),
+            ("SerialNumber", socket.gethostname()),
+            ("ComponentName", ua.LocalizedText(self.cfg.project.name)),
+            ("Location", self.cfg.project.section),
+            ("SoftwareRevision", sw),
+        ):
+            await ident.add_property(
+                _nid(f"{MACHINE}.Identification.{name}", w),
+                ua.QualifiedName(name, ns[m.NS_MACHINERY]),
+                val,
+            )
+        folders: dict[tuple[str, ...], Any] = {(): machine}
+        for var in self.model:
+            parent = machine
+            for depth in range(1, len(var.path)):
+                key = var.path[:depth]
+                if key not in folders:
+                    qn = ns[m.NS_MACHINERY if key[0] == "MachineryBuildingBlocks" else var.ns]
+                    if key[0] == "PackML":
+                        qn = ns[m.NS_PACKML]
+                    folders[key] = await folders[key[:-1]].add_object(
+                        _nid(".".join((MACHINE, *key)), w), ua.QualifiedName(key[-1], qn)
+                    )
+                parent = folders[key]
+            init: Any = ua.LocalizedText("") if var.kind == "LocalizedText" else INITIAL[var.kind]
+            node = await parent.add_variable(
+                _nid(".".join((MACHINE, *var.path)), w),
+                ua.QualifiedName(var.path[-1], ns[var.ns]),
+                ua.Variant(init, VARIANT[var.kind]),
+            )
+            if var.unit is not None:
+                await node.add_property(
+                    _nid(".".join((MACHINE, *var.path, "EngineeringUnits")), w),
+                    ua.QualifiedName("EngineeringUnits", 0),
+                    ua.EUInformation(
+                        NamespaceUri="http://www.opcfoundation.org/UA/units/un/cefact",
+                        UnitId=var.unit.unit_id,
+                        DisplayName=ua.LocalizedText(var.unit.symbol),
+                        Description=ua.LocalizedText(var.unit.name),
+                    ),
+                )
+            self.nodes.append(node)
+            self.last.append(None)
+        self.reachable = await machine.add_variable(
+            _nid(f"{MACHINE}.ServiceReachable", w),
+            ua.QualifiedName("ServiceReachable", w),
+            False,
+        )
+        await self._methods(machine, w)
+
+    async def _methods(self, machine: Any, w: int) -> None:
+        out = [_arg("Result", _nid(ua.ObjectIds.String), "the service's answer")]
+        start_in = [
+            _arg("Roll", _nid(ua.ObjectIds.Double), "target workpiece roll [rad]"),
+            _arg("Pitch", _nid(ua.ObjectIds.Double), "target workpiece pitch [rad]"),
+        ]
+
+        async def start(parent: Any, roll: Any, pitch: Any) -> Any:
+            r, p = _radians(roll), _radians(pitch)
+            if r is None or p is None:
+                return await self._refused(
+                    "StartAdjustment",
+                    "Roll and Pitch must be finite Doubles",
+                    ua.StatusCodes.BadInvalidArgument,
+                )
+            return await self._command(
+                f"StartAdjustment(roll={r:.6g} rad, pitch={p:.6g} rad)",
+                "adjust",
+                {"roll_deg": math.degrees(r), "pitch_deg": math.degrees(p)},
+            )
+
+        await machine.add_method(
+            _nid(f"{MACHINE}.StartAdjustment", w),
+            ua.QualifiedName("StartAdjustment", w),
+            start,
+            start_in,
+            out,
+        )
+        for name, cmd in (
+            ("Stop", "stop"),
+            ("Hold", "hold"),
+            ("Unhold", "unhold"),
+            ("Reset", "reset"),
+            ("Clear", "clear"),
+        ):
+            await machine.add_method(
+                _nid(f"{MACHINE}.{name}", w),
+                ua.QualifiedName(name, w),
+                self._simple(name, cmd),
+                [],
+                out,
+            )
+
+    def _simple(self, name: str, cmd: str) -> Callable[[Any], Awaitable[Any]]:
+        async def call(parent: Any) -> Any:
+            return await self._command(name, cmd, {})
+
+        return call
+
+    def _who(self) -> tuple[str, str | None]:
+        user = _caller.get()
+        if user is None or user.role != UserRole.User or self._users is None:
+            return "anonymous", None
+        return str(user.name), self._users.roles.get(str(user.name))
+
+    async def _refused(self, what: str, why: str, code: int) -> ua.CallMethodResult:
+        who, _role = self._who()
+        await self._audit(who, what, f"refused: {why}")
+        res = ua.CallMethodResult()
+        res.StatusCode = _status(code)
+        res.OutputArguments = [ua.Variant(why, ua.VariantType.String)]
+        return res
+
+    async def _command(self, what: str, cmd: str, args: dict[str, Any]) -> Any:
+        who, role = self._who()
+        if role not in CONTROL_ROLES:
+            return await self._refused(
+                what,
+                f"{who} ({role or 'no role'}) may not call methods",
+                ua.StatusCodes.BadUserAccessDenied,
+            )
+        try:
+            reply = await asyncio.to_thread(
+                request, cmd, socket_path=self.ctl_socket, timeout_s=METHOD_TIMEOUT_S, **args
+            )
+        except CtlError as exc:
+            return await self._refused(
+                what, f"service unreachable: {exc}", ua.StatusCodes.BadCommunicationError
+            )
+        if reply.get("ok") is not True:
+            code = {
+                "infeasible": ua.StatusCodes.BadOutOfRange,
+                "bad_request": ua.StatusCodes.BadInvalidArgument,
+            }.get(str(reply.get("code")), ua.StatusCodes.BadInvalidState)
+            return await self._refused(what, str(reply.get("error", "refused")), code)
+        result = f"ok: mode {reply.get('mode', '?')}"
+        await self._audit(who, what, result)
+        return [ua.Variant(result, ua.VariantType.String)]
+
+    async def _audit(self, who: str, what: str, result: str) -> None:
+        log.info("opcua_method", user=who, action=what, result=result)
+        try:
+            await asyncio.to_thread(
+                request,
+                "audit",
+                socket_path=self.ctl_socket,
+                timeout_s=5.0,
+                retry_s=1.0,
+                user=who[:40],
+                action=what.split("(")[0][:40],
+                result=f"{what}: {result}"[:400],
+            )
+        except CtlError as exc:
+            log.warning("opcua_audit_not_recorded", error=str(exc))
+
+    # ------------------------------------------------------------------ the feed
+
+    async def update(self, status: dict[str, Any] | None) -> None:
+        """Write the variables whose value changed (status None: the service is gone)."""
+        assert self.reachable is not None
+        await self.reachable.write_value(status is not None)
+        if status is None:
+            return
+        for i, (var, val) in enumerate(zip(self.model, m.values(self.model, status), strict=True)):
+            old = self.last[i]
+            if old == val or (
+                isinstance(val, float)
+                and isinstance(old, float)
+                and math.isnan(val)
+                and math.isnan(old)
+            ):
+                continue
+            self.last[i] = val
+            v = ua.LocalizedText(val) if var.kind == "LocalizedText" else val
+            await self.nodes[i].write_value(ua.Variant(v, VARIANT[var.kind]))
+        self.updates += 1
+
+    async def feed(self) -> None:
+        period = self.opc.update_period_ms / 1000.0
+        was_up = None
+        nxt = time.monotonic()
+        while True:
+            try:
+                st: dict[str, Any] | None = await asyncio.to_thread(
+                    request, "status", socket_path=self.ctl_socket, timeout_s=2.0, retry_s=0.0
+                )
+            except CtlError as exc:
+                st = None
+                if was_up is not False:
+                    log.warning("opcua_service_unreachable", error=str(exc))
+            if st is not None and was_up is not True:
+                log.info("opcua_service_reachable")
+            was_up = st is not None
+            try:
+                await self.update(st)
+            except Exception:  # a bug in the model must not end the feed
+                log.exception("opcua_update_failed")
+            nxt = max(nxt + period, time.monotonic())
+            await asyncio.sleep(nxt - time.monotonic())
+
+    async def serve(self, ready: Callable[[str], None] | None = None) -> None:
+        srv = self.server or await self.build()
+        async with srv:
+            url = endpoint_url(self.opc)
+            log.info(
+                "opcua_started",
+                endpoint=url,
+                policy=self.opc.security_policy,
+                anonymous_read_only=self.opc.anonymous_read_only,
+            )
+            if ready is not None:
+                ready(url)
+            await self.feed()
+
+
+def _arg(name: str, dtype: ua.NodeId, text: str) -> ua.Argument:
+    a = ua.Argument()
+    a.Name = name
+    a.DataType = dtype
+    a.ValueRank = -1
+    a.Description = ua.LocalizedText(text)
+    return a
+
+
+def _radians(v: Any) -> float | None:
+    x = v.Value if isinstance(v, ua.Variant) else v
+    if isinstance(x, bool) or not isinstance(x, int | float) or not math.isfinite(x):
+        return None
+    return float(x)
+
+
+def quiet_asyncua() -> None:
+    """asyncua logs every request at INFO: keep its warnings only."""
+    logging.getLogger("asyncua").setLevel(logging.WARNING)

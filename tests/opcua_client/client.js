@@ -1,0 +1,162 @@
+// An independent OPC UA client (node-opcua) for the tests of the W-ARa OPC UA server.
+//
+//   node client.js SCENARIO URL CERT.pem KEY.pem PKI_DIR [USER PASSWORD]
+//
+// SCENARIO: "full" (browse to the Machinery and PackML nodes, subscribe to the attitude
+// and the PackML state at 10 Hz, call StartAdjustment and Stop, see the state change),
+// "session" (open a session only: for the refusals), "call-start" (call StartAdjustment
+// only). Prints one JSON object on stdout: {"ok": bool, "error": ..., ...}.
+"use strict";
+const {
+  OPCUAClient,
+  MessageSecurityMode,
+  SecurityPolicy,
+  UserTokenType,
+  ClientSubscription,
+  ClientMonitoredItem,
+  AttributeIds,
+  TimestampsToReturn,
+  DataType,
+  makeBrowsePath,
+  StatusCodes,
+} = require("node-opcua-client");
+const { OPCUACertificateManager } = require("node-opcua-certificate-manager");
+
+const [scenario, url, certFile, keyFile, pkiDir, user, password] = process.argv.slice(2);
+const NS = "urn:wara:ipc";
+const out = { ok: false, scenario };
+
+function done(code) {
+  console.log(JSON.stringify(out));
+  process.exit(code);
+}
+
+async function main() {
+  const certificateManager = new OPCUACertificateManager({
+    rootFolder: pkiDir,
+    automaticallyAcceptUnknownCertificate: true, // the server's: the test trusts it
+  });
+  await certificateManager.initialize();
+  const client = OPCUAClient.create({
+    applicationName: "wara-test-node-client",
+    applicationUri: "urn:wara:test:node-client",
+    securityMode: MessageSecurityMode.SignAndEncrypt,
+    securityPolicy: SecurityPolicy.Basic256Sha256,
+    certificateFile: certFile,
+    privateKeyFile: keyFile,
+    clientCertificateManager: certificateManager,
+    endpointMustExist: false,
+    connectionStrategy: { maxRetry: 0, initialDelay: 100, maxDelay: 200 },
+    requestedSessionTimeout: 30000,
+    // generous: the tests run on shared, loaded machines
+    transportTimeout: 60000,
+    defaultTransactionTimeout: 60000,
+  });
+  const t0 = Date.now();
+  await client.connect(url);
+  out.connected = true;
+  const identity = user
+    ? { type: UserTokenType.UserName, userName: user, password }
+    : { type: UserTokenType.Anonymous };
+  let session;
+  try {
+    session = await client.createSession(identity);
+  } catch (err) {
+    out.error = `session refused: ${err.message}`;
+    await client.disconnect();
+    return done(3);
+  }
+  out.session = true;
+  const ns = (await session.readNamespaceArray()).indexOf(NS);
+  const nsMach = (await session.readNamespaceArray()).indexOf("http://opcfoundation.org/UA/Machinery/");
+  const nsPack = (await session.readNamespaceArray()).indexOf("http://opcfoundation.org/UA/PackML/");
+  const id = (s) => `ns=${ns};s=W-ARa.${s}`;
+  const objectId = id("").slice(0, -1);
+
+  async function call(name, args) {
+    const r = await session.call({ objectId, methodId: id(name), inputArguments: args || [] });
+    return { status: r.statusCode.name, output: (r.outputArguments || []).map((v) => v.value) };
+  }
+
+  if (scenario === "session") {
+    out.ok = true;
+  } else if (scenario === "call-start") {
+    out.start = await call("StartAdjustment", [
+      { dataType: DataType.Double, value: 0.01 },
+      { dataType: DataType.Double, value: 0.02 },
+    ]);
+    out.ok = out.start.status === "Good";
+  } else if (scenario === "full") {
+    // browse by path, as a SCADA integrator would
+    const paths = {
+      identification: `/${nsMach}:Machines/${ns}:W-ARa/${nsMach}:Identification/${nsMach}:Manufacturer`,
+      item_state: `/${nsMach}:Machines/${ns}:W-ARa/${nsMach}:MachineryBuildingBlocks/${nsMach}:MachineryItemState/${nsMach}:CurrentState`,
+      operation_mode: `/${nsMach}:Machines/${ns}:W-ARa/${nsMach}:MachineryBuildingBlocks/${nsMach}:MachineryOperationMode/${nsMach}:CurrentState`,
+      packml_state: `/${nsMach}:Machines/${ns}:W-ARa/${nsPack}:PackML/${nsPack}:Status/${nsPack}:StateCurrent`,
+    };
+    out.browse = {};
+    for (const [k, p] of Object.entries(paths)) {
+      const r = await session.translateBrowsePath(makeBrowsePath("ObjectsFolder", p));
+      if (r.statusCode !== StatusCodes.Good) throw new Error(`browse ${k}: ${r.statusCode.name}`);
+      const dv = await session.read({ nodeId: r.targets[0].targetId, attributeId: AttributeIds.Value });
+      const v = dv.value.value;
+      out.browse[k] = v && v.text !== undefined ? v.text : v;
+    }
+    const eu = await session.read({ nodeId: id("Attitude.MeasuredRoll.EngineeringUnits"), attributeId: AttributeIds.Value });
+    out.roll_unit = eu.value.value.displayName.text;
+
+    const sub = ClientSubscription.create(session, {
+      requestedPublishingInterval: 100,
+      requestedLifetimeCount: 100,
+      requestedMaxKeepAliveCount: 10,
+      maxNotificationsPerPublish: 100,
+      publishingEnabled: true,
+      priority: 10,
+    });
+    const states = [];
+    const rolls = [];
+    const watch = (nodeId, sink) => {
+      const item = ClientMonitoredItem.create(
+        sub,
+        { nodeId, attributeId: AttributeIds.Value },
+        { samplingInterval: 100, discardOldest: true, queueSize: 10 },
+        TimestampsToReturn.Both,
+      );
+      item.on("changed", (dv) => sink.push(dv.value.value));
+      return item;
+    };
+    watch(id("PackML.Status.StateCurrent"), states);
+    watch(id("Attitude.MeasuredRoll"), rolls);
+    const waitFor = async (pred, ms) => {
+      const end = Date.now() + ms;
+      while (Date.now() < end) {
+        if (pred()) return true;
+        await new Promise((r) => setTimeout(r, 20));
+      }
+      return false;
+    };
+    await waitFor(() => states.length > 0 && rolls.length > 0, 5000);
+    out.initial_state = states[states.length - 1];
+    out.start = await call("StartAdjustment", [
+      { dataType: DataType.Double, value: 0.01 },
+      { dataType: DataType.Double, value: 0.02 },
+    ]);
+    out.saw_execute = await waitFor(() => states.includes(6), 5000);
+    out.stop = await call("Stop");
+    out.saw_idle_after = await waitFor(() => states.lastIndexOf(4) > states.indexOf(6), 5000);
+    out.states = states;
+    out.rolls = rolls.slice(0, 3);
+    await sub.terminate();
+    out.ok =
+      out.start.status === "Good" && out.stop.status === "Good" && out.saw_execute && out.saw_idle_after;
+  }
+  out.elapsed_ms = Date.now() - t0;
+  await session.close();
+  await client.disconnect();
+  done(out.ok ? 0 : 1);
+}
+
+main().catch((err) => {
+  out.error = String(err && err.message ? err.message : err);
+  done(2);
+});

@@ -1,0 +1,354 @@
+"""The OPC UA server: users file, configuration, the model's mapping, the audit path,
+and the server process seen by an independent client (node-opcua) and by rude ones."""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import json
+import math
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+from types import SimpleNamespace
+from typing import Any
+
+import pytest
+
+from config import ConfigError, load_project
+from ipc_app.opcua import model as m
+from ipc_app.opcua.users import UsersError, add_user, load_users
+from ipc_app.service.core import ServiceCore
+from ipc_app.service.ctl import Request, dispatch, parse
+from ipc_app.service.record import RunRecorder, read_run
+from tests import opcua_support as S
+
+# ---------------------------------------------------------------------- users file
+
+
+def test_users_file_is_0600_and_checks_passwords(tmp_path: Path) -> None:
+    f = tmp_path / "sub" / "users.json"
+    assert add_user(f, "op", "operator", "operator-pass") is True
+    assert add_user(f, "vi", "viewer", "viewer-pass") is True
+    assert add_user(f, "op", "engineer", "new-operator-pass") is False  # replaced
+    assert (f.stat().st_mode & 0o777) == 0o600
+    assert "operator-pass" not in f.read_text()
+    users = load_users(f)
+    assert users.check("op", "operator-pass") is None
+    u = users.check("op", "new-operator-pass")
+    assert u is not None and u.role == "engineer"
+    assert users.check("vi", "viewer-pass") is not None
+    assert users.check("nobody", "viewer-pass") is None
+    assert users.check("vi", None) is None
+
+
+def test_users_file_readable_by_others_is_refused(tmp_path: Path) -> None:
+    f = tmp_path / "users.json"
+    add_user(f, "op", "operator", "operator-pass")
+    os.chmod(f, 0o644)
+    with pytest.raises(UsersError, match="must be 0600"):
+        load_users(f)
+
+
+@pytest.mark.parametrize(
+    ("name", "role", "password", "message"),
+    [
+        ("op", "admin", "long-enough", "role 'admin'"),
+        ("o p", "viewer", "long-enough", "user name"),
+        ("op", "viewer", "short", "at least 8"),
+    ],
+)
+def test_adduser_refuses_bad_input(
+    tmp_path: Path, name: str, role: str, password: str, message: str
+) -> None:
+    with pytest.raises(UsersError, match=message):
+        add_user(tmp_path / "u.json", name, role, password)
+
+
+def test_cli_adduser_one_line_errors(tmp_path: Path) -> None:
+    p = subprocess.run(
+        [sys.executable, "-m", "wara", "opcua", "adduser", "op", "--role", "operator",
+         "--users-file", str(tmp_path / "u.json"), "--password-stdin"],
+        input="short\n", capture_output=True, text=True, timeout=60,
+    )  # fmt: skip
+    assert p.returncode == 2 and p.stderr.count("\n") == 1, p.stderr
+    assert "at least 8 characters" in p.stderr
+
+
+# ---------------------------------------------------------------------- configuration
+
+
+def test_opcua_off_by_default_and_validated(tmp_path: Path) -> None:
+    assert load_project(None).opcua.enabled is False
+    cfg = S.write_config(tmp_path, 4840, security_policy="Basic256Sha256")
+    assert load_project(cfg).opcua.enabled is True
+    for port, bad in ((80, {}), (4840, {"security_policy": "None"}), (4840, {"colour": "red"}),
+                      (4840, {"update_period_ms": 1})):  # fmt: skip
+        path = S.write_config(tmp_path, port, **bad)
+        with pytest.raises(ConfigError, match="opcua"):
+            load_project(path)
+
+
+# ---------------------------------------------------------------------- the model
+
+
+def test_model_values_are_si_and_follow_the_status() -> None:
+    cfg = load_project(None)
+    model = m.variables(cfg)
+    status = S.FakeService(mode="EXECUTE", target=[2.0, 1.0]).status()
+    status["faults"] = [{"interlock": "twist", "text": "twist 1.6 mm > 1.5 mm"}]
+    vals = dict(zip((v.path for v in model), m.values(model, status), strict=True))
+    assert vals[("PackML", "Status", "StateCurrent")] == 6
+    assert vals[("MachineryBuildingBlocks", "MachineryItemState", "CurrentState")] == "Executing"
+    assert vals[("MachineryBuildingBlocks", "MachineryOperationMode", "CurrentState")] == (
+        "Processing"
+    )
+    assert vals[("Attitude", "TargetRoll")] == pytest.approx(math.radians(2.0))
+    assert vals[("Attitude", "MeasuredPitch")] == pytest.approx(math.radians(-0.25))
+    assert vals[("Cylinders", "main_leg_1", "Position")] == pytest.approx(0.4)
+    assert vals[("Cylinders", "main_leg_1", "CapPressure")] == pytest.approx(5.0e6)
+    assert vals[("Cylinders", "main_leg_1", "Valid")] is True
+    assert math.isnan(vals[("Cylinders", "main_leg_2", "Position")])  # not in the status
+    assert vals[("Groups", "upper", "SyncError")] == pytest.approx(2e-5)
+    assert vals[("Loop", "ComputeP99")] == pytest.approx(0.0008)
+    assert vals[("Interlocks", "Twist", "Latched")] is True
+    assert vals[("Interlocks", "Twist", "Cause")] == "twist 1.6 mm > 1.5 mm"
+    assert vals[("Interlocks", "SyncError", "Latched")] is False
+    assert vals[("PackML", "Status", "CycleStep")] == -1  # no walk in the status
+    status["cycle"] = {"step": 3, "phase": "transfer"}
+    vals = dict(zip((v.path for v in model), m.values(model, status), strict=True))
+    assert (vals[("PackML", "Status", "CycleStep")], vals[("PackML", "Status", "CyclePhase")]) == (
+        3,
+        "transfer",
+    )
+    ids = {v.path[1] for v in model if v.path[0] == "Cylinders"}
+    assert ids == {*cfg.layers.lower.cylinders, *cfg.layers.upper.cylinders}
+    assert all(v.unit is not None for v in model if v.kind == "Double")
+
+
+# ---------------------------------------------------------------------- the audit path
+
+
+def test_ctl_audit_request_is_checked() -> None:
+    assert parse(b'{"cmd": "audit", "user": "op", "action": "Stop", "result": "ok"}') == Request(
+        "audit", ("op", "Stop", "ok")
+    )
+    for bad in (
+        b'{"cmd": "audit", "user": "op", "action": "Stop"}',
+        b'{"cmd": "audit", "user": "", "action": "Stop", "result": "ok"}',
+        b'{"cmd": "audit", "user": "op", "action": "Stop", "result": "' + b"x" * 500 + b'"}',
+    ):
+        reply = parse(bad)
+        assert isinstance(reply, dict) and reply["code"] == "bad_request", bad
+
+
+def test_audit_goes_into_the_run_record_and_the_log(tmp_path: Path) -> None:
+    rec = RunRecorder(tmp_path / "run", ["x"])
+    rec.start()
+    core: Any = SimpleNamespace(record=rec, _now=12.5)
+    handlers = S.FakeService().handlers()
+    # the service's handler: ServiceCore.audit
+    out = ServiceCore.audit(core, "op", "Stop", "Stop: ok: mode IDLE")
+    assert out == {}
+    rec.stop()
+    events = [e for e in read_run(tmp_path / "run").events if e["kind"] == "audit"]
+    assert events == [
+        {
+            "t_s": 12.5,
+            "kind": "audit",
+            "user": "op",
+            "action": "Stop",
+            "result": "Stop: ok: mode IDLE",
+        }
+    ]
+    assert dispatch(handlers, b'{"cmd":"audit","user":"a","action":"b","result":"c"}')["ok"]
+
+
+# ---------------------------------------------------------------------- with a client
+
+
+def _node(
+    rig: S.Rig, tmp: Path, scenario: str, *user: str, cert: str = "trusted"
+) -> dict[str, Any]:
+    c, k = (rig.cert, rig.key) if cert == "trusted" else (rig.untrusted_cert, rig.untrusted_key)
+    p = S.run_node("client.js", scenario, rig.url, str(c), str(k), str(tmp / f"node-{cert}"), *user)
+    try:
+        return dict(json.loads(p.stdout.strip().splitlines()[-1]))
+    except (ValueError, IndexError):
+        raise AssertionError(
+            f"no JSON from the node client: {p.stdout!r} {p.stderr[-2000:]}"
+        ) from None
+
+
+needs_node = pytest.mark.skipif(S.node_available() is not None, reason=str(S.node_available()))
+
+
+@pytest.mark.slow
+@needs_node
+def test_node_client_browses_subscribes_and_calls(tmp_path: Path) -> None:
+    with S.rig(tmp_path) as rig:
+        out = _node(rig, tmp_path, "full", "op", S.PASSWORDS["op"])
+        assert out["ok"], out
+        assert out["browse"] == {
+            "identification": "W-ARa",
+            "item_state": "NotExecuting",
+            "operation_mode": "Processing",
+            "packml_state": 4,
+        }
+        assert out["roll_unit"] == "rad"
+        assert out["states"][0] == 4 and 6 in out["states"] and out["states"][-1] == 4
+        assert out["rolls"][0] == pytest.approx(math.radians(0.5))
+        assert ("adjust", pytest.approx(math.degrees(0.01)), pytest.approx(math.degrees(0.02))) in (
+            rig.service.calls
+        )
+        audits = rig.service.audits
+        assert [(u, a) for u, a, _ in audits] == [("op", "StartAdjustment"), ("op", "Stop")]
+        assert all("ok: mode" in r for _, _, r in audits)
+        # an engineer may do what an operator may
+        rig.service.mode = "IDLE"
+        assert _node(rig, tmp_path, "call-start", "en", S.PASSWORDS["en"])["ok"]
+
+
+@pytest.mark.slow
+@needs_node
+def test_node_client_is_refused_without_the_right_credentials(tmp_path: Path) -> None:
+    with S.rig(tmp_path) as rig:
+        anon = _node(rig, tmp_path, "session")
+        assert not anon["ok"] and "session refused" in anon["error"], anon
+        wrong = _node(rig, tmp_path, "session", "op", "not-the-password")
+        assert not wrong["ok"] and "BadUserAccessDenied" in wrong["error"], wrong
+        untrusted = _node(rig, tmp_path, "session", "op", S.PASSWORDS["op"], cert="untrusted")
+        assert not untrusted["ok"] and "BadCertificateUntrusted" in untrusted["error"], untrusted
+        viewer = _node(rig, tmp_path, "call-start", "vi", S.PASSWORDS["vi"])
+        assert viewer["session"] and viewer["start"]["status"] == "BadUserAccessDenied", viewer
+        assert rig.service.calls == []  # nothing reached the service
+        assert rig.service.audits[-1][:2] == ("vi", "StartAdjustment")
+        assert "refused" in rig.service.audits[-1][2]
+
+
+@pytest.mark.slow
+@needs_node
+def test_anonymous_read_only_reads_but_calls_nothing(tmp_path: Path) -> None:
+    with S.rig(tmp_path, anonymous_read_only=True) as rig:
+        assert _node(rig, tmp_path, "session")["ok"]
+        call = _node(rig, tmp_path, "call-start")
+        assert "BadUserAccessDenied" in json.dumps(call), call
+        assert rig.service.calls == []
+
+
+# ---------------------------------------------------------------------- rude clients
+
+
+async def _asyncua_read(rig: S.Rig, node: str) -> Any:
+    from asyncua import Client, ua
+
+    c = Client(rig.url, timeout=10)
+    c.application_uri = S.CLIENT_URI
+    await c.set_security_string(f"Basic256Sha256,SignAndEncrypt,{rig.cert},{rig.key}")
+    c.set_user("vi")
+    c.set_password(S.PASSWORDS["vi"])
+    async with c:
+        ns = await c.get_namespace_index(m.NS_WARA)
+        return await c.get_node(ua.NodeId(f"W-ARa.{node}", ns)).read_value()
+
+
+async def _vanish(rig: S.Rig) -> None:
+    """Open a session, then drop the TCP connection without closing anything."""
+    from asyncua import Client
+
+    for _ in range(40):  # the server may still be closing the 100 connections
+        c = Client(rig.url, timeout=10)
+        c.application_uri = S.CLIENT_URI
+        c.set_user("op")
+        c.set_password(S.PASSWORDS["op"])
+        try:
+            await c.set_security_string(f"Basic256Sha256,SignAndEncrypt,{rig.cert},{rig.key}")
+            await c.connect()
+            break
+        except (TimeoutError, OSError):
+            await asyncio.sleep(0.5)
+    else:
+        raise AssertionError("no session after the 100 connects")
+    transport = c.uaclient.protocol.transport  # type: ignore[union-attr]
+    transport.abort()  # the peer is gone: no CloseSession, no CloseSecureChannel
+    await asyncio.sleep(0.2)
+
+
+def _raw(port: int, data: bytes) -> None:
+    with socket.create_connection(("127.0.0.1", port), timeout=5) as s:
+        s.sendall(data)
+        s.settimeout(0.5)
+        try:
+            while s.recv(4096):
+                pass
+        except (TimeoutError, ConnectionError):
+            pass
+
+
+@pytest.mark.slow
+def test_hostile_clients_do_not_stop_the_server(tmp_path: Path) -> None:
+    import random
+    import struct
+
+    rnd = random.Random(7)
+    with S.rig(tmp_path) as rig:
+        pid = rig.server.proc.pid if rig.server.proc else None
+        assert asyncio.run(_asyncua_read(rig, "PackML.Status.StateCurrent")) == 4
+        hello = b"HELF" + struct.pack("<I", 32) + struct.pack("<IIIII", 0, 65536, 65536, 0, 0)
+        garbage = [
+            b"\x00" * 64,
+            b"GET / HTTP/1.1\r\nHost: x\r\n\r\n",
+            b"HELF" + struct.pack("<I", 0xFFFFFFF0) + b"\x00" * 20,  # a 4 GiB message announced
+            hello[:11],  # truncated
+            hello + b"MSGF" + struct.pack("<I", 24) + b"\xff" * 16,  # a message before OPN
+            b"OPNF" + struct.pack("<I", 100) + bytes(rnd.getrandbits(8) for _ in range(92)),
+            *(bytes(rnd.getrandbits(8) for _ in range(rnd.randrange(1, 400))) for _ in range(20)),
+        ]
+        for g in garbage:
+            _raw(rig.port, g)
+        socks = []
+        for _ in range(100):  # 100 connects, held open together, then dropped
+            with contextlib.suppress(OSError):  # refused beyond max_connections: as meant
+                socks.append(socket.create_connection(("127.0.0.1", rig.port), timeout=5))
+        for s in socks:
+            s.close()
+        asyncio.run(_vanish(rig))
+        # recovered: the same process serves a new session and still follows the service
+        rig.service.mode = "HELD"
+        deadline = time.monotonic() + 20
+        state = None
+        while time.monotonic() < deadline and state != 11:
+            state = asyncio.run(_asyncua_read(rig, "PackML.Status.StateCurrent"))
+        assert state == 11
+        assert rig.server.proc is not None and rig.server.proc.pid == pid
+        assert rig.server.restarts == 0
+        assert rig.ctl.healthy
+
+
+@pytest.mark.slow
+def test_a_killed_server_process_is_started_again(tmp_path: Path) -> None:
+    with S.rig(tmp_path) as rig:
+        assert rig.server.proc is not None
+        os.kill(rig.server.proc.pid, signal.SIGKILL)
+        deadline = time.monotonic() + 60
+        while time.monotonic() < deadline and rig.server.restarts == 0:
+            time.sleep(0.2)
+        assert rig.server.restarts == 1
+        assert asyncio.run(_asyncua_read(rig, "PackML.Status.StateCurrent")) == 4
+
+
+def test_serve_with_opcua_and_no_users_file_is_one_line(tmp_path: Path) -> None:
+    cfg = S.write_config(tmp_path, S.free_port())
+    p = subprocess.run(
+        [sys.executable, "-m", "wara", "serve", "--config", str(cfg),
+         "--socket", str(tmp_path / "ctl.sock")],
+        capture_output=True, text=True, timeout=120,
+    )  # fmt: skip
+    assert p.returncode == 2, p.stderr
+    last = p.stderr.strip().splitlines()[-1]
+    assert last.startswith("wara serve: error: the OPC UA server did not start: opcua: ")
+    assert "no users file" in last and "wara opcua adduser" in last

@@ -1,0 +1,188 @@
+"""``wara bench opcua --json``: the loop with and without 10 OPC UA clients, in one run.
+
+The two-process form (``wara demo --two-process``: simulator and service over UDP
+multicast in a private network namespace, the loop thread on a CPU of its own). In one
+run of the pair: phase ``without`` (no OPC UA server at all) and phase ``with`` (the OPC
+UA server process on the service's control socket and 10 clients, asyncua, one process,
+each subscribed at 10 Hz to the attitude, the PackML state and every cylinder position);
+each phase runs the same adjustment cycles (adjust, COMPLETE, stop to IDLE). Per phase the
+loop's compute p99 and overruns (the service's own reports, as the two-process demo
+judges them); for the ``with`` phase the latency from each PackML state change in the
+loop to its notification at a client (p50/p99/max; goal p99 < 200 ms).
+
+``--quick``: 2 cycles per phase instead of 6. Progress on stderr.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import socket
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+from config import load_project, units
+from wara import demo_two_process as d2
+from wara.demo import stderr_progress
+
+CLIENTS = 10
+LATENCY_GOAL_S = 0.2
+TARGETS = ((1.0, 0.5), (-1.0, 0.5))
+USER, PASSWORD = "bench", "bench-password"
+CLIENT_URI = "urn:wara:bench:client"
+
+
+def run(args: argparse.Namespace) -> dict[str, Any] | None:
+    from wara.extras import require, require_realtime_simulator
+
+    require_realtime_simulator()
+    require("asyncua", "wara bench opcua")
+    if getattr(args, "inside_netns", None):
+        try:
+            result = inside(Path(args.inside_netns), args.config, 2 if args.quick else 6)
+        except (d2.TwoProcessError, OSError, ValueError) as exc:  # e.g. a fault latched
+            result = {"bench": "opcua", "passed": False, "error": str(exc),
+                      "load_average": list(os.getloadavg())}  # fmt: skip
+        (Path(args.inside_netns) / "bench-opcua.json").write_text(json.dumps(result))
+        return None
+    with tempfile.TemporaryDirectory(prefix="wara-bench-opcua-") as tmp:
+        work = Path(tmp)
+        inner = ["bench", "opcua", "--json", *(["--quick"] if args.quick else [])]
+        code = d2.run_in_netns(inner, args.config, keep_dir=work)
+        out = work / "bench-opcua.json"
+        if not out.exists():
+            return {"passed": False, "error": f"the run inside the namespace ended {code}"}
+        return dict(json.loads(out.read_text()))
+
+
+def _prepare(work: Path) -> tuple[list[str], list[str]]:
+    """Users, certificates and the port; the server's and the clients' arguments."""
+    from ipc_app.opcua import pki
+    from ipc_app.opcua.users import add_user
+
+    add_user(work / "users.json", USER, "viewer", PASSWORD)
+    pki.create_server_cert(work / "pki")
+    cert, key = pki.client_cert(work / "client", "bench-client", CLIENT_URI)
+    pki.trust(work / "pki", cert)
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = int(s.getsockname()[1])
+    server = ["--users-file", str(work / "users.json"), "--pki-dir", str(work / "pki"),
+              "--port", str(port), "--host", "127.0.0.1"]  # fmt: skip
+    url = f"opc.tcp://127.0.0.1:{port}/wara/"
+    return server, [url, str(cert), str(key), USER, PASSWORD, str(CLIENTS)]
+
+
+def _cycles(svc: Any, watch: Any, n: int, say: Any) -> int:
+    changes = 0
+    for i in range(n):
+        roll, pitch = TARGETS[i % 2]
+        reply = svc.call("adjust", roll_deg=roll, pitch_deg=pitch)
+        if not reply.get("ok"):
+            raise d2.TwoProcessError(f"adjust refused: {reply.get('error')}")
+        st = svc.wait(lambda s: (watch.see(s), s.get("mode") in ("COMPLETE", "ABORTED"))[1], 120.0)
+        if st is None or st.get("mode") != "COMPLETE":
+            raise d2.TwoProcessError(
+                f"cycle {i}: {st and (st.get('mode'), st.get('fault_reasons'))}"
+            )
+        time.sleep(1.0)
+        svc.call("stop")
+        svc.wait(lambda s: (watch.see(s), s.get("mode") == "IDLE")[1], 30.0)
+        changes += 4  # STARTING, EXECUTE, COMPLETE, IDLE
+        say(f"cycle {i + 1}/{n} done")
+    return changes
+
+
+def _seeing(watch: Any, *modes: str) -> Callable[[dict[str, Any]], bool]:
+    """A wait condition: one of ``modes`` reached (the loop reports noted on the way)."""
+
+    def pred(st: dict[str, Any]) -> bool:
+        watch.see(st)
+        return st.get("mode") in modes
+
+    return pred
+
+
+def _next_report(svc: Any, watch: Any) -> None:
+    """Wait for the service's next loop report (a baseline first when there is none)."""
+    n = len(watch.reports) if watch.baseline is not None else -1
+
+    def pred(st: dict[str, Any]) -> bool:
+        watch.see(st)
+        return watch.baseline is not None and len(watch.reports) > n
+
+    svc.wait(pred, 30.0, poll_s=0.2)
+
+
+def inside(work: Path, config_path: str, cycles: int) -> dict[str, Any]:
+    from ipc_app.opcua.process import OpcUaProcess
+
+    say = stderr_progress
+    server_args, client_args = _prepare(work)
+    cfg_period = load_project(config_path).control.period_s
+    codes: dict[str, int] = {}
+    phases: dict[str, Any] = {}
+    lat: list[float] = []
+    notes: dict[str, Any] = {}
+    with d2.service_and_simulator(work, config_path, say, codes) as (svc, _sim, placement):
+        for phase in ("without", "with"):
+            watch = d2._LoopWatch()
+            srv = clients = None
+            if phase == "with":
+                srv = OpcUaProcess(config_path, work / "ctl.sock", server_args,
+                                   stderr=(work / "opcua.log").open("w"))  # fmt: skip
+                srv.start()
+                clients = subprocess.Popen(
+                    [sys.executable, "-m", "wara.benches.opcua_clients", *client_args],
+                    stdout=subprocess.PIPE, text=True, env=d2._env(),
+                )  # fmt: skip
+                assert clients.stdout is not None
+                if clients.stdout.readline().strip() != "READY":
+                    raise d2.TwoProcessError("the OPC UA clients did not connect")
+                say(f"{CLIENTS} OPC UA clients subscribed")
+            # baseline: the first loop report of this phase
+            _next_report(svc, watch)
+            _next_report(svc, watch)
+            watch.baseline, watch.reports = watch.reports[-1], []
+            t0 = time.monotonic()
+            _cycles(svc, watch, cycles, say)
+            _next_report(svc, watch)
+            phases[phase] = watch.summary(cfg_period) | {"wall_s": time.monotonic() - t0}
+            if clients is not None and srv is not None:
+                clients.terminate()
+                out, _ = clients.communicate(timeout=60)
+                got = json.loads(out.strip().splitlines()[-1])
+                lat = sorted(got["latencies_s"])
+                notes = {"notifications": got["notifications"], "clients": got["clients"]}
+                srv.stop()
+    p99 = lat[min(len(lat) - 1, int(0.99 * len(lat)))] if lat else None
+    w, wo = phases.get("with", {}), phases.get("without", {})
+    return {
+        "bench": "opcua",
+        "form": "two-process (private netns), OPC UA server a third process",
+        "placement": placement,
+        "cycles_per_phase": cycles,
+        "without": wo,
+        "with": w,
+        "compute_p99_ms": {"without": wo.get("compute_p99_ms"), "with": w.get("compute_p99_ms")},
+        "overruns": {"without": wo.get("overruns"), "with": w.get("overruns")},
+        "latency_ms": {
+            "samples": len(lat),
+            "p50": units.to_ms(statistics.median(lat)) if lat else None,
+            "p99": units.to_ms(p99) if p99 is not None else None,
+            "max": units.to_ms(lat[-1]) if lat else None,
+            "goal_p99_below": units.to_ms(LATENCY_GOAL_S),
+        },
+        **notes,
+        "exit_codes": codes,
+        "load_average": list(os.getloadavg()),
+        "latency_goal_met": p99 is not None and p99 < LATENCY_GOAL_S,
+        "passed": True,
+    }
