@@ -750,6 +750,7 @@ class ProjectConfig(Strict):
         if self.placement is not None and self.tunnel.alignment is None:
             raise ValueError("placement needs the design axis: give tunnel.alignment")
         return self
+
     opcua: OpcUa = OpcUa()
 
     @model_validator(mode="after")
