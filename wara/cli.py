@@ -33,6 +33,7 @@ COMMANDS: tuple[str, ...] = (
     "soak",
     "hil",
     "walk",
+    "campaign",
 )
 
 
