@@ -38,14 +38,16 @@ def lower_bound(n: int, failures: int, confidence: float) -> float:
 def percentile_figure(rows: list[dict[str, Any]], metric: str, probability: float) -> float:
     """The campaign's figure: ``margin``'s (1 - probability) quantile (higher is better),
     else the figure's ``probability`` quantile (lower is better). A run that did not
-    finish counts as the worst value (margin -1, figure +inf)."""
+    finish counts as the worst value (margin -1, figure +inf). The quantile is an order
+    statistic, on the safe side (no interpolation)."""
     if not rows:
         return math.nan
     if metric == "margin":
         v = np.array([r["margin"] for r in rows], dtype=float)
-        return float(np.quantile(np.nan_to_num(v, nan=-1.0), 1.0 - probability))
+        return float(np.quantile(np.nan_to_num(v, nan=-1.0), 1.0 - probability, method="lower"))
     v = np.array([r[metric] for r in rows], dtype=float)
-    return float(np.quantile(np.nan_to_num(v, nan=np.inf), probability))
+    v[np.isnan(v)] = np.inf
+    return float(np.quantile(v, probability, method="higher"))
 
 
 def verdict(c: Campaign, rows: list[dict[str, Any]], planned: int) -> dict[str, Any]:
@@ -150,9 +152,7 @@ def _figure_stats(c: Campaign, rows: list[dict[str, Any]]) -> dict[str, dict[str
             continue
         out[name] = {
             "median": float(np.median(v)),
-            "p_requirement": float(
-                np.quantile(v, 1 - req.probability if name == "margin" else req.probability)
-            ),
+            "p_requirement": percentile_figure(rows, name, req.probability),
             "worst": float(v.min() if name == "margin" else v.max()),
             "limit": float(req.limits.get(name, 0.0)),
         }

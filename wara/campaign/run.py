@@ -51,6 +51,12 @@ def run_one(
     t0 = time.perf_counter()
     draw = c.draw(index)
     cfg = service_project(c, overrides)
+    own = planner is None
+    if planner is None:
+        from wara.campaign.engine import PLANNER_TIMEOUT_S
+
+        planner = PlannerWorker(c.project_file, timeout_s=PLANNER_TIMEOUT_S)
+        planner.start()
     h = Harness(
         cfg,
         c.project_file,
@@ -86,6 +92,8 @@ def run_one(
             plot_trace(h.trace, plot_dir)
     finally:
         h.close()
+        if own:
+            planner.close()
     return row_of(
         c,
         draw,

@@ -22,6 +22,7 @@ BENCHES: dict[str, str] = {
     "transport": "wara.benches.transport:run",
     "step": "wara.benches.step:run",
     "demo": "wara.benches.demo:run",
+    "harness": "wara.benches.harness:run",
 }
 
 
