@@ -301,3 +301,17 @@ def test_percentile_figure_counts_unfinished_runs_as_worst() -> None:
     assert percentile_figure(rows, "margin", 0.99) < 0.5
     assert percentile_figure(rows, "sync_error_mm", 0.5) == 0.01
     assert percentile_figure(rows, "sync_error_mm", 0.999) == math.inf
+
+
+def test_without_the_campaign_extra_it_names_it(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    import sys
+
+    monkeypatch.setitem(sys.modules, "distributed", None)
+    code, out, err = run_main(["campaign", "report", str(tmp_path)])
+    assert code == 2 and out == ""
+    assert err.strip() == (
+        "wara campaign: error: wara campaign needs distributed, which is not installed: "
+        "install with pip install -e '.[campaign]'"
+    )
