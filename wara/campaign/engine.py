@@ -262,12 +262,8 @@ def campaign_of_dir(out: Path) -> Campaign:
     path = out / "spec.json"
     if not path.is_file():
         raise ConfigError(f"{out}: not a campaign directory (no spec.json)")
-    payload = json.loads(path.read_text())
-    project = ProjectConfig.model_validate(payload["project"])
-    spec = CampaignSpec.model_validate(payload["spec"])
-    c = Campaign(spec, payload["source"], Path("."), project=project)
-    c.project_path = None
-    return c
+    # as a worker builds it: the planner reads the project the directory ran
+    return _worker_campaign(json.loads(path.read_text()))
 
 
 # --------------------------------------------------------------------------- cluster
