@@ -13,7 +13,7 @@ import pytest
 
 from config import ConfigError
 from tests.campaign_helpers import SMALL_SPEC, write_spec
-from tests.cli_helpers import run_main
+from tests.cli_helpers import REPO, run_main
 from wara.campaign.engine import (
     compact,
     done_indices,
@@ -39,7 +39,7 @@ def test_zero_failure_run_counts() -> None:
 
 
 def test_the_shipped_spec_asks_for_299_runs() -> None:
-    c = load_campaign(Path("config/campaigns/shanghai_airport_link.yaml"))
+    c = load_campaign(REPO / "config" / "campaigns" / "shanghai_airport_link.yaml")
     assert c.run_count == 299
     assert c.project_file.endswith("shanghai_airport_link.yaml")
 
