@@ -36,6 +36,7 @@ COMMANDS: tuple[str, ...] = (
     "place",
     "survey",
     "opcua",
+    "campaign",
 )
 
 

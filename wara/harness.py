@@ -148,9 +148,13 @@ class Harness:
         record: RunRecorder | None = None,
         planner: PlannerWorker | None = None,
         os_api: OsApi | None = None,
+        sim_cfg: ProjectConfig | None = None,
+        trace: bool = True,
     ) -> None:
         """``planner``: a running worker to share (tests); else one is started and owned.
-        ``os_api``: the real-time system calls (a fake in tests)."""
+        ``os_api``: the real-time system calls (a fake in tests). ``sim_cfg``: the
+        simulated machine when it differs from the project the service runs on (a
+        campaign's dispersions); default ``cfg``. ``trace``: keep the plots' samples."""
         if mode not in ("realtime", "lockstep"):
             raise ValueError(f"mode must be 'realtime' or 'lockstep', got {mode!r}")
         self.cfg = cfg
@@ -158,7 +162,10 @@ class Harness:
         self.progress = progress or (lambda _s: None)
         channel = f"wara-harness-{next(_channels)}"
         self.sim = HilSimulator(
-            cfg, can.Bus(interface="virtual", channel=channel), scenario=scenario, seed=seed
+            sim_cfg if sim_cfg is not None else cfg,
+            can.Bus(interface="virtual", channel=channel),
+            scenario=scenario,
+            seed=seed,
         )
         clock = self.sim.clock if mode == "lockstep" else time.monotonic
         self.link = IpcLink(cfg, can.Bus(interface="virtual", channel=channel), clock=clock)
@@ -168,6 +175,7 @@ class Harness:
             self.worker.start()
         self.core = ServiceCore(cfg, self.link, self.worker, record=record)
         self.trace = Trace(self.core.active)
+        self._tracing = trace
         self.period = cfg.control.period_s
         self._k = 0
         self._switch_interval: float | None = None
@@ -263,7 +271,8 @@ class Harness:
             self.sim.step(self.period)
             self._k += 1
             self.core.step(self._k, self.sim.t_s)
-            self.trace.add(self.sim, self.core)
+            if self._tracing:
+                self.trace.add(self.sim, self.core)
             if self.core.modes.mode == Mode.STARTING:
                 self._await_planner()
 

@@ -23,6 +23,7 @@ BENCHES: dict[str, str] = {
     "step": "wara.benches.step:run",
     "demo": "wara.benches.demo:run",
     "opcua": "wara.benches.opcua:run",
+    "harness": "wara.benches.harness:run",
 }
 
 

@@ -1,0 +1,317 @@
+"""Campaign specs, draws, the results directory and the report, without a cluster
+(test_campaign_dask.py runs campaigns on a real LocalCluster)."""
+
+from __future__ import annotations
+
+import copy
+import math
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+from config import ConfigError
+from tests.campaign_helpers import SMALL_SPEC, write_spec
+from tests.cli_helpers import REPO, run_main
+from wara.campaign.engine import (
+    compact,
+    done_indices,
+    payload_of,
+    read_results,
+    write_manifest,
+    write_row,
+)
+from wara.campaign.report import lower_bound, percentile_figure, summary, write_html
+from wara.campaign.spec import load_campaign, zero_failure_runs
+
+
+def _spec(**changes: Any) -> dict[str, Any]:
+    data = copy.deepcopy(SMALL_SPEC)
+    data.update(changes)
+    return data
+
+
+def test_zero_failure_run_counts() -> None:
+    assert zero_failure_runs(0.99, 0.95) == 299
+    assert zero_failure_runs(0.9973, 0.90) == 852
+    assert zero_failure_runs(0.9, 0.9) == 22
+
+
+def test_the_shipped_spec_asks_for_299_runs() -> None:
+    c = load_campaign(REPO / "config" / "campaigns" / "shanghai_airport_link.yaml")
+    assert c.run_count == 299
+    assert c.project_file.endswith("shanghai_airport_link.yaml")
+
+
+def test_lower_bound_zero_failures_and_clopper_pearson() -> None:
+    from scipy.stats import binom
+
+    assert lower_bound(299, 0, 0.95) == pytest.approx(0.05 ** (1 / 299))
+    assert lower_bound(299, 0, 0.95) > 0.99 > lower_bound(298, 0, 0.95)
+    # Clopper-Pearson: at the bound, n - f or more passes has probability 1 - confidence
+    p = lower_bound(100, 3, 0.95)
+    assert binom.sf(96, 100, p) == pytest.approx(0.05, rel=1e-6)
+    assert lower_bound(10, 10, 0.95) == 0.0
+
+
+def test_draws_depend_only_on_seed_and_index(tmp_path: Path) -> None:
+    c = load_campaign(write_spec(tmp_path))
+    big = load_campaign(write_spec(tmp_path, _spec(requirement={"runs": 50}), "big.yaml"))
+    a, b = c.draw(2), big.draw(2)
+    assert a.params == b.params and a.targets == b.targets and a.sim_seed == b.sim_seed
+    assert a.params != c.draw(3).params
+    other = load_campaign(write_spec(tmp_path, _spec(seed=12), "other.yaml"))
+    assert other.draw(2).params != a.params
+
+
+def test_draws_reach_the_simulated_machine_only(tmp_path: Path) -> None:
+    c = load_campaign(write_spec(tmp_path))
+    d = c.draw(0)
+    bulk = d.params["hydraulics.bulk_modulus_mpa"]
+    assert 500 <= bulk <= 1200
+    assert d.sim_project.hydraulics.bulk_modulus_mpa == bulk
+    assert c.project.hydraulics.bulk_modulus_mpa == 700  # the service's project as written
+    mass = d.sim_project.layers.upper.bodies[0].mass_kg
+    assert mass == pytest.approx(d.params["layers.upper.bodies[0].mass_kg"])
+    assert d.scenario.sensors.position.noise_um == d.params["sim.sensors.position.noise_um"]
+
+
+def test_events_get_random_times_or_nan_when_they_do_not_happen(tmp_path: Path) -> None:
+    c = load_campaign(write_spec(tmp_path, _spec(requirement={"runs": 40})))
+    starts = []
+    for i in range(40):
+        d = c.draw(i)
+        s = d.params["event0_plc_stall_start_s"]
+        if math.isnan(s):
+            assert d.scenario.events == ()
+        else:
+            (ev,) = d.scenario.events
+            assert ev.kind == "plc_stall" and ev.start_s == s
+            assert ev.end_s == pytest.approx(s + d.params["event0_plc_stall_duration_s"])
+            starts.append(s)
+    assert 5 < len(starts) < 35 and len(set(starts)) == len(starts)
+    assert all(0.5 <= s <= 2.0 for s in starts)
+
+
+def test_star_paths_draw_each_cylinder_from_the_drawn_defaults(tmp_path: Path) -> None:
+    spec = _spec(
+        dispersions={
+            "hydraulics.cylinder_defaults.coulomb_friction_n": {
+                "dist": "uniform",
+                "low": 1000,
+                "high": 2000,
+            },
+            "cylinders[*].plant.internal_leakage_m3_s_pa": {
+                "dist": "lognormal",
+                "mean": 0.0,
+                "std": 0.5,
+                "factor": True,
+            },
+        }
+    )
+    d = load_campaign(write_spec(tmp_path, spec)).draw(1)
+    cyl = d.sim_project.cylinders
+    leaks = [c.plant.internal_leakage_m3_s_pa for c in cyl if c.plant is not None]
+    assert len(leaks) == len(cyl) and len(set(leaks)) == len(cyl)
+    friction = d.params["hydraulics.cylinder_defaults.coulomb_friction_n"]
+    assert all(c.plant is not None and c.plant.coulomb_friction_n == friction for c in cyl)
+
+
+def test_bounds_redraw_inside_min_max(tmp_path: Path) -> None:
+    spec = _spec(
+        dispersions={
+            "hydraulics.bulk_modulus_mpa": {
+                "dist": "normal",
+                "mean": 700,
+                "std": 400,
+                "min": 600,
+                "max": 800,
+            }
+        },
+        requirement={"runs": 30},
+    )
+    c = load_campaign(write_spec(tmp_path, spec))
+    vals = np.array([c.draw(i).params["hydraulics.bulk_modulus_mpa"] for i in range(30)])
+    assert vals.min() >= 600 and vals.max() <= 800 and vals.std() > 20
+
+
+@pytest.mark.parametrize(
+    ("change", "expected"),
+    [
+        ({"colour": "red"}, "colour: unknown key"),
+        ({"run": {"kind": "walk"}}, "run.kind: 'walk' campaigns do not exist yet"),
+        ({"run": {"kind": "ring_cycle"}}, "'ring_cycle' campaigns do not exist yet"),
+        (
+            {"dispersions": {"hydraulics.bulk_modulus": {"dist": "uniform", "low": 1, "high": 2}}},
+            "dispersions.hydraulics.bulk_modulus: hydraulics.bulk_modulus: no such key",
+        ),
+        (
+            {"dispersions": {"layers.upper.bodies[7].mass_kg": {"dist": "normal", "mean": 1}}},
+            "normal needs std",
+        ),
+        (
+            {
+                "dispersions": {
+                    "layers.upper.bodies[7].mass_kg": {"dist": "uniform", "low": 1, "high": 2}
+                }
+            },
+            "layers.upper.bodies[7]: no such element",
+        ),
+        (
+            {"dispersions": {"project.name": {"dist": "uniform", "low": 1, "high": 2}}},
+            "project.name: is 'Shanghai Airport Link', not a number",
+        ),
+        (
+            {
+                "dispersions": {
+                    "hydraulics.bulk_modulus_mpa": {"dist": "uniform", "low": 1e5, "high": 2e5}
+                }
+            },
+            "hydraulics.bulk_modulus_mpa",
+        ),
+        (
+            {"dispersions": {"a.b": {"dist": "uniform", "low": 2, "high": 1}}},
+            "low (2.0) must be below high (1.0)",
+        ),
+        ({"requirement": {"limits": {"speed": 1}}}, "limits: unknown figure 'speed'"),
+        ({"requirement": {"probability": 1.0}}, "requirement.probability"),
+        ({"tune": {"parameters": {"planner.min_rod_force_kn": [1, 5]}}}, "only control.* keys"),
+        (
+            {
+                "events": [
+                    {
+                        "event": {"kind": "meteor"},
+                        "start_s": {"dist": "uniform", "low": 0, "high": 1},
+                    }
+                ]
+            },
+            "event.kind must be one of",
+        ),
+        (
+            {
+                "events": [
+                    {
+                        "event": {"kind": "drop", "start_s": 3},
+                        "start_s": {"dist": "uniform", "low": 0, "high": 1},
+                    }
+                ]
+            },
+            "the times are drawn",
+        ),
+    ],
+)
+def test_bad_specs_are_one_line_errors(
+    tmp_path: Path, change: dict[str, Any], expected: str
+) -> None:
+    path = write_spec(tmp_path, _spec(**change))
+    with pytest.raises(ConfigError) as exc:
+        load_campaign(path)
+    assert expected in str(exc.value)
+    code, out, err = run_main(["campaign", "run", str(path), "--out", str(tmp_path / "o")])
+    assert code == 2 and out == ""
+    assert err.startswith("wara: configuration error: ") and expected in err
+    assert not (tmp_path / "o").exists()
+
+
+def test_bad_arguments_exit_2(tmp_path: Path) -> None:
+    spec = str(write_spec(tmp_path))
+    with pytest.raises(SystemExit) as exc:
+        run_main(["campaign", "run", spec])
+    assert exc.value.code == 2
+    code, _, err = run_main(["campaign", "run", spec, "--out", "x", "--workers", "0"])
+    assert code == 2 and "--workers must be 1..256" in err
+    code, _, err = run_main(["campaign", "report", str(tmp_path / "nothing")])
+    assert code == 2 and "not a campaign directory" in err
+
+
+# --------------------------------------------------------------------------- results
+
+
+def _row(c: Any, i: int, *, passed: bool = True, margin: float = 0.5) -> dict[str, Any]:
+    d = c.draw(i)
+    row: dict[str, Any] = {"run": i, "seed": d.sim_seed}
+    row.update({f"p.{k}": v for k, v in d.params.items()})
+    bulk = d.params["hydraulics.bulk_modulus_mpa"]
+    row.update(
+        {
+            "attitude_error_deg": 1e-5,
+            "max_twist_mm": 0.01,
+            "sync_error_mm": 0.07 * (1 - margin),
+            "max_sync_error_mm": 0.1,
+            "duration_s": 3.0,
+            "margin": margin if passed else -0.1 - bulk / 1e4,
+            "passed": passed,
+            "status": "passed" if passed else "over_limit",
+            "note": "" if passed else "sync_error_mm 0.08 > 0.07",
+            "fault_reasons": "",
+            "final_mode": "COMPLETE",
+            "sim_time_s": 9.0,
+            "wall_s": 1.0,
+            "worker": "w",
+        }
+    )
+    return row
+
+
+def test_a_run_file_is_written_once_and_compacted_in_order(tmp_path: Path) -> None:
+    c = load_campaign(write_spec(tmp_path))
+    out = tmp_path / "camp"
+    write_manifest(out, c, payload_of(c))
+    assert write_row(out, _row(c, 2))
+    assert write_row(out, _row(c, 0))
+    assert not write_row(out, _row(c, 2, margin=0.1))  # a redone run counts once
+    assert done_indices(out) == {0, 2}
+    compact(out)
+    rows = read_results(out)
+    assert [r["run"] for r in rows] == [0, 2] and rows[1]["margin"] == 0.5
+    assert not list((out / "runs").glob("*.tmp"))
+
+
+def test_report_verdict_drivers_and_html(tmp_path: Path) -> None:
+    spec = _spec(requirement={"runs": 40})
+    c = load_campaign(write_spec(tmp_path, spec))
+    out = tmp_path / "camp"
+    write_manifest(out, c, payload_of(c))
+    # failures wherever the bulk modulus is low: the report must name it as the driver
+    for i in range(40):
+        fails = c.draw(i).params["hydraulics.bulk_modulus_mpa"] < 650
+        write_row(out, _row(c, i, passed=not fails, margin=0.2 + i / 100))
+    s = summary(out)
+    v = s["verdict"]
+    f = v["failures"]
+    assert 0 < f < 40 and v["runs"] == 40 and not v["shown"]
+    assert v["lower_bound"] == pytest.approx(lower_bound(40, f, 0.95))
+    assert s["drivers"][0]["parameter"] == "hydraulics.bulk_modulus_mpa"
+    assert s["drivers"][0]["rho_failure"] < -0.5
+    assert all(
+        not w["passed"] for w in [{"passed": x["status"] == "passed"} for x in s["worst_runs"][:f]]
+    )
+    page = write_html(out).read_text()
+    assert page.count("data:image/png;base64,") == 5  # 3 figures, margin, scatter
+    assert "hydraulics.bulk_modulus_mpa" in page and "<img" in page
+    code, text, _ = run_main(["campaign", "report", str(out)])
+    assert code == 1 and "requirement NOT shown" in text and "Clopper-Pearson" in text
+
+
+def test_percentile_figure_counts_unfinished_runs_as_worst() -> None:
+    rows = [{"margin": 0.5, "sync_error_mm": 0.01}] * 99 + [
+        {"margin": -1.0, "sync_error_mm": math.nan}
+    ]
+    assert percentile_figure(rows, "margin", 0.99) < 0.5
+    assert percentile_figure(rows, "sync_error_mm", 0.5) == 0.01
+    assert percentile_figure(rows, "sync_error_mm", 0.999) == math.inf
+
+
+def test_without_the_campaign_extra_it_names_it(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    import sys
+
+    monkeypatch.setitem(sys.modules, "distributed", None)
+    code, out, err = run_main(["campaign", "report", str(tmp_path)])
+    assert code == 2 and out == ""
+    assert err.strip() == (
+        "wara campaign: error: wara campaign needs distributed, which is not installed: "
+        "install with pip install -e '.[campaign]'"
+    )

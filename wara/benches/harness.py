@@ -1,0 +1,117 @@
+"""``wara bench harness --json``: how fast the lockstep harness runs, and how a campaign
+scales on Dask.
+
+- ``lockstep``: Example 1 (roll 2, pitch 1 deg) from the level start, planned, moved,
+  settled and held, on :class:`wara.harness.Harness` in lockstep in this process (one
+  thread; the planner in its own process, started before the clock starts), as a
+  campaign task runs it (no trace). ``realtime_factor_cpu`` is simulated time over this
+  process's CPU time (what one core gives, whatever else the machine runs; goal >= 20);
+  ``realtime_factor_wall`` over the wall time.
+- ``campaign``: a small campaign (short targets, ``runs`` runs) on an embedded
+  LocalCluster of 1 and of 2 worker processes, timed from the first submit (cluster up,
+  workers warmed): runs per minute, and the engine's overhead as a share of task time,
+  ``1 - sum(task wall time) / (workers x elapsed)`` (goal < 5 %: the rest is scheduling,
+  transfer and the client writing the Parquet files).
+
+``--quick``: two runs per campaign instead of six. The machine is shared: compare
+ratios, and say how loaded it was (``load_average``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+from config import load_project
+from config.loader import default_project_path
+
+EXAMPLE = (2.0, 1.0)
+
+#: The campaign of the throughput figures: short targets, no dispersion that slows a run.
+_SPEC: dict[str, Any] = {
+    "name": "bench",
+    "seed": 3,
+    "run": {"targets": 1, "roll_deg": [-1.0, 1.0], "pitch_deg": [-0.5, 0.5]},
+    "dispersions": {
+        "hydraulics.bulk_modulus_mpa": {"dist": "uniform", "low": 500, "high": 1200},
+    },
+}
+
+
+def lockstep(config_path: str | None) -> dict[str, Any]:
+    from ipc_app.service.logs import configure_logging
+    from ipc_app.service.modes import Mode
+    from ipc_app.service.worker import PlannerWorker
+    from wara.harness import Harness
+
+    logs = configure_logging("ERROR")
+    path = config_path or str(default_project_path())
+    cfg = load_project(path)
+    planner = PlannerWorker(path)
+    planner.start()
+    try:
+        warm = Harness(cfg, path, mode="lockstep", planner=planner, trace=False)
+        warm.advance(0.1)  # the compiled plant loaded from numba's cache
+        warm.close()
+        h = Harness(cfg, path, mode="lockstep", planner=planner, trace=False)
+        c0, w0 = time.process_time(), time.perf_counter()
+        h.wait_for(Mode.IDLE, 20.0)
+        res = h.run_example(*EXAMPLE)
+        cpu, wall = time.process_time() - c0, time.perf_counter() - w0
+        sim_s = h.sim.t_s
+        h.close()
+    finally:
+        planner.close()
+        logs.stop()
+    return {
+        "example": list(EXAMPLE),
+        "passed": res.passed,
+        "simulated_s": round(sim_s, 3),
+        "cpu_s": round(cpu, 3),
+        "wall_s": round(wall, 3),
+        "realtime_factor_cpu": round(sim_s / cpu, 2),
+        "realtime_factor_wall": round(sim_s / wall, 2),
+        "goal_realtime_factor": 20,
+    }
+
+
+def campaign(workers: int, runs: int) -> dict[str, Any]:
+    from config.loader import validate_data
+    from wara.campaign.engine import run_campaign
+    from wara.campaign.spec import Campaign, CampaignSpec
+
+    data = dict(_SPEC, requirement={"runs": runs})
+    spec = validate_data(CampaignSpec, data, "bench spec")
+    c = Campaign(spec, "bench spec", Path("."))
+    with tempfile.TemporaryDirectory(prefix="wara-bench-campaign-") as tmp:
+        o = run_campaign(c, Path(tmp) / "camp", workers=workers, progress=False)
+    busy = o.workers * o.elapsed_s
+    return {
+        "workers": o.workers,
+        "runs": o.written,
+        "failed": o.failures,
+        "elapsed_s": round(o.elapsed_s, 2),
+        "runs_per_minute": round(60.0 * o.written / o.elapsed_s, 2) if o.elapsed_s else None,
+        "mean_task_s": round(o.task_s / max(1, o.written), 2),
+        "engine_overhead_share": round(1.0 - o.task_s / busy, 4) if busy else None,
+    }
+
+
+def run(args: argparse.Namespace) -> dict[str, Any]:
+    from wara.extras import require_campaign
+
+    require_campaign()
+    quick = bool(getattr(args, "quick", False))
+    runs = 2 if quick else 6
+    out: dict[str, Any] = {"load_average": [round(x, 2) for x in os.getloadavg()]}
+    out["lockstep"] = lockstep(getattr(args, "config", None))
+    out["campaign"] = [campaign(1, runs), campaign(2, runs)]
+    one, two = out["campaign"]
+    if one["runs_per_minute"] and two["runs_per_minute"]:
+        out["scaling_2_vs_1"] = round(two["runs_per_minute"] / one["runs_per_minute"], 2)
+    out["load_average_after"] = [round(x, 2) for x in os.getloadavg()]
+    return out

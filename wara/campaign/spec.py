@@ -1,0 +1,514 @@
+"""The campaign spec (``wara campaign run SPEC``): YAML validated like a project.
+
+A spec names the project, what each run does, what is dispersed and how, the
+requirement the campaign must show, and the seed. Everything drawn for run ``i`` comes
+from its own generator, ``SeedSequence(seed, spawn_key=(i,))``: a run's parameters do
+not depend on how many runs there are, on the number of workers, or on the order in
+which runs finish.
+
+Dispersions by YAML key path (``hydraulics.bulk_modulus_mpa``,
+``layers.upper.bodies[0].mass_kg``, ``cylinders[*].plant.coulomb_friction_n`` with
+``[*]`` drawn for each element on its own; a cylinder without its own ``plant`` starts
+from the run's drawn ``hydraulics.cylinder_defaults``) change the simulated machine only: the
+service runs on the project as written, as on site, where the real machine differs from
+its YAML. ``simulator`` key paths go into the HIL scenario (sensor noise, plant
+settings); ``events`` are scenario events at random times.
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+import re
+from pathlib import Path
+from typing import Annotated, Any, Literal
+
+import numpy as np
+from pydantic import Field, model_validator
+
+from config import ConfigError, load_project
+from config.hil_scenario import EVENT_KINDS, HilScenario
+from config.loader import default_project_path, read_yaml, validate_data
+from config.schema import Finite, ProjectConfig, Strict
+from wara.examples import ATTITUDE_TOL_DEG, SYNC_TOL_MM, TWIST_TOL_MM
+
+#: Per-run figures a requirement may limit (all: lower is better).
+FIGURES: tuple[str, ...] = (
+    "attitude_error_deg",
+    "max_twist_mm",
+    "sync_error_mm",
+    "max_sync_error_mm",
+)
+
+#: The demo's tolerances: the default limits.
+DEMO_LIMITS: dict[str, float] = {
+    "attitude_error_deg": ATTITUDE_TOL_DEG,
+    "max_twist_mm": TWIST_TOL_MM,
+    "sync_error_mm": SYNC_TOL_MM,
+}
+
+#: Run kinds a spec may name; only these run today.
+RUN_KINDS_AVAILABLE = ("attitude_targets",)
+RUN_KINDS_PLANNED = ("walk", "ring_cycle")
+
+
+class Distribution(Strict):
+    """One random value. ``normal`` (``mean``, ``std``), ``uniform`` (``low``,
+    ``high``), ``triangular`` (``low``, ``mode``, ``high``), ``lognormal`` (``mean``
+    and ``std`` of the log), ``choice`` (``values``). ``min``/``max`` bound a draw
+    (redrawn until inside, at most 1000 times). ``factor: true``: the draw multiplies
+    the project's nominal value instead of replacing it."""
+
+    dist: Literal["normal", "uniform", "triangular", "lognormal", "choice"]
+    mean: Finite | None = None
+    std: Annotated[Finite, Field(ge=0)] | None = None
+    low: Finite | None = None
+    high: Finite | None = None
+    mode: Finite | None = None
+    values: tuple[Finite, ...] = ()
+    min: Finite | None = None
+    max: Finite | None = None
+    factor: bool = False
+
+    @model_validator(mode="after")
+    def _params(self) -> Distribution:
+        need = {
+            "normal": ("mean", "std"),
+            "lognormal": ("mean", "std"),
+            "uniform": ("low", "high"),
+            "triangular": ("low", "mode", "high"),
+            "choice": (),
+        }[self.dist]
+        missing = [k for k in need if getattr(self, k) is None]
+        if missing:
+            raise ValueError(f"{self.dist} needs {', '.join(missing)}")
+        given = {
+            k
+            for k in ("mean", "std", "low", "high", "mode")
+            if getattr(self, k) is not None and k not in need
+        }
+        if given:
+            raise ValueError(f"{self.dist} takes no {', '.join(sorted(given))}")
+        if self.dist == "choice" and not self.values:
+            raise ValueError("choice needs values (a non-empty list)")
+        if self.dist != "choice" and self.values:
+            raise ValueError(f"{self.dist} takes no values")
+        if self.low is not None and self.high is not None and not self.low < self.high:
+            raise ValueError(f"low ({self.low}) must be below high ({self.high})")
+        if self.mode is not None and not (self.low or 0) <= self.mode <= (self.high or 0):
+            raise ValueError("mode must lie between low and high")
+        if self.min is not None and self.max is not None and not self.min < self.max:
+            raise ValueError(f"min ({self.min}) must be below max ({self.max})")
+        return self
+
+    def draw(self, rng: np.random.Generator) -> float:
+        for _ in range(1000):
+            v = self._draw_once(rng)
+            if (self.min is None or v >= self.min) and (self.max is None or v <= self.max):
+                return v
+        raise ConfigError(
+            f"a {self.dist} draw fell outside min/max 1000 times: the bounds exclude the "
+            "distribution"
+        )
+
+    def _draw_once(self, rng: np.random.Generator) -> float:
+        # the validator made sure the parameters of ``dist`` are set
+        mean, std = self.mean or 0.0, self.std or 0.0
+        low, high, mode = self.low or 0.0, self.high or 0.0, self.mode or 0.0
+        if self.dist == "normal":
+            return float(rng.normal(mean, std))
+        if self.dist == "lognormal":
+            return float(rng.lognormal(mean, std))
+        if self.dist == "uniform":
+            return float(rng.uniform(low, high))
+        if self.dist == "triangular":
+            return float(rng.triangular(low, mode, high))
+        return float(self.values[int(rng.integers(len(self.values)))])
+
+
+class AttitudeTargets(Strict):
+    """Each run: ``targets`` attitude adjustments one after another from the level
+    start at mid-stroke, each drawn uniformly in the roll/pitch box, each held and
+    judged as a demo example."""
+
+    kind: Literal["attitude_targets", "walk", "ring_cycle"] = "attitude_targets"
+    targets: Annotated[int, Field(ge=1, le=20)] = 1
+    roll_deg: tuple[Finite, Finite] = (-5.0, 5.0)
+    pitch_deg: tuple[Finite, Finite] = (-2.0, 2.0)
+
+    @model_validator(mode="after")
+    def _box(self) -> AttitudeTargets:
+        for name in ("roll_deg", "pitch_deg"):
+            lo, hi = getattr(self, name)
+            if not lo <= hi:
+                raise ValueError(f"{name}: [{lo}, {hi}] must be [low, high]")
+            if max(abs(lo), abs(hi)) > 45:
+                raise ValueError(f"{name}: within +-45 deg")
+        return self
+
+
+class RandomEvent(Strict):
+    """A HIL scenario event (``event``: as in a scenario's ``events``, without its
+    times) that happens in a run with ``probability``, starting at ``start_s`` and
+    lasting ``duration_s`` (left out: to the end of the run); ``fields`` draws other
+    keys of the event (``rate``, ``delay_ms``, ...)."""
+
+    event: dict[str, Any]
+    probability: Annotated[Finite, Field(ge=0, le=1)] = 1.0
+    start_s: Distribution
+    duration_s: Distribution | None = None
+    fields: dict[str, Distribution] = Field(default_factory=dict)
+
+    @model_validator(mode="after")
+    def _kind(self) -> RandomEvent:
+        kind = self.event.get("kind")
+        if kind not in EVENT_KINDS:
+            raise ValueError(f"event.kind must be one of {', '.join(EVENT_KINDS)}; got {kind!r}")
+        if kind == "hmi_target":
+            raise ValueError("hmi_target is not a dispersion (targets come from run)")
+        for key in ("start_s", "end_s", "at_s"):
+            if key in self.event:
+                raise ValueError(f"event.{key}: the times are drawn (start_s, duration_s)")
+        return self
+
+
+class Requirement(Strict):
+    """What the campaign must show: with ``confidence``, a run meets every ``limits``
+    (figure -> limit) and ends holding its targets with no latched fault, with
+    probability at least ``probability``. ``runs`` null: the zero-failure run count
+    (order statistics). ``metric``: the figure whose ``probability`` percentile the
+    report and ``wara campaign tune`` give; ``margin`` is the smallest relative margin
+    of a run over its limits (1 - value / limit; below 0 when a limit is broken, -1
+    when the run did not finish)."""
+
+    limits: dict[str, Annotated[Finite, Field(gt=0)]] = Field(
+        default_factory=lambda: dict(DEMO_LIMITS)
+    )
+    metric: str = "margin"
+    probability: Annotated[Finite, Field(gt=0, lt=1)] = 0.99
+    confidence: Annotated[Finite, Field(gt=0, lt=1)] = 0.95
+    runs: Annotated[int, Field(ge=1, le=1_000_000)] | None = None
+
+    @model_validator(mode="after")
+    def _names(self) -> Requirement:
+        bad = [k for k in self.limits if k not in FIGURES]
+        if bad:
+            raise ValueError(f"limits: unknown figure {bad[0]!r}; one of {', '.join(FIGURES)}")
+        if not self.limits:
+            raise ValueError("limits: name at least one figure")
+        if self.metric != "margin" and self.metric not in FIGURES:
+            raise ValueError(f"metric must be margin or one of {', '.join(FIGURES)}")
+        return self
+
+    @property
+    def run_count(self) -> int:
+        return (
+            self.runs
+            if self.runs is not None
+            else zero_failure_runs(self.probability, self.confidence)
+        )
+
+
+class Tune(Strict):
+    """``wara campaign tune``: Optuna over these project key paths (each a
+    ``[low, high]`` range; ``log: true`` samples on a log scale), ``trials`` trials,
+    each a campaign of ``runs`` runs (default: the requirement's)."""
+
+    parameters: dict[str, tuple[Finite, Finite]] = Field(
+        default_factory=lambda: {
+            "control.ladrc.wc_rad_s": (3.0, 12.0),
+            "control.ladrc.wo_rad_s": (6.0, 30.0),
+        }
+    )
+    log: bool = True
+    trials: Annotated[int, Field(ge=1, le=10_000)] = 20
+    runs: Annotated[int, Field(ge=1, le=100_000)] | None = None
+
+
+class CampaignSpec(Strict):
+    name: str = "campaign"
+    #: the project YAML, relative to the spec file (null: the shipped project)
+    project: str | None = None
+    seed: Annotated[int, Field(ge=0)] = 0
+    run: AttitudeTargets = AttitudeTargets()
+    #: project key path -> distribution (the simulated machine only)
+    dispersions: dict[str, Distribution] = Field(default_factory=dict)
+    #: HIL scenario key path -> distribution (sensors.position.noise_um, plant.rod_mass_kg)
+    simulator: dict[str, Distribution] = Field(default_factory=dict)
+    events: tuple[RandomEvent, ...] = ()
+    requirement: Requirement = Requirement()
+    tune: Tune = Tune()
+
+
+# --------------------------------------------------------------------------- loading
+
+
+class Campaign:
+    """A loaded spec: the spec, the project (nominal), the expanded key paths."""
+
+    def __init__(
+        self,
+        spec: CampaignSpec,
+        source: str,
+        base_dir: Path,
+        project: ProjectConfig | None = None,
+    ) -> None:
+        """``project``: the project itself (a worker that got it with the task); else
+        ``spec.project`` is read."""
+        self.spec = spec
+        self.source = source
+        if spec.run.kind not in RUN_KINDS_AVAILABLE:
+            raise ConfigError(
+                f"{source}: run.kind: {spec.run.kind!r} campaigns do not exist yet; "
+                f"available: {', '.join(RUN_KINDS_AVAILABLE)}"
+            )
+        self.project_path: str | None = (
+            None if spec.project is None else str((base_dir / spec.project).resolve())
+        )
+        self.project = load_project(self.project_path) if project is None else project
+        nominal = self.project.model_dump(mode="json")
+        expanded = _expand(_with_plants(nominal), spec.dispersions, source, "dispersions")
+        # a cylinder's own plant last: it starts from the run's drawn defaults
+        self.dispersions = dict(
+            sorted(expanded.items(), key=lambda kv: _is_cylinder_plant(kv[1][0]))
+        )
+        scen = HilScenario().model_dump(mode="json")
+        self.simulator = _expand(scen, spec.simulator, source, "simulator")
+        self._nominal = nominal
+        self._scenario_nominal = scen
+        for path, (lo, hi) in spec.tune.parameters.items():
+            where = f"{source}: tune.parameters.{path}"
+            if not path.startswith("control."):
+                raise ConfigError(
+                    f"{where}: only control.* keys are tuned (the service's own; the "
+                    "planner and the machine read the project file)"
+                )
+            try:
+                _get(nominal, _parse(path), where)
+            except ValueError as exc:
+                raise ConfigError(f"{where}: {exc}") from None
+            if not 0 < lo < hi:
+                raise ConfigError(f"{where}: [{lo}, {hi}] must be 0 < low < high")
+        # one draw now, so that a path whose value the schema refuses fails at load
+        self.draw(0)
+
+    @property
+    def project_file(self) -> str:
+        return self.project_path or str(default_project_path())
+
+    @property
+    def run_count(self) -> int:
+        return self.spec.requirement.run_count
+
+    def draw(self, index: int) -> Draw:
+        """Everything random about run ``index``."""
+        return Draw.make(self, index)
+
+
+class Draw:
+    """Run ``index``'s parameters: the simulated machine's project, the scenario, the
+    targets, the simulator's seed; ``params`` the drawn values by column name."""
+
+    def __init__(
+        self,
+        index: int,
+        params: dict[str, float],
+        targets: list[tuple[float, float]],
+        sim_project: ProjectConfig,
+        scenario: HilScenario,
+        sim_seed: int,
+    ) -> None:
+        self.index = index
+        self.params = params
+        self.targets = targets
+        self.sim_project = sim_project
+        self.scenario = scenario
+        self.sim_seed = sim_seed
+
+    @classmethod
+    def make(cls, c: Campaign, index: int) -> Draw:
+        spec = c.spec
+        rng = np.random.default_rng(np.random.SeedSequence(spec.seed, spawn_key=(index,)))
+        sim_seed = int(rng.integers(2**31))
+        targets = [
+            (
+                float(rng.uniform(*spec.run.roll_deg)),
+                float(rng.uniform(*spec.run.pitch_deg)),
+            )
+            for _ in range(spec.run.targets)
+        ]
+        params: dict[str, float] = {}
+        for i, (roll, pitch) in enumerate(targets):
+            params[f"target{i}_roll_deg"] = roll
+            params[f"target{i}_pitch_deg"] = pitch
+        proj = copy.deepcopy(c._nominal)
+        for name, (path, dist) in c.dispersions.items():
+            if _is_cylinder_plant(path):
+                _materialise_plant(proj, path)
+            params[name] = _set_drawn(proj, path, dist, rng)
+        scen = copy.deepcopy(c._scenario_nominal)
+        for name, (path, dist) in c.simulator.items():
+            params["sim." + name] = _set_drawn(scen, path, dist, rng)
+        events: list[dict[str, Any]] = []
+        for j, ev in enumerate(spec.events):
+            kind = ev.event["kind"]
+            tag = f"event{j}_{kind}"
+            # every draw is made whether the event happens or not: the stream stays aligned
+            happens = float(rng.random()) < ev.probability
+            start = max(0.0, ev.start_s.draw(rng))
+            dur = None if ev.duration_s is None else max(1e-3, ev.duration_s.draw(rng))
+            extra = {k: d.draw(rng) for k, d in sorted(ev.fields.items())}
+            params[f"{tag}_start_s"] = start if happens else math.nan
+            if dur is not None:
+                params[f"{tag}_duration_s"] = dur if happens else math.nan
+            for k, v in extra.items():
+                params[f"{tag}_{k}"] = v if happens else math.nan
+            if happens:
+                e = dict(ev.event, start_s=start, **extra)
+                if dur is not None:
+                    e["end_s"] = start + dur
+                events.append(e)
+        scen["events"] = events
+        scen["seed"] = sim_seed
+        where = f"{c.source}: run {index}"
+        return cls(
+            index,
+            params,
+            targets,
+            validate_data(ProjectConfig, proj, f"{where}: drawn project"),
+            validate_data(HilScenario, scen, f"{where}: drawn scenario"),
+            sim_seed,
+        )
+
+
+def load_campaign(path: str | Path) -> Campaign:
+    p = Path(path)
+    spec = validate_data(CampaignSpec, read_yaml(p), str(p))
+    return Campaign(spec, str(p), p.parent)
+
+
+def campaign_from_data(data: dict[str, Any], source: str, base_dir: Path) -> Campaign:
+    return Campaign(validate_data(CampaignSpec, data, source), source, base_dir)
+
+
+def zero_failure_runs(probability: float, confidence: float) -> int:
+    """Runs that, all passing, show ``probability`` at ``confidence``: the smallest n with
+    probability**n <= 1 - confidence (299 for 0.99 at 0.95, 852 for 0.9973 at 0.90)."""
+    n = math.log(1.0 - confidence) / math.log(probability)
+    return max(1, math.ceil(n - 1e-9))
+
+
+# --------------------------------------------------------------------------- key paths
+
+_PART = re.compile(r"([A-Za-z_][A-Za-z0-9_]*)((?:\[(?:\d+|\*)\])*)$")
+
+
+def _parse(path: str) -> list[str | int]:
+    """``a.b[0].c`` -> ['a', 'b', 0, 'c']; ``[*]`` -> '*'."""
+    out: list[str | int] = []
+    for part in path.split("."):
+        m = _PART.match(part)
+        if not m:
+            raise ValueError(f"bad key path {path!r} (at {part!r})")
+        out.append(m.group(1))
+        for idx in re.findall(r"\[(\d+|\*)\]", m.group(2)):
+            out.append("*" if idx == "*" else int(idx))
+    return out
+
+
+def _get(data: Any, parts: list[str | int], where: str) -> Any:
+    cur = data
+    for i, p in enumerate(parts):
+        here = _show(parts[: i + 1])
+        if isinstance(p, int):
+            if not isinstance(cur, list) or not -len(cur) <= p < len(cur):
+                raise ConfigError(f"{where}: {here}: no such element in the project")
+            cur = cur[p]
+        else:
+            if not isinstance(cur, dict) or p not in cur:
+                raise ConfigError(f"{where}: {here}: no such key")
+            cur = cur[p]
+            if cur is None and i < len(parts) - 1:
+                raise ConfigError(f"{where}: {here}: is null (not set), nothing to disperse")
+    return cur
+
+
+def _is_cylinder_plant(parts: list[str | int]) -> bool:
+    return len(parts) > 2 and parts[0] == "cylinders" and parts[2] == "plant"
+
+
+def _materialise_plant(data: dict[str, Any], parts: list[str | int]) -> None:
+    """A cylinder whose ``plant`` is null has the defaults' (``ProjectConfig.plant_of``):
+    set them, as drawn for this run, so that its own can be drawn."""
+    cyl = data["cylinders"][parts[1]]
+    if cyl.get("plant") is None:
+        cyl["plant"] = copy.deepcopy(data["hydraulics"]["cylinder_defaults"])
+
+
+def _with_plants(data: dict[str, Any]) -> dict[str, Any]:
+    out = copy.deepcopy(data)
+    for i in range(len(out.get("cylinders", []))):
+        _materialise_plant(out, ["cylinders", i, "plant"])
+    return out
+
+
+def _show(parts: list[str | int]) -> str:
+    s = ""
+    for p in parts:
+        s += f"[{p}]" if isinstance(p, int) or p == "*" else ("." if s else "") + p
+    return s
+
+
+def _expand(
+    data: dict[str, Any], given: dict[str, Distribution], source: str, section: str
+) -> dict[str, tuple[list[str | int], Distribution]]:
+    """Column name -> (concrete path, distribution), ``[*]`` expanded per element;
+    each path checked to name a number."""
+    out: dict[str, tuple[list[str | int], Distribution]] = {}
+    for key, dist in given.items():
+        where = f"{source}: {section}.{key}"
+        try:
+            parts = _parse(key)
+        except ValueError as exc:
+            raise ConfigError(f"{where}: {exc}") from None
+        concrete: list[list[str | int]] = [[]]
+        for p in parts:
+            if p == "*":
+                grown = []
+                for c in concrete:
+                    seq = _get(data, c, where)
+                    if not isinstance(seq, list):
+                        raise ConfigError(f"{where}: {_show(c)}: [*] needs a list")
+                    grown += [[*c, i] for i in range(len(seq))]
+                concrete = grown
+            else:
+                concrete = [[*c, p] for c in concrete]
+        for c in concrete:
+            value = _get(data, c, where)
+            if isinstance(value, bool) or not isinstance(value, int | float):
+                raise ConfigError(f"{where}: {_show(c)}: is {value!r}, not a number")
+            if dist.factor and value == 0:
+                raise ConfigError(f"{where}: factor: true on a nominal value of 0")
+            out[_show(c)] = (c, dist)
+    return out
+
+
+def _set_drawn(
+    data: dict[str, Any], parts: list[str | int], dist: Distribution, rng: np.random.Generator
+) -> float:
+    parent = _get(data, parts[:-1], "key path")
+    last = parts[-1]
+    nominal = parent[last]
+    v = dist.draw(rng)
+    value = nominal * v if dist.factor else v
+    if isinstance(nominal, int) and not isinstance(nominal, bool) and not dist.factor:
+        value = round(value)
+    parent[last] = value
+    return float(value)
+
+
+def set_path(data: dict[str, Any], path: str, value: float) -> None:
+    """Set one concrete key path in a dumped model (``wara campaign tune``)."""
+    parts = _parse(path)
+    parent = _get(data, parts[:-1], "key path")
+    parent[parts[-1]] = value
