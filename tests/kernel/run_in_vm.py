@@ -199,9 +199,10 @@ CACHE_ENV = {
     "MPLBACKEND": "Agg",
 }
 #: Compiles the simulator's plant as the HIL test runs it (tests/kernel/test_hil_vcan.py:
-#: the rigid rig, 0.5 ms step) and builds matplotlib's font cache where it is installed.
+#: the rigid rig, 0.5 ms step; stepped and its status line printed) and builds
+#: matplotlib's font cache where it is installed.
 PREWARM = """
-import contextlib, importlib.util
+import importlib.util
 import can
 from config import load_project
 from config.hil_scenario import HilScenario
@@ -210,6 +211,7 @@ scenario = HilScenario.model_validate({"name": "prewarm", "plant": {"step_ms": 0
 with can.Bus(interface="virtual", channel="prewarm") as bus:
     sim = HilSimulator(load_project(), bus, scenario)
     sim.step(0.01)
+    sim.status_line()
     sim.close()
 if importlib.util.find_spec("matplotlib") is not None:
     import matplotlib.font_manager
