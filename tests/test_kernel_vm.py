@@ -39,6 +39,21 @@ def test_guest_script_brings_up_vcan0_then_runs_the_command_in_the_repo(tmp_path
     assert f"cd {REPO}" in lines
     assert "export WARA_KERNEL_VM=1" in script
     assert lines[-1] == f"exec {sys.executable} -m pytest -k 'a b'"  # exec: its exit code
+    # the caches prewarmed on this machine, found in the guest under the same settings
+    for key, value in run_in_vm.CACHE_ENV.items():
+        assert f"export {key}={value}" in lines, key
+    assert str(REPO / "out") in run_in_vm.CACHE_ENV["NUMBA_CACHE_DIR"]  # shared read-write
+
+
+@pytest.mark.slow  # compiles the plant: half a minute
+def test_prewarm_fills_the_numba_cache_the_guest_reads(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    cache = tmp_path / "numba"
+    monkeypatch.setitem(run_in_vm.CACHE_ENV, "NUMBA_CACHE_DIR", str(cache))
+    monkeypatch.setitem(run_in_vm.CACHE_ENV, "MPLCONFIGDIR", str(tmp_path / "mpl"))
+    run_in_vm.prewarm()
+    assert any(cache.rglob("*.nbi")), "no numba cache index written"
 
 
 def _elf(path: Path, segment_types: list[int]) -> Path:

@@ -1,8 +1,11 @@
 """Entry point of the ``wara`` command.
 
 Each verb lives in its own module under :mod:`wara.commands` (one module per verb, as
-cantools does) exposing ``register(subparsers)``. Exit codes: 0 success, 1 the job ran
-but did not meet its goal, 2 bad arguments or configuration, 3 unreachable target.
+cantools does) exposing ``register(subparsers)``; adding a verb is one line in
+:data:`COMMANDS`. A run imports only its verb's module (``wara ctl`` does not load the
+simulator); ``wara``, ``wara --help`` or an unknown verb import them all. Exit codes: 0
+success, 1 the job ran but did not meet its goal, 2 bad arguments or configuration, 3
+unreachable target.
 """
 
 from __future__ import annotations
@@ -19,7 +22,9 @@ EXIT_FAILED = 1
 EXIT_USAGE = 2
 EXIT_INFEASIBLE = 3
 
-#: Modules under wara.commands, in the order ``wara --help`` lists them.
+#: Modules under wara.commands, in the order ``wara --help`` lists them; each registers
+#: the verb of its name (without a ``_cmd`` suffix, which keeps ``config_cmd`` apart from
+#: the ``config`` package).
 COMMANDS: tuple[str, ...] = (
     "plan",
     "config_cmd",
@@ -50,21 +55,30 @@ class _Parser(argparse.ArgumentParser):
         self.exit(EXIT_USAGE, f"{self.prog}: error: {message}\n")
 
 
-def build_parser() -> argparse.ArgumentParser:
+def verb_of(module: str) -> str:
+    return module.removesuffix("_cmd")
+
+
+def build_parser(argv: Sequence[str] | None = None) -> argparse.ArgumentParser:
+    """The parser for ``argv``: with only its verb's module imported when ``argv`` starts
+    with a known verb, else with every verb (for ``--help`` and the list of choices)."""
+    wanted = tuple(m for m in COMMANDS if argv and verb_of(m) == argv[0]) or COMMANDS
     parser = _Parser(
         prog="wara",
         description="W-ARa attitude adjustment: planning, control, CAN bridge and HIL simulator.",
     )
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
     sub.required = True
-    for name in COMMANDS:
+    for name in wanted:
         module = importlib.import_module(f"wara.commands.{name}")
         module.register(sub)
     return parser
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    parser = build_parser()
+    if argv is None:
+        argv = sys.argv[1:]
+    parser = build_parser(argv)
     args = parser.parse_args(argv)
     try:
         code = args.func(args)

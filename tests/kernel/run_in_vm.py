@@ -188,6 +188,55 @@ def build_wheelhouse(dest: Path) -> None:
         say(f"no wheelhouse for the guest's pip: {last}")
 
 
+#: Caches the guest reads instead of building them on its emulated CPU, prepared on this
+#: machine before the boot (:func:`prewarm`) in this repository's out/ (shared with the
+#: guest read-write). numba's cache is keyed by the CPU: both sides compile for the
+#: generic x86-64 CPU, so the guest loads what was compiled here.
+CACHE_ENV = {
+    "NUMBA_CACHE_DIR": str(REPO / "out" / "numba-vm"),
+    "NUMBA_CPU_NAME": "generic",
+    "MPLCONFIGDIR": str(REPO / "out" / "mplconfig"),
+    "MPLBACKEND": "Agg",
+}
+#: Compiles the simulator's plant as the HIL test runs it (tests/kernel/test_hil_vcan.py:
+#: the rigid rig, 0.5 ms step; stepped and its status line printed) and builds
+#: matplotlib's font cache where it is installed.
+PREWARM = """
+import importlib.util
+import can
+from config import load_project
+from config.hil_scenario import HilScenario
+from hil_sim.simulator import HilSimulator
+scenario = HilScenario.model_validate({"name": "prewarm", "plant": {"step_ms": 0.5}})
+with can.Bus(interface="virtual", channel="prewarm") as bus:
+    sim = HilSimulator(load_project(), bus, scenario)
+    sim.step(0.01)
+    sim.status_line()
+    sim.close()
+if importlib.util.find_spec("matplotlib") is not None:
+    import matplotlib.font_manager
+"""
+
+
+def prewarm() -> None:
+    """Fill :data:`CACHE_ENV`'s caches here (half a minute the first time, seconds after);
+    best effort: where it fails the guest builds them itself, slowly."""
+    t0 = time.monotonic()
+    proc = subprocess.run(
+        [sys.executable, "-c", PREWARM],
+        env={**os.environ, **CACHE_ENV},
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        check=False,
+    )
+    if proc.returncode != 0:
+        last = (proc.stderr.strip() or "?").splitlines()[-1]
+        say(f"prewarming the guest's caches failed: {last}")
+    else:
+        say(f"guest's caches (numba, matplotlib) ready after {time.monotonic() - t0:.0f} s")
+
+
 def guest_script(command: list[str], marker: Path, wheelhouse: Path) -> str:
     """What the guest runs: mark the boot, bring up vcan0, run the command in the repo."""
     return "\n".join(
@@ -198,8 +247,9 @@ def guest_script(command: list[str], marker: Path, wheelhouse: Path) -> str:
             f"cd {shlex.quote(str(REPO))}",
             *forwarded_env(),
             "export WARA_KERNEL_VM=1 PYTHONUNBUFFERED=1",
-            # the guest's home is read-only: matplotlib's font cache, built once, kept here
-            f"export MPLCONFIGDIR={shlex.quote(str(REPO / 'out' / 'mplconfig'))}",
+            # pytest's plugins installed beside it (hypothesis, xdist): none is used here
+            "export PYTEST_DISABLE_PLUGIN_AUTOLOAD=1",
+            *(f"export {k}={shlex.quote(v)}" for k, v in CACHE_ENV.items()),
             f"export WARA_VM_WHEELHOUSE={shlex.quote(str(wheelhouse))}",
             f"export PATH={shlex.quote(str(Path(sys.executable).parent))}:$PATH",
             f"exec {shlex.join(command)}",
@@ -231,6 +281,7 @@ def boot(command: list[str], args: argparse.Namespace) -> int:
         marker = Path(tmp) / MARKER
         wheelhouse = Path(tmp) / "wheels"
         build_wheelhouse(wheelhouse)
+        prewarm()
         (REPO / "out").mkdir(exist_ok=True)  # pytest's --basetemp needs its parent
         scripts = sysconfig.get_path("scripts")
         env = {**os.environ, "PATH": f"{scripts}:{os.environ.get('PATH', '/usr/bin:/bin')}"}
