@@ -70,6 +70,7 @@ def service_handlers(
         unhold=lambda: _reply(core().request_unhold(wait_s=wait_s)),
         unit_mode=lambda u: _reply(core().request_unit_mode(u)),
         jog=lambda c, d: _reply(core().request_jog(c, d, wait_s=wait_s)),
+        walk=lambda n: _reply(core().request_walk(n, wait_s=wait_s)),
     )
 
 

@@ -92,7 +92,9 @@ log = structlog.get_logger("wara.service.ctl")
 SOCKET_NAME = "ctl.sock"
 SYSTEM_RUNTIME_DIR = Path("/run/wara")
 MAX_LINE_BYTES = 64 * 1024
-COMMANDS = ("adjust", "status", "stop", "reset", "clear", "hold", "unhold", "unit_mode", "jog")
+COMMANDS = (
+    "adjust", "status", "stop", "reset", "clear", "hold", "unhold", "unit_mode", "jog", "walk",
+)  # fmt: skip
 #: The longest cylinder id a ``jog`` request may name.
 MAX_ID_CHARS = 40
 #: Commands answered by the I/O thread itself: quick, and never queued behind others.
@@ -147,6 +149,7 @@ class CtlHandlers:
     unhold: Callable[[], Reply] | None = None
     unit_mode: Callable[[str], Reply] | None = None
     jog: Callable[[str, float], Reply] | None = None
+    walk: Callable[[int], Reply] | None = None
 
 
 def _error(code: str, message: str) -> Reply:
@@ -214,6 +217,11 @@ def parse(line: bytes) -> Request | Reply:
             return Request(cmd, (_name(req, "cylinder"), _number(req, "distance_mm", "mm")))
         except ValueError as exc:
             return _error("bad_request", str(exc))
+    if cmd == "walk":
+        steps = req.get("steps")
+        if isinstance(steps, bool) or not isinstance(steps, int) or not 1 <= steps <= 1000:
+            return _error("bad_request", f"'steps' must be an integer 1..1000, got {_brief(steps)}")
+        return Request(cmd, (steps,))
     if cmd != "adjust":
         return Request(cmd)
     try:
