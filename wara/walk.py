@@ -18,7 +18,7 @@ import numpy as np
 
 from config import load_project, units
 from config.hil_scenario import HilScenario, PlantSettings
-from ipc_app.control.walk import LIFT, LOWER, TRANSFER, TRAVEL
+from ipc_app.control.walk import LIFT, LOWER, TRANSFER, TRAVEL, WalkSequencer
 from ipc_app.service.modes import Mode
 from ipc_app.service.record import RunRecorder
 from wara.harness import Harness
@@ -95,6 +95,7 @@ def run_walk(
         waited = 0.0
         att0: tuple[float, float] | None = None
         last_phase = -1
+        seen = h.core.walker
         while waited < limit_s:
             h.advance(dt)
             waited += dt
@@ -102,6 +103,8 @@ def run_walk(
             w = core.walker
             if on_cycle is not None:
                 on_cycle(h)
+            if w is not None:
+                seen = w
             if w is None or w.run is None:
                 if core.modes.mode != Mode.EXECUTE:
                     break
@@ -131,9 +134,9 @@ def run_walk(
                 trace.margin_m.append(fm if np.isfinite(fm) else np.nan)
             if core.modes.mode not in (Mode.EXECUTE, Mode.HELD):
                 break
-        if truths:
+        if truths and truths[-1].x_m_end == 0.0:
             truths[-1].x_m_end = rig.world_x_m[0]  # type: ignore[attr-defined]
-        return _finish(out, h, truths, trace, steps, plot_dir)
+        return _finish(out, h, truths, trace, steps, plot_dir, seen)
     finally:
         h.close()
 
@@ -145,9 +148,9 @@ def _finish(
     trace: WalkTrace,
     steps: int,
     plot_dir: Path | None,
+    w: WalkSequencer | None = None,
 ) -> dict[str, Any]:
     core = h.core
-    w = core.walker
     rig = h.sim.rig
     out["final_mode"] = str(core.modes.mode)
     out["fault_reasons"] = list(core.modes.fault_reasons)

@@ -213,6 +213,8 @@ class WalkSequencer:
         #: (machine time, step, phase) of each phase start, for the run record
         self.phase_log: list[tuple[float, int, str]] = []
         self.leg_force_n = np.zeros(8)
+        #: force references of the legs in force control this cycle (NaN: not), N
+        self.force_ref_n = np.full(8, math.nan)
         #: the standing frame's load equalization: reference offsets in its twist mode
         self.twist_offset = np.zeros(8)
 
@@ -505,8 +507,10 @@ class WalkSequencer:
             run.tau += dt
 
         # commands: force-controlled legs, position-controlled active ones, slow holds
+        self.force_ref_n[:] = math.nan
         for i, (fr, rate) in f_ref.items():
             j = self.legs.index(i)
+            self.force_ref_n[j] = fr
             u[i] = self.force[i].update(fr, float(f[j]), rate if self.feedforward else 0.0)
             refs[i] = float(x[i])
         self._hold(u, refs, rates, x, active, skip=set(f_ref))
@@ -524,7 +528,12 @@ class WalkSequencer:
             sum(max(0.0, f[j]) for j in standing)
         )
         share8 = self._share8(ph.x_s_m[0])
-        fig.expected_n = tuple(np.maximum(plan_f, share8).tolist())
+        if key in PRELOAD or key in TRANSFER:
+            held = list(MAIN if key in ("3", "4") else SUB)
+        else:
+            held = list(self._frame(ph.standing, self.leg_ids))
+        expected = self._residual_share(ph.x_s_m[0], share8, f, plan_f, held)
+        fig.expected_n = tuple(np.maximum(expected, share8).tolist())
         fig.leg_force_n = tuple(f.tolist())
         fig.phase_t_s = run.tau
         st = self.steps[-1]
@@ -557,6 +566,29 @@ class WalkSequencer:
         for w, j in zip(self._TWIST, standing, strict=True):
             self.twist_offset[j] -= w * step
             refs[self.legs[j]] += self.twist_offset[j]
+
+    def _residual_share(
+        self, x_s: float, share8: FloatArray, f: FloatArray, plan_f: FloatArray, held: list[int]
+    ) -> FloatArray:
+        """Expected forces: a leg held in position carries its minimum-norm share of what
+        the other touching legs (force-controlled, or touched down) leave of the load (the
+        body's equilibrium with their measured forces); the others the plan's force."""
+        others = [j for j in range(8) if j not in held]
+        pts = self.machine.legs_xy(x_s)
+        a = np.vstack([np.ones(8), pts[:, 1], -pts[:, 0]])
+        rhs = a @ share8  # the load (any equilibrium gives it)
+        run = self.run
+        touching = {self.legs.index(i) for i in self.force_mode}
+        if run is not None and run.phase.key in LOWER:
+            frame = MAIN if run.phase.key == "7a" else SUB
+            touching |= {j for k, j in enumerate(frame) if run.touched[k]}
+        # a leg in the air carries nothing (its pressures show the motion's friction)
+        given = np.array([max(0.0, float(f[j])) if j in touching else 0.0 for j in others])
+        rest = rhs - a[:, others] @ given
+        a_r = a[:, held]
+        out = plan_f.copy()
+        out[held] = a_r.T @ np.linalg.solve(a_r @ a_r.T, rest)
+        return out
 
     def _share8(self, x_s: float) -> FloatArray:
         key = round(x_s * 1e4)

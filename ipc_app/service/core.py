@@ -710,7 +710,19 @@ class ServiceCore:
         x = np.nan_to_num(inp.positions.value, nan=0.0)
         p = np.nan_to_num(inp.pressures.value, nan=0.0)
         was_done = walker.done
+        band_was = walker.figures.out_of_band
         u = walker.update(now, x, p, set(self.limits.active))
+        band = walker.figures.out_of_band
+        if band != band_was and self.record is not None:  # the sync band: hold, go on
+            fig = walker.figures
+            self.record.event(
+                now,
+                "walk_sync_hold" if band else "walk_sync_continue",
+                group=band or band_was,
+                step=fig.step,
+                phase=fig.phase,
+                sync_mm=units.to_mm(max(fig.leg_sync_m, fig.travel_sync_m)),
+            )
         self._last_drive_t = now
         if self.modes.mode == Mode.EXECUTE and not was_done:
             assert self.walk_limits is not None
