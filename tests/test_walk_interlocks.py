@@ -126,3 +126,16 @@ def test_ctl_walk_request_is_checked() -> None:
     ):
         out = parse(bad)
         assert isinstance(out, dict) and out["code"] == "bad_request"
+
+
+def test_every_walk_phase_keeps_the_bus_within_its_budget() -> None:
+    from ipc_app.control.walk import walk_active_group
+    from ipc_app.planner.walk import PHASES
+    from plc_bridge import bus_load
+
+    cfg = load_project(None)
+    groups = {key: tuple(walk_active_group(cfg, key)) for key in PHASES}
+    assert groups["1"] != groups["2"] != groups["6"]  # the group changes with the phase
+    for key, group in groups.items():
+        load = bus_load(cfg, group)
+        assert load.ok and load.load_percent <= 50.0, (key, load.load_percent)

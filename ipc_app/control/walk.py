@@ -67,6 +67,21 @@ MAIN = (0, 1, 2, 3)
 SUB = (4, 5, 6, 7)
 
 
+def walk_active_group(cfg: ProjectConfig, key: str) -> list[int]:
+    """``can_index`` of the cylinders whose frames run at the loop rate in phase ``key``
+    (the active group changes with the phase): while the travel pair moves, it and the
+    standing frame's legs; in every other phase the eight legs. The rest (the hanging
+    frame while the pair moves, the upper platform) run at their slow cycle and are held
+    by :attr:`WalkSequencer.SLOW_HOLD_RAD_S`."""
+    main = [cfg.cylinder(c).can_index for c in cfg.layers.lower.cylinders]
+    sub = sorted((c for c in cfg.cylinders if c.role == "sub_leg"), key=lambda c: c.position or 0)
+    sub_idx = [c.can_index for c in sub]
+    travel = [c.can_index for c in cfg.cylinders_by_can_index if c.role == "travel"]
+    if key in TRAVEL:
+        return travel + (main if key == "1" else sub_idx)
+    return main + sub_idx
+
+
 @dataclass
 class WalkFigures:
     """One cycle of the walk, what the walk interlocks judge (SI units)."""
@@ -248,15 +263,10 @@ class WalkSequencer:
         point = cog_projection(self.machine.cog(x_s), self.machine.g_base)
         return stability_margin(self.machine.legs_xy(x_s)[list(legs)], point)
 
-    def active_group(self, k: int | None = None) -> list[int]:
-        """The cylinders whose frames run at the loop rate in phase ``k`` (default: the
-        present one): the travel pair and the standing legs while it moves, else the
-        eight legs."""
-        ph = self.plan.phases[self.run.index if k is None and self.run else (k or 0)]
-        if ph.key in TRAVEL:
-            standing = MAIN if ph.key == "1" else SUB
-            return self.travel + [self.legs[j] for j in standing]
-        return list(self.legs)
+    def active_group(self) -> list[int]:
+        """The present phase's active group (:func:`walk_active_group`)."""
+        key = self.run.phase.key if self.run is not None else self.plan.phases[0].key
+        return walk_active_group(self.cfg, key)
 
     @staticmethod
     def _frame(ids: tuple[str, ...], leg_ids: tuple[str, ...]) -> tuple[int, ...]:
