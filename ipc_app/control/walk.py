@@ -288,6 +288,7 @@ class WalkSequencer:
         for i in self.legs + self.travel:
             self.hold_ref[i] = float(x[i])
         self.twist_offset[:] = 0.0
+        self.point_cache.clear()
         run = _PhaseRun(k, ph, now, start_x=np.array(x, dtype=float), start_f=f)
         key = ph.key
         x_s = self.x_s(x)
@@ -537,12 +538,13 @@ class WalkSequencer:
         fig.friction_capacity_n = self.walk.foot_friction_coefficient * float(
             sum(max(0.0, f[j]) for j in standing)
         )
-        share8 = self._share8(ph.x_s_m[0])
+        x_s_now = self.x_s(x) if key in TRAVEL else float(ph.x_s_m[0])
+        share8 = self._share8(x_s_now)
         if key in PRELOAD or key in TRANSFER:
             held = list(MAIN if key in ("3", "4") else SUB)
         else:
             held = list(self._frame(ph.standing, self.leg_ids))
-        expected = self._residual_share(ph.x_s_m[0], share8, f, plan_f, held)
+        expected = self._residual_share(x_s_now, share8, f, plan_f, held)
         fig.expected_n = tuple(np.maximum(expected, share8).tolist())
         fig.leg_force_n = tuple(f.tolist())
         fig.phase_t_s = run.tau
@@ -601,7 +603,7 @@ class WalkSequencer:
         return out
 
     def _share8(self, x_s: float) -> FloatArray:
-        key = round(x_s * 1e4)
+        key = round(x_s * 1e3)  # per mm (the cache is emptied at each phase's start)
         hit = self.point_cache.get(key)
         if hit is None:
             hit = (x_s, self.share(x_s, MAIN + SUB))
