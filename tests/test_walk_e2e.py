@@ -53,10 +53,9 @@ def recorder(tmp_path: Path, config: str) -> RunRecorder:
 def walk(
     tmp_path: Path, config: str, scenario: dict[str, Any] | None = None, **kw: Any
 ) -> tuple[dict[str, Any], list[dict[str, Any]]]:
-    rec = recorder(tmp_path, config)
     sc = HilScenario.model_validate(scenario) if scenario else None
-    out = run_walk(config, 1, scenario=sc, record=rec, **kw)
-    rec.close()
+    with recorder(tmp_path, config) as rec:
+        out = run_walk(config, 1, scenario=sc, record=rec, **kw)
     return out, events(tmp_path / "run")
 
 

@@ -787,7 +787,7 @@ class ServiceCore:
 
     def _stopped_here(self, now: float) -> None:
         """A motion stops (suspended or held): where the references were, and when."""
-        ref = self.attitude.last_references
+        ref = self.attitude.last_references if self.walker is None else self.walker.last_refs
         self._stop_ref = (ref if ref is not None else self.attitude.references(now)).copy()
         self._suspended_at = now
 
@@ -798,6 +798,9 @@ class ServiceCore:
         stopped, the controllers reset at ``x``. Returns the shift."""
         last = self._last_drive_t if self._last_drive_t is not None else self._suspended_at
         shift = max(0.0, now - last - self.period_s)  # the next reference follows the last
+        if self.walker is not None and self._inputs is not None:
+            # the walk's phase clock stood still while stopped: its controllers restart
+            self.walker.resume(np.nan_to_num(x), np.nan_to_num(self._inputs.pressures.value))
         self.attitude.resume(x, shift)
         self.motion.started_s += shift
         event(reason)
