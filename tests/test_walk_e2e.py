@@ -60,11 +60,11 @@ def walk(
 
 
 def phase_starts(evs: list[dict[str, Any]]) -> dict[str, float]:
-    return {e["phase"]: e["t"] for e in evs if e["event"] == "walk_phase"}
+    return {e["phase"]: e["t_s"] for e in evs if e["kind"] == "walk_phase"}
 
 
 def fault(evs: list[dict[str, Any]]) -> dict[str, Any]:
-    (first, *_) = [e for e in evs if e["event"] == "fault"]
+    (first, *_) = [e for e in evs if e["kind"] == "fault"]
     return first
 
 
@@ -72,11 +72,11 @@ def test_a_short_step_completes_with_every_phase_in_the_record(tmp_path: Path) -
     out, evs = walk(tmp_path, project(tmp_path))
     assert out["final_mode"] == "COMPLETE", out["fault_reasons"]
     assert list(phase_starts(evs)) == ["1", "2", "3", "4", "5", "6", "7a", "7b", "7c", "8"]
-    (done,) = [e for e in evs if e["event"] == "walk_done"]
+    (done,) = [e for e in evs if e["kind"] == "walk_done"]
     assert done["steps"][0]["max_leg_force_ratio"] <= 1.10
     assert abs(out["distance_m"] - 0.2) <= 0.005  # simulator truth
     for e in evs:
-        if e["event"] == "walk_phase":
+        if e["kind"] == "walk_phase":
             assert e["bus_load_percent"] <= 50.0
 
 
@@ -93,8 +93,8 @@ def test_a_hole_under_a_foot_stops_the_lowering(tmp_path: Path) -> None:
     assert f["interlock"] == str(Interlock.TOUCHDOWN) and f["where"] == "sub_leg_1"
     t2 = phase_starts(evs)["2"]
     lowering_s = (50 - 10) / 20 + 20 / 20 + 2 * 10 / 5  # trapezoid to 40 mm, then 20 mm slow
-    assert f["t"] - t2 <= lowering_s + 2 * PERIOD_S
-    assert f["t"] - t2 >= lowering_s - 0.5  # not before the lowering ran out
+    assert f["t_s"] - t2 <= lowering_s + 2 * PERIOD_S
+    assert f["t_s"] - t2 >= lowering_s - 0.5  # not before the lowering ran out
 
 
 def test_slip_when_the_travel_force_passes_the_feet_friction(tmp_path: Path) -> None:
@@ -108,7 +108,7 @@ def test_slip_when_the_travel_force_passes_the_feet_friction(tmp_path: Path) -> 
     assert out["final_mode"] == "ABORTED"
     f = fault(evs)
     assert f["interlock"] == str(Interlock.SLIP), out["fault_reasons"]
-    assert f["t"] - 2.0 <= 400 * PERIOD_S
+    assert f["t_s"] - 2.0 <= 400 * PERIOD_S
 
 
 def test_overload_of_a_standing_leg(tmp_path: Path) -> None:
@@ -119,7 +119,7 @@ def test_overload_of_a_standing_leg(tmp_path: Path) -> None:
     _out, evs = walk(tmp_path, project(tmp_path), {"events": [load]})
     f = fault(evs)
     assert f["interlock"] == str(Interlock.OVERLOAD) and f["where"] == "main_leg_1"
-    assert f["t"] - 2.0 <= 40 * PERIOD_S
+    assert f["t_s"] - 2.0 <= 40 * PERIOD_S
 
 
 def test_a_leg_out_of_band_holds_its_group_and_it_goes_on(tmp_path: Path) -> None:
@@ -130,10 +130,10 @@ def test_a_leg_out_of_band_holds_its_group_and_it_goes_on(tmp_path: Path) -> Non
              "start_s": 7.6, "end_s": 8.6}  # fmt: skip
     out, evs = walk(tmp_path, cfg, {"events": [stuck]})
     assert out["final_mode"] == "COMPLETE", out["fault_reasons"]
-    holds = [e for e in evs if e["event"] == "walk_sync_hold"]
-    goes = [e for e in evs if e["event"] == "walk_sync_continue"]
+    holds = [e for e in evs if e["kind"] == "walk_sync_hold"]
+    goes = [e for e in evs if e["kind"] == "walk_sync_continue"]
     assert holds and goes and holds[0]["phase"] == "2" and holds[0]["group"] == "legs"
-    assert 7.6 <= holds[0]["t"] <= 8.6 and goes[0]["t"] > holds[0]["t"]
+    assert 7.6 <= holds[0]["t_s"] <= 8.6 and goes[0]["t_s"] > holds[0]["t_s"]
     assert holds[0]["sync_mm"] <= 2.0 + 20 * PERIOD_S  # one cycle at 20 mm/s past the band
 
 
@@ -143,28 +143,34 @@ def test_a_leg_out_of_band_too_long_is_latched(tmp_path: Path) -> None:
     _out, evs = walk(tmp_path, cfg, {"events": [stuck]})
     f = fault(evs)
     assert f["interlock"] == str(Interlock.SYNC_BAND)
-    (hold,) = [e for e in evs if e["event"] == "walk_sync_hold"][:1]
-    assert 1.0 <= f["t"] - hold["t"] <= 1.0 + 2 * PERIOD_S
+    (hold,) = [e for e in evs if e["kind"] == "walk_sync_hold"][:1]
+    assert 1.0 <= f["t_s"] - hold["t_s"] <= 1.0 + 2 * PERIOD_S
 
 
 def test_stop_and_resume_mid_phase(tmp_path: Path) -> None:
-    """A stop (hold) in phase 1, two seconds held, resume: the check passes and the same
-    phase goes on (each phase once in the record); the step completes."""
+    """A stop (hold) in phase 1, 0.2 s held, resume: the check passes and the same phase
+    goes on (each phase once in the record); the step completes. (Held longer, the
+    standing legs sink through the rig's piston leakage, about 3 mm/s at their load, and
+    the check refuses: docs/walking.md.)"""
     state: dict[str, Any] = {}
 
     def act(h: Harness) -> None:
         t = h.sim.t_s
         if "held" not in state and t >= 3.0:
             state["held"] = h.core.request_hold(wait_s=0.0)
-        elif "held" in state and "resumed" not in state and t >= 5.0:
+        elif "held" in state and "resumed" not in state and t >= 3.2:
             state["resumed"] = h.core.request_unhold(wait_s=0.0)
 
     cfg = project(tmp_path)
     out, evs = walk(tmp_path, cfg, on_cycle=act)
     assert out["final_mode"] == "COMPLETE", out["fault_reasons"]
-    modes = [(e["event"], e["to_mode"]) for e in evs if e["event"] in ("hold", "unhold")]
+    modes = [
+        (e["event"], e["to_mode"])
+        for e in evs
+        if e["kind"] == "mode" and e["event"] in ("hold", "unhold")
+    ]
     assert modes == [("hold", "HELD"), ("unhold", "EXECUTE")]
-    phases = [e["phase"] for e in evs if e["event"] == "walk_phase"]
+    phases = [e["phase"] for e in evs if e["kind"] == "walk_phase"]
     assert phases.count("1") == 1
     assert abs(out["distance_m"] - 0.2) <= 0.005
 
@@ -176,17 +182,17 @@ def test_resume_refused_when_a_leg_sank_while_stopped(tmp_path: Path) -> None:
         t = h.sim.t_s
         if "held" not in state and t >= 3.0:
             state["held"] = h.core.request_hold()
-        elif "held" in state and "unhold" not in state and t >= 6.0:
+        elif "held" in state and "unhold" not in state and t >= 3.2:
             state["unhold"] = h.core.request_unhold()
-        elif "unhold" in state and "mode" not in state and t >= 6.1:
+        elif "unhold" in state and "mode" not in state and t >= 3.3:
             state["mode"] = h.core.modes.mode
             h.core.modes.stop("test: the walk ends")
 
     leak = {"kind": "holding_valve_leak", "cylinder": "main_leg_1", "leakage_m3_s_pa": 1e-10,
-            "start_s": 3.2}  # fmt: skip
+            "start_s": 3.05}  # fmt: skip
     out, evs = walk(tmp_path, project(tmp_path), {"events": [leak]}, on_cycle=act)
     assert state["mode"] is Mode.HELD  # the resume was refused
-    (refused,) = [e for e in evs if e["event"] == "walk_resume_refused"]
+    (refused,) = [e for e in evs if e["kind"] == "walk_resume_refused"]
     assert refused["reason"].startswith("walk resume check: main_leg_1")
     assert out["final_mode"] == "IDLE"
 

@@ -560,8 +560,8 @@ class WalkSequencer:
         return u
 
     #: load equalization gain of the standing frame, m per N s (time constant about
-    #: 1 / (gain * leg stiffness), 2 s at 5e7 N/m)
-    EQUALIZE_M_PER_N_S = 1e-8
+    #: 1 / (gain * leg stiffness), 0.5 s at 5e7 N/m)
+    EQUALIZE_M_PER_N_S = 4e-8
     #: the twist mode of four legs at (s_i a, t_i b): legs 1 and 3 against 2 and 4
     _TWIST = (1.0, -1.0, 1.0, -1.0)
 
