@@ -514,8 +514,9 @@ class ServiceCore:
         x_stop, f_stop = self._walk_stop
         x = inp.positions.value
         share = w.figures.expected_n or tuple([1.0] * 8)
+        heights = w.legs + w.upper  # the travel pair's clock goes on from where it stood
         return walk_resume_cause(
-            x.tolist(), x_stop.tolist(), w.walk_cylinders, self.limits.ids,
+            x.tolist(), x_stop.tolist(), heights, self.limits.ids,
             w.forces_n(inp.pressures.value).tolist(), f_stop.tolist(), share, w.leg_ids, lim,
         )  # fmt: skip
 
