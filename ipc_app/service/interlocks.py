@@ -218,8 +218,9 @@ SPECS: dict[Interlock, Spec] = {
         "walking.resume_height_tolerance_mm",
         Applies.WALK,
         "",
-        "resume (unhold) of a stopped walk: a leg or upper cylinder moved more than the tolerance, or a "
-        "leg's force changed more than `walking.resume_force_tolerance_percent` of its share, "
+        "resume (unhold) of a stopped walk: a leg or upper cylinder moved more than the "
+        "tolerance, or a leg's force changed more than `walking.resume_force_tolerance_percent` "
+        "of its share, "
         "since the stop: refused, `wara ctl stop` and a new walk re-plan from the measured state",
     ),
 }
