@@ -404,7 +404,7 @@ class WalkSequencer:
         k0 = int(kk)
         k1 = min(k0 + 1, len(ph.leg_forces_n) - 1)
         plan_f = ph.leg_forces_n[k0] * (1 - (kk - k0)) + ph.leg_forces_n[k1] * (kk - k0)
-        if key not in TRANSFER:
+        if key in TRAVEL:  # one frame alone on the invert while the COG moves
             self._equalize(refs, f, plan_f, self._frame(ph.standing, self.leg_ids))
         if key in TRAVEL:
             move = Move(ph.end_m[0] - (float(np.mean(run.start_x[self.travel])) - self.e0),
@@ -560,8 +560,8 @@ class WalkSequencer:
         return u
 
     #: load equalization gain of the standing frame, m per N s (time constant about
-    #: 1 / (gain * leg stiffness), 0.5 s at 5e7 N/m)
-    EQUALIZE_M_PER_N_S = 4e-8
+    #: 1 / (gain * leg stiffness), 2 s at 5e7 N/m)
+    EQUALIZE_M_PER_N_S = 1e-8
     #: the twist mode of four legs at (s_i a, t_i b): legs 1 and 3 against 2 and 4
     _TWIST = (1.0, -1.0, 1.0, -1.0)
 
