@@ -152,6 +152,7 @@ class _PhaseRun:
     touched: list[bool] = field(default_factory=list)
     baseline_pa: list[float] = field(default_factory=list)
     frozen_x: list[float] = field(default_factory=list)
+    touch_f: list[float] = field(default_factory=list)
     band_since: float | None = None
     standing_share_n: FloatArray = field(default_factory=lambda: np.zeros(8))
 
@@ -304,6 +305,7 @@ class WalkSequencer:
             run.touched = [False] * 4
             run.baseline_pa = [float(p[self.legs[j], 0]) for j in frame]
             run.frozen_x = [0.0] * 4
+            run.touch_f = [0.0] * 4
         elif key in LIFT:
             run.duration_s = Move(-self.walk.clearance_m, self.leg_v, self.leg_a).duration_s
         else:
@@ -431,8 +433,8 @@ class WalkSequencer:
                 v = (s1 - s) / dt
             for k, j in enumerate(frame):
                 i = self.legs[j]
-                if key in LOWER and run.touched[k]:
-                    refs[i] = run.frozen_x[k]
+                if key in LOWER and run.touched[k]:  # touched: it holds its touch force
+                    f_ref[i] = (run.touch_f[k], 0.0)
                     continue
                 refs[i] = run.start_x[i] + sign * s
                 rates[i] = v if self.feedforward else 0.0
@@ -449,8 +451,12 @@ class WalkSequencer:
                     if near and pa - run.baseline_pa[k] > self.touch_pa:
                         run.touched[k] = True
                         run.frozen_x[k] = float(x[i])
-                        refs[i] = float(x[i])
-                        rates[i] = 0.0
+                        run.touch_f[k] = float(f[j])
+                        # force control from here: a stiff foot held in position would
+                        # keep what the position loop's overshoot pressed into it
+                        self.force_mode.add(i)
+                        self.force[i].reset(float(f[j]), self.pos[i].command)
+                        f_ref[i] = (run.touch_f[k], 0.0)
                         if i in moving:
                             moving.remove(i)
                     else:  # the free rod's pressure, low-passed while it moves
