@@ -645,6 +645,31 @@ class Walking(Strict):
     #: travel force below this times the standing legs' total normal force (no slip)
     foot_friction_coefficient: Annotated[Finite, Field(gt=0, le=2)] = 0.4
     contact: FootContact = FootContact()
+    #: sync band of a lifting or lowering leg group (walking.md section 5): the group holds
+    leg_sync_band_mm: Annotated[Finite, Field(gt=0, le=100)] = 2.0
+    #: sync band of the travel pair
+    travel_sync_band_mm: Annotated[Finite, Field(gt=0, le=100)] = 5.0
+    #: a group out of its band for longer than this: stop, latched
+    sync_band_timeout_s: Annotated[Finite, Field(gt=0, le=600)] = 5.0
+    #: a leg force above this share of its expected force: stop, latched
+    overload_percent: Annotated[Finite, Field(gt=100, le=1000)] = 110.0
+    #: a lowering foot has touched down when its cap pressure rose this much
+    touch_mpa: Annotated[Finite, Field(gt=0, le=70)] = 1.0
+    #: a foot not touched down this far below the expected ground: stop (hole, obstacle)
+    touchdown_travel_mm: Annotated[Finite, Field(gt=0, le=1000)] = 10.0
+    #: lowering speed from touchdown_travel_mm above the expected ground on
+    touchdown_speed_mm_s: Annotated[Finite, Field(gt=0, le=1000)] = 5.0
+    #: preload or transfer not done within this: stop
+    transfer_timeout_s: Annotated[Finite, Field(gt=0, le=600)] = 30.0
+    #: a receiving leg off its expected share by more than this at the transfer's end: stop
+    share_tolerance_percent: Annotated[Finite, Field(gt=0, le=100)] = 15.0
+    #: resume check after a stop: rod positions within this of the values at the stop
+    resume_height_tolerance_mm: Annotated[Finite, Field(gt=0, le=100)] = 1.0
+    #: resume check: leg forces within this of the values at the stop (of the leg's share)
+    resume_force_tolerance_percent: Annotated[Finite, Field(gt=0, le=100)] = 10.0
+    #: force loop (touch-down, preload, transfer): LADRC bandwidths on the cap-side force
+    force_wc_rad_s: Annotated[Finite, Field(gt=0, le=1000)] = 4.0
+    force_wo_rad_s: Annotated[Finite, Field(gt=0, le=1000)] = 16.0
 
     @property
     def step_length_m(self) -> float:

@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 
 from config import ProjectConfig, load_project
-from config.schema import Safety
+from config.schema import Safety, Walking
 from ipc_app.control.attitude import LayerMetrics
 from ipc_app.service.core import ServiceCore
 from ipc_app.service.interlocks import SPECS, Interlock, Limits, motion_causes, present_causes
@@ -162,7 +162,8 @@ def test_every_safety_key_has_a_case() -> None:
 
 def test_every_interlock_key_is_a_config_key() -> None:
     keys = {s.key for s in SPECS.values() if s.key is not None}
-    assert keys <= {f"safety.{k}" for k in Safety.model_fields}
+    walking = {f"walking.{k}" for k in Walking.model_fields}  # tests/test_walk_interlocks.py
+    assert keys <= {f"safety.{k}" for k in Safety.model_fields} | walking
 
 
 @pytest.mark.parametrize("key", sorted(CASES))

@@ -33,7 +33,7 @@ import math
 import threading
 from collections import deque
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any, NamedTuple, Protocol
 
 import numpy as np
@@ -42,8 +42,10 @@ import structlog
 from config import units
 from config.schema import ProjectConfig
 from ipc_app.control.attitude import AttitudeController
+from ipc_app.control.walk import WalkSequencer
 from ipc_app.model.composition import check_attitude
 from ipc_app.model.kinematics import fit_layer
+from ipc_app.planner.walk import WalkPlan, WalkStart, plan_walk
 from ipc_app.service.interlocks import (
     Cause,
     Interlock,
@@ -73,6 +75,7 @@ from ipc_app.service.modes import (
     UnitMode,
 )
 from ipc_app.service.record import RunRecorder
+from ipc_app.service.walk_interlocks import WalkLimits, walk_causes, walk_resume_cause
 from ipc_app.service.worker import PlanResult
 from plc_bridge.link import ControlWord, IpcLink, LinkState, TargetAck, TargetRequest
 from plc_bridge.link import Mode as PlcMode
@@ -205,6 +208,12 @@ class ServiceCore:
         self._published: _Published | None = None
         self.loop_stats: dict[str, Any] = {}
         self.cycles = 0
+        # the walk: its sequencer while one runs (and holds after it), its limits
+        self.walker: WalkSequencer | None = None
+        self.walk_limits = WalkLimits.from_config(cfg) if cfg.walking is not None else None
+        self._walk_phase = -1
+        self._walk_stop: tuple[np.ndarray, np.ndarray] | None = None
+        self._attitude_limits = self.limits
 
     @staticmethod
     def record_columns(cfg: ProjectConfig) -> list[str]:
@@ -328,6 +337,9 @@ class ServiceCore:
         out = self.modes.hold()
         if out.accepted:
             self._stopped_here(inp.t)
+            if self.walker is not None:
+                self._walk_stop = (inp.positions.value.copy(), self.walker.forces_n(
+                    inp.pressures.value))  # fmt: skip
         return out.to_dict()
 
     def _do_unhold(self, inp: MachineInputs) -> dict[str, Any]:
@@ -335,7 +347,16 @@ class ServiceCore:
             return self.modes.unhold().to_dict()  # refused, with its message
         stop_ref = self._stop_ref.tolist() if self._stop_ref is not None else None
         cause = None if inp.positions_valid else "rod positions not valid"
-        if cause is None:
+        if cause is None and self.walker is not None:
+            c = self._walk_resume_cause(inp)
+            cause = None if c is None else c.text()
+            if c is not None and self.record is not None:
+                self.record.event(inp.t, "walk_resume_refused", reason=c.text())
+            if cause is None:
+                self.walker.resume(inp.positions.value, inp.pressures.value)
+                self.modes.unhold("operator unhold: the walk's resume check passed")
+                return {"ok": True, "mode": str(self.modes.mode)}
+        elif cause is None:
             c = resume_cause(inp, stop_ref, self.limits)
             cause = None if c is None else c.text()
         if cause is not None:
@@ -383,6 +404,143 @@ class ServiceCore:
             # a trajectory by its interface (duration_s, sample, positions)
             self.attitude.engage(x, inp.t, path)  # type: ignore[arg-type]
         return out.to_dict()
+
+    # ------------------------------------------------------------------ the walk
+
+    def plan_walk_here(self, steps: int) -> WalkPlan | dict[str, Any]:
+        """Plan ``steps`` steps from the last measured state (the caller's thread, not
+        the loop's); a dict when the service cannot walk now (why)."""
+        if self.cfg.walking is None or self.cfg.frames is None:
+            msg = "the project has no frames and walking sections: it cannot walk"
+            return {"ok": False, "code": "bad_request", "error": msg}
+        inp = self._inputs
+        if inp is None or not inp.positions_valid:
+            return {"ok": False, "code": "refused", "error": "walk refused: no valid positions"}
+        x = inp.positions.value
+        cfg = self.cfg
+        travel = [c.can_index for c in cfg.cylinders_by_can_index if c.role == "travel"]
+        e0 = cfg.cylinders_by_can_index[travel[0]].stroke_m / 2
+        x_s = float(np.mean(x[travel])) - e0
+        half = self.stroke / 2
+        lo, up = self.attitude.layers["lower"], self.attitude.layers["upper"]
+        if not (np.all(np.isfinite(x[travel])) and np.all(np.isfinite(x[up]))):
+            return {"ok": False, "code": "refused", "error": "walk refused: no valid positions"}
+        start = WalkStart(
+            x_s_m=x_s,
+            main_extensions_m=tuple((x[lo] - half[lo]).tolist()),
+            upper_extensions_m=tuple((x[up] - half[up]).tolist()),
+        )
+        return plan_walk(cfg, steps, start)
+
+    def request_walk(self, steps: int, wait_s: float = 0.0) -> dict[str, Any]:
+        """Walk ``steps`` steps: planned here from the measured state and refused (with
+        the phase, instant and limit) before anything moves if a constraint breaks; then
+        the loop runs the step sequencer (EXECUTE) until the last phase (COMPLETE)."""
+        if not 1 <= steps <= 1000:
+            return {"ok": False, "code": "bad_request", "error": f"steps 1..1000, got {steps}"}
+        plan = self.plan_walk_here(steps)
+        if isinstance(plan, dict):
+            return plan
+        if not plan.feasible:
+            ref = plan.refusal
+            assert ref is not None
+            if self.record is not None:
+                self.record.event(self._now, "walk_refused", refusal=ref.to_dict())
+            return {
+                "ok": False,
+                "code": "infeasible",
+                "error": f"walk refused: {ref.message}",
+                "refusal": ref.to_dict(),
+            }
+        return self._in_loop(lambda inp: self._do_walk(inp, plan), wait_s)
+
+    def _do_walk(self, inp: MachineInputs, plan: WalkPlan) -> dict[str, Any]:
+        if not inp.positions_valid:
+            return {"ok": False, "code": "refused", "error": "walk refused: no valid positions"}
+        out = self.modes.walk(f"{plan.steps} step(s) of {plan.step_length_m:.3f} m")
+        if not out.accepted:
+            return {"ok": False, "code": "refused", "error": out.message, "mode": str(out.mode)}
+        walker = WalkSequencer(self.cfg, self.period_s, plan)
+        walker.start(inp.t, inp.positions.value, inp.pressures.value)
+        self.walker = walker
+        self._walk_phase = -1
+        self.motion = MotionStats(started_s=inp.t)
+        self._walk_group(inp.t)
+        if self.record is not None:
+            self.record.event(inp.t, "walk", steps=plan.steps, plan=plan.to_dict()["phases"][:0])
+        return {"ok": True, "mode": str(self.modes.mode), "duration_s": plan.duration_s}
+
+    def _walk_group(self, now: float) -> None:
+        """The present phase's active group on the link (and what the reader and the
+        stroke-end check watch); a phase change is an event of the run record."""
+        w = self.walker
+        assert w is not None and w.run is not None
+        if w.run.index == self._walk_phase:
+            return
+        self._walk_phase = w.run.index
+        group = w.active_group()
+        self.bus_load = self.link.set_active_cylinders(group, now)
+        self.reader = Reader(self.link, group)
+        self.limits = replace(self._attitude_limits, active=tuple(group))
+        ph = w.run.phase
+        log.info("walk phase", step=ph.step, phase=ph.key, name=w.phase_name())
+        if self.record is not None:
+            self.record.event(
+                now,
+                "walk_phase",
+                step=ph.step,
+                phase=ph.key,
+                name=w.phase_name(),
+                active=group,
+                bus_load_percent=round(self.bus_load.load_percent, 2),
+                margin_ahead_m=w.figures.margin_ahead_m,
+            )
+
+    def _end_walk(self) -> None:
+        """Back to the attitude group (an adjustment from the walk's end state, a stop)."""
+        if self.walker is None:
+            return
+        self.walker = None
+        self._walk_phase = -1
+        self.bus_load = self.link.set_active_cylinders(self.active)
+        self.reader = Reader(self.link, self.active)
+        self.limits = self._attitude_limits
+
+    def _walk_resume_cause(self, inp: MachineInputs) -> Cause | None:
+        w, lim = self.walker, self.walk_limits
+        assert w is not None and lim is not None
+        if self._walk_stop is None:
+            return None
+        x_stop, f_stop = self._walk_stop
+        x = inp.positions.value
+        share = w.figures.expected_n or tuple([1.0] * 8)
+        heights = w.legs + w.upper  # the travel pair's clock goes on from where it stood
+        return walk_resume_cause(
+            x.tolist(), x_stop.tolist(), heights, self.limits.ids,
+            w.forces_n(inp.pressures.value).tolist(), f_stop.tolist(), share, w.leg_ids, lim,
+        )  # fmt: skip
+
+    def walk_status(self) -> dict[str, Any] | None:
+        """The walk's step and phase for ``wara ctl status`` (None: no walk)."""
+        w = self.walker
+        if w is None or w.run is None:
+            return None
+        fig = w.figures
+        return {
+            "steps": w.plan.steps,
+            "step": fig.step,
+            "phase": fig.phase,
+            "phase_name": w.phase_name(),
+            "done": w.done,
+            "phase_time_s": round(fig.phase_t_s, 3),
+            "stability_margin_m": round(fig.margin_m, 4) if math.isfinite(fig.margin_m) else None,
+            "leg_forces_kn": {
+                cid: round(f / units.KN, 2)
+                for cid, f in zip(w.leg_ids, fig.leg_force_n, strict=False)
+            },
+            "out_of_band": fig.out_of_band,
+            "steps_done": [s.to_dict() for s in w.steps if s.duration_s > 0],
+        }
 
     def request_adjust(
         self, roll_deg: float, pitch_deg: float, wait_s: float = 0.0, hmi_seq: int = 0
@@ -449,6 +607,9 @@ class ServiceCore:
                 for i, cid in self._active_ids
             }
             snap["positions_valid"] = {cid: bool(ok[i]) for i, cid in self._active_ids}
+        walk = self.walk_status()
+        if walk is not None:
+            snap["walk"] = walk
         return snap
 
     # ------------------------------------------------------------------ the step
@@ -469,8 +630,9 @@ class ServiceCore:
         """The cycle's control words after :meth:`update`: the handshake's edits, then
         the PLC mode and enable, the PackML state and unit mode."""
         enabled = self.modes.valves_enabled
+        plc = PlcMode.WALK if self.walker is not None else PlcMode.ATTITUDE_ADJUST
         return self.handshake.finish(
-            PlcMode.ATTITUDE_ADJUST if enabled else PlcMode.IDLE,
+            plc if enabled else PlcMode.IDLE,
             enabled,
             _MODE_CODES[self.modes.mode],
             UNIT_MODES[self.modes.unit_mode],
@@ -513,8 +675,10 @@ class ServiceCore:
 
         self._reset_step(now, present)
         self._ride_through(now, losses, inp)
+        walker = self.walker
         if self.modes.valves_enabled and valid:
-            for cause in motion_causes(inp, self.attitude.metrics, self.limits):
+            metrics = self.attitude.metrics if walker is None else {}
+            for cause in motion_causes(inp, metrics, self.limits):
                 self.modes.fault(cause)
 
         hmi = inp.hmi
@@ -532,6 +696,12 @@ class ServiceCore:
         self._run_calls(inp)
         self._planning(x, valid, now)
 
+        walker = self.walker
+        if walker is not None and self.modes.mode in (Mode.IDLE, Mode.STARTING):
+            self._end_walk()  # stopped, or an adjustment from the walk's end state
+            walker = None
+        if walker is not None:
+            return self._walk_update(inp, walker)
         if self.modes.mode == Mode.EXECUTE and self.attitude.motion_done(now):
             self.modes.motion_done()
             self.handshake.ack(TargetAck.COMPLETED)
@@ -545,6 +715,46 @@ class ServiceCore:
             self._last_drive_t = now
             self._motion_figures(now)
         return u, ref
+
+    def _walk_update(
+        self, inp: MachineInputs, walker: WalkSequencer
+    ) -> tuple[np.ndarray, np.ndarray | None]:
+        """A walk's cycle: the sequencer drives, the walk interlocks judge its figures."""
+        now = inp.t
+        u = np.zeros(len(self.cfg.cylinders))
+        if not (self.modes.valves_enabled and inp.positions_valid):
+            return u, None
+        x = np.nan_to_num(inp.positions.value, nan=0.0)
+        p = np.nan_to_num(inp.pressures.value, nan=0.0)
+        was_done = walker.done
+        band_was = walker.figures.out_of_band
+        u = walker.update(now, x, p, set(self.limits.active))
+        band = walker.figures.out_of_band
+        if band != band_was and self.record is not None:  # the sync band: hold, go on
+            fig = walker.figures
+            self.record.event(
+                now,
+                "walk_sync_hold" if band else "walk_sync_continue",
+                group=band or band_was,
+                step=fig.step,
+                phase=fig.phase,
+                sync_mm=units.to_mm(max(fig.leg_sync_m, fig.travel_sync_m)),
+            )
+        self._last_drive_t = now
+        if self.modes.mode == Mode.EXECUTE and not was_done:
+            assert self.walk_limits is not None
+            for cause in walk_causes(walker.figures, walker.leg_ids, self.walk_limits):
+                self.modes.fault(cause)
+            if walker.done:
+                self.modes.motion_done()
+                self.motion.duration_s = now - self.motion.started_s
+                if self.record is not None:
+                    self.record.event(now, "walk_done", steps=[s.to_dict() for s in walker.steps])
+            else:
+                self._walk_group(now)
+        if not self.modes.valves_enabled:
+            return np.zeros(len(self.cfg.cylinders)), None
+        return u, walker.last_refs
 
     # ------------------------------------------------------------------ ride-through
 
@@ -594,7 +804,7 @@ class ServiceCore:
 
     def _stopped_here(self, now: float) -> None:
         """A motion stops (suspended or held): where the references were, and when."""
-        ref = self.attitude.last_references
+        ref = self.attitude.last_references if self.walker is None else self.walker.last_refs
         self._stop_ref = (ref if ref is not None else self.attitude.references(now)).copy()
         self._suspended_at = now
 
@@ -605,6 +815,9 @@ class ServiceCore:
         stopped, the controllers reset at ``x``. Returns the shift."""
         last = self._last_drive_t if self._last_drive_t is not None else self._suspended_at
         shift = max(0.0, now - last - self.period_s)  # the next reference follows the last
+        if self.walker is not None and self._inputs is not None:
+            # the walk's phase clock stood still while stopped: its controllers restart
+            self.walker.resume(np.nan_to_num(x), np.nan_to_num(self._inputs.pressures.value))
         self.attitude.resume(x, shift)
         self.motion.started_s += shift
         event(reason)

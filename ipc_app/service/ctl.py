@@ -106,6 +106,7 @@ COMMANDS = (
     "unit_mode",
     "jog",
     "audit",
+    "walk",
 )
 #: The longest ``result`` an ``audit`` entry may carry.
 MAX_AUDIT_CHARS = 400
@@ -165,6 +166,7 @@ class CtlHandlers:
     jog: Callable[[str, float], Reply] | None = None
     #: an entry of another front end's audit trail (user, action, result)
     audit: Callable[[str, str, str], Reply] | None = None
+    walk: Callable[[int], Reply] | None = None
 
 
 def _error(code: str, message: str) -> Reply:
@@ -242,6 +244,11 @@ def parse(line: bytes) -> Request | Reply:
             return Request(cmd, (_name(req, "user"), _name(req, "action"), result))
         except ValueError as exc:
             return _error("bad_request", str(exc))
+    if cmd == "walk":
+        steps = req.get("steps")
+        if isinstance(steps, bool) or not isinstance(steps, int) or not 1 <= steps <= 1000:
+            return _error("bad_request", f"'steps' must be an integer 1..1000, got {_brief(steps)}")
+        return Request(cmd, (steps,))
     if cmd != "adjust":
         return Request(cmd)
     try:

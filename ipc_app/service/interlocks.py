@@ -48,6 +48,7 @@ class Applies(StrEnum):
     SUSPENDED = "SUSPENDED, before the motion resumes"
     EVENT = "when the planner answers"
     STARTUP = "start-up (STOPPED), until IDLE is first reached"
+    WALK = "walking (EXECUTE in a walk), in the phases named"
 
 
 class Interlock(StrEnum):
@@ -65,6 +66,13 @@ class Interlock(StrEnum):
     PLANNER = "planner"
     CONTROL_CHANNEL = "control channel"
     STARTUP = "start-up"
+    SYNC_BAND = "sync band"
+    OVERLOAD = "overload"
+    TOUCHDOWN = "touch-down"
+    TRANSFER = "transfer"
+    STABILITY = "stability"
+    SLIP = "slip"
+    WALK_RESUME = "walk resume check"
 
 
 @dataclass(frozen=True)
@@ -161,6 +169,59 @@ SPECS: dict[Interlock, Spec] = {
         "is not fresh: rod positions or the PLC status stale, or the PLC reporting the "
         "IPC's commands stale (detail: which); an interlock condition present then is "
         "latched as itself",
+    ),
+    Interlock.SYNC_BAND: Spec(
+        "walking.sync_band_timeout_s",
+        Applies.WALK,
+        "s",
+        "phases 1, 2, 5, 6, 7a, 8: the moving legs (`walking.leg_sync_band_mm`) or the travel "
+        "pair (`walking.travel_sync_band_mm`) out of their sync band: the group holds and goes "
+        "on once back inside; latched only when out for longer than the timeout",
+    ),
+    Interlock.OVERLOAD: Spec(
+        "walking.overload_percent",
+        Applies.WALK,
+        "%",
+        "every phase: a leg's force above the limit of its expected share (the plan's force "
+        "now, at least its eight-leg share)",
+    ),
+    Interlock.TOUCHDOWN: Spec(
+        "walking.touchdown_travel_mm",
+        Applies.WALK,
+        "",
+        "phases 2, 7a: a foot not touched down (cap pressure `walking.touch_mpa` above its "
+        "free-rod value) within the travel below the expected ground: a hole or an obstacle",
+    ),
+    Interlock.TRANSFER: Spec(
+        "walking.transfer_timeout_s",
+        Applies.WALK,
+        "s",
+        "phases 3, 4, 7b, 7c: preload or transfer not done within the timeout (at the end a "
+        "receiving leg off its share by more than `walking.share_tolerance_percent`)",
+    ),
+    Interlock.STABILITY: Spec(
+        "walking.min_stability_margin_m",
+        Applies.WALK,
+        "m",
+        "every phase: the stability margin below the limit, from the measured state or along "
+        "the phase's commanded motion (checked at its start, before anything moves)",
+        worse="min",
+    ),
+    Interlock.SLIP: Spec(
+        "walking.foot_friction_coefficient",
+        Applies.WALK,
+        "kN",
+        "every phase: the travel force (both travel rods) above the friction capacity of the "
+        "standing legs (coefficient times their measured force)",
+    ),
+    Interlock.WALK_RESUME: Spec(
+        "walking.resume_height_tolerance_mm",
+        Applies.WALK,
+        "",
+        "resume (unhold) of a stopped walk: a leg or upper cylinder moved more than the "
+        "tolerance, or a leg's force changed more than `walking.resume_force_tolerance_percent` "
+        "of its share, "
+        "since the stop: refused, `wara ctl stop` and a new walk re-plan from the measured state",
     ),
 }
 

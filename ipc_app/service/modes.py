@@ -169,6 +169,9 @@ RULES: dict[str, Rule] = {
               "a feasible plan: the valves open"),
         _rule("plan_failed", {Mode.STARTING}, Mode.IDLE, None,
               "the target is infeasible (the planner's reasons)"),
+        _rule("walk", {Mode.IDLE, Mode.COMPLETE}, Mode.EXECUTE, "STARTING",
+              "N steps of the walk, planned and checked before anything moves",
+              units=frozenset({UnitMode.PRODUCTION}), command="walk"),
         _rule("jog", {Mode.IDLE, Mode.COMPLETE}, Mode.EXECUTE, "STARTING",
               "one cylinder at the jog speed, the others held (interlocks on)",
               units=frozenset({UnitMode.MANUAL}), command="jog"),
@@ -369,6 +372,14 @@ class ModeMachine:
         MANUAL."""
         with self._lock:
             out = self._go_locked("jog", f"jog {what}")
+            if out.accepted:
+                self._s.target_deg = None
+            return out
+
+    def walk(self, what: str) -> Outcome:
+        """IDLE or COMPLETE -> EXECUTE for a walk (``what``: the steps), in PRODUCTION."""
+        with self._lock:
+            out = self._go_locked("walk", f"walk {what}")
             if out.accepted:
                 self._s.target_deg = None
             return out

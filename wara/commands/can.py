@@ -39,6 +39,11 @@ def register(sub: argparse._SubParsersAction) -> None:
         default=None,
         help="comma-separated can_index list of the active group (default: can.active_groups)",
     )
+    b.add_argument(
+        "--walk",
+        action="store_true",
+        help="the load of each walk phase's active group (it changes with the phase)",
+    )
     b.set_defaults(func=_busload)
 
     d = verbs.add_parser("dump", help="decode live traffic with names, units and E2E status")
@@ -66,6 +71,8 @@ def _busload(args: argparse.Namespace) -> int:
             raise UsageError(
                 f"--active: expected can_index numbers like 0,1,2,3, got {args.active!r}"
             ) from None
+    if args.walk:
+        return _walk_busload(cfg, args.json)
     load = bus_load(cfg, active)
     if args.json:
         print(json.dumps(load.as_dict(), indent=2))
@@ -86,6 +93,40 @@ def _busload(args: argparse.Namespace) -> int:
             f"{list(load.active_cylinders)} at {load.loop_rate_hz:g} Hz"
         )
     return EXIT_OK if load.ok else EXIT_FAILED
+
+
+def _walk_busload(cfg: Any, as_json: bool) -> int:
+    """Each walk phase's active group and its bus load."""
+    from ipc_app.control.walk import walk_active_group
+    from ipc_app.planner.walk import PHASES
+
+    if cfg.walking is None:
+        raise UsageError("the project has no frames and walking sections: it cannot walk")
+    rows = []
+    for key, name in PHASES.items():
+        group = walk_active_group(cfg, key)
+        load = bus_load(cfg, group)
+        rows.append(
+            {
+                "phase": key,
+                "name": name,
+                "active_cylinders": sorted(group),
+                "load_percent": round(load.load_percent, 2),
+                "max_load_percent": load.max_load_percent,
+                "ok": load.ok,
+            }
+        )
+    ok = all(r["ok"] for r in rows)
+    if as_json:
+        print(json.dumps({"bitrate": cfg.can.bitrate, "ok": ok, "phases": rows}, indent=2))
+    else:
+        for r in rows:
+            print(
+                f"phase {r['phase']:<3} {r['name']:<14} {r['load_percent']:6.2f} %  "
+                f"active {r['active_cylinders']}"
+            )
+        print(f"every phase within {rows[0]['max_load_percent']} %: {'OK' if ok else 'NO'}")
+    return EXIT_OK if ok else EXIT_FAILED
 
 
 def _open_observer(config: str | None) -> can.BusABC:

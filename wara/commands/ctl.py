@@ -65,6 +65,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     jog = verbs.add_parser("jog", parents=[common], help="MANUAL: move one cylinder slowly")
     jog.add_argument("--cylinder", required=True, help="attitude cylinder id, e.g. main_leg_1")
     jog.add_argument("--distance-mm", type=float, required=True, help="rod travel, mm (+ out)")
+    walk = verbs.add_parser("walk", parents=[common], help="walk N steps (planned first)")
+    walk.add_argument("--steps", type=int, required=True, help="number of steps (1..1000)")
     p.set_defaults(func=run)
 
 
@@ -76,6 +78,11 @@ def run(args: argparse.Namespace) -> int:
             raise UsageError("--roll-deg and --pitch-deg must be finite numbers")
         fields = {"roll_deg": args.roll_deg, "pitch_deg": args.pitch_deg}
         timeout_s = args.timeout_s
+    elif args.verb == "walk":
+        if not 1 <= args.steps <= 1000:
+            raise UsageError(f"--steps must be within 1..1000, got {args.steps}")
+        fields = {"steps": args.steps}
+        timeout_s = 30.0
     elif args.verb == "unit-mode":
         fields = {"unit_mode": args.unit_mode}
     elif args.verb == "jog":

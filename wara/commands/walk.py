@@ -1,20 +1,26 @@
-"""``wara walk plan``: plan N steps of the walk before anything moves.
+"""``wara walk``: the end-to-end walk, and ``wara walk plan``: its plan alone.
 
+    wara walk --steps 3 --lockstep --json      # simulator + service, N steps, judged
     wara walk plan --steps 3
     wara walk plan --steps 1 --start-x-s-mm -1000 --json
 
-Exit 0: the plan keeps every constraint; 3: refused (the binding constraint: its step,
-phase, instant, value and limit); 2: bad arguments or configuration.
+``wara walk``: exit 0 only if every step met its goals, 1 if one did not (or the service
+latched a fault), 3 if the walk was refused before anything moved. ``wara walk plan``:
+exit 0 the plan keeps every constraint, 3 refused (the binding constraint: its step,
+phase, instant, value and limit). Both: 2 for bad arguments or configuration.
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import math
+import sys
+from pathlib import Path
 
 from config import load_project, units
 from ipc_app.planner.walk import WalkPlan, WalkStart, plan_walk, start_state
-from wara.cli import UsageError
+from wara.cli import EXIT_FAILED, EXIT_INFEASIBLE, EXIT_OK, UsageError
 from wara.commands.plan import parse_four_mm, report
 
 
@@ -24,8 +30,15 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="the step-through walk (plan N steps)",
         description="The step-through walk of walking.md.",
     )
+    p.add_argument("--config", default=None, help="project YAML (default: shipped Shanghai)")
+    p.add_argument("--steps", type=int, default=None, help="walk N steps (1..1000)")
+    p.add_argument(
+        "--lockstep", action="store_true", help="simulated time in one thread (no jitter figures)"
+    )
+    p.add_argument("--json", action="store_true", help="print one JSON object")
+    p.add_argument("--plot", default=None, metavar="DIR", help="write DIR/walk.png")
+    p.set_defaults(func=run_walk_cmd)
     verbs = p.add_subparsers(dest="verb", metavar="VERB")
-    verbs.required = True
     plan = verbs.add_parser(
         "plan",
         help="plan N steps: phases, trajectories, leg shares, stability margin",
@@ -53,6 +66,67 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     plan.add_argument("--json", action="store_true", help="print one JSON object")
     plan.set_defaults(func=run_plan)
+
+
+def run_walk_cmd(args: argparse.Namespace) -> int:
+    """``wara walk --steps N``: the simulator and the service walk N steps."""
+    if args.steps is None:
+        raise UsageError("wara walk: give --steps N (the walk) or the verb plan")
+    if not 1 <= args.steps <= 1000:
+        raise UsageError(f"--steps must be within 1..1000, got {args.steps}")
+    cfg = load_project(args.config)
+    if cfg.frames is None or cfg.walking is None:
+        raise UsageError("the project has no frames and walking sections: it cannot walk")
+    from wara.extras import require, require_realtime_simulator
+
+    if args.plot:
+        require("matplotlib", "--plot")
+    if not args.lockstep:
+        require_realtime_simulator()
+    from wara.walk import run_walk
+
+    def say(msg: str) -> None:
+        print(f"wara walk: {msg}", file=sys.stderr)
+
+    out = run_walk(
+        args.config,
+        args.steps,
+        mode="lockstep" if args.lockstep else "realtime",
+        plot_dir=Path(args.plot) if args.plot else None,
+        progress=say,
+    )
+    if args.json:
+        print(json.dumps(out, indent=2))
+    else:
+        print(render_walk(out))
+    if out["refused"] is not None:
+        print(f"wara walk: refused: {out['error']}", file=sys.stderr)
+        return EXIT_INFEASIBLE
+    if not out["passed"]:
+        why = "; ".join(out["fault_reasons"]) or out.get("error") or "a goal missed"
+        print(f"wara walk: FAILED: service {out['final_mode']}: {why}", file=sys.stderr)
+        return EXIT_FAILED
+    return EXIT_OK
+
+
+def render_walk(out: dict[str, object]) -> str:
+    lines = [
+        f"{'step':>4} {'dist m':>8} {'dur s':>7} {'leg sync mm':>11} {'travel mm':>9} "
+        f"{'margin m':>8} {'force':>6} {'transfer s':>10} {'att deg':>8}  ok"
+    ]
+    for r in out.get("steps", []):  # type: ignore[attr-defined]
+        lines.append(
+            f"{r['index']:>4} {r['distance_m']:8.4f} {r['duration_s']:7.1f} "
+            f"{r['max_leg_sync_error_mm']:11.3f} {r['max_travel_sync_error_mm']:9.3f} "
+            f"{r['min_stability_margin_m']:8.3f} {r['max_leg_force_ratio']:6.3f} "
+            f"{r['transfer_time_s']:10.2f} {r['max_transfer_attitude_change_deg']:8.5f}  "
+            f"{'yes' if r['passed'] else 'NO'}"
+        )
+    lines.append(
+        f"distance {out.get('distance_m')} m, final mode {out.get('final_mode')}, "
+        f"{'PASSED' if out.get('passed') else 'FAILED'}"
+    )
+    return "\n".join(lines)
 
 
 def run_plan(args: argparse.Namespace) -> int:

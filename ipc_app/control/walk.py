@@ -1,0 +1,651 @@
+"""The step sequencer of the walk (walking.md sections 2 and 4, docs/walking.md).
+
+It runs the phases of a :class:`~ipc_app.planner.walk.WalkPlan` one after another on
+the service's read -> update -> write step: :meth:`WalkSequencer.update` takes one
+cycle's rod positions and chamber pressures and returns the spool commands of all 19
+cylinders and the cycle's :class:`WalkFigures`, which the walk interlocks
+(:mod:`ipc_app.service.walk_interlocks`) judge.
+
+Control (the choices are in docs/walking.md, "The step sequencer"):
+
+- **Position control with synchronization** for the legs that lift or lower and for the
+  travel pair: one LADRC per rod (``control.ladrc``, the attitude loops' tuning and
+  feed-forward), coupled in their group by the dual-error feedback of
+  :class:`~ipc_app.control.sync.SyncGroup`. The phase's reference clock stops while the
+  group is out of its sync band (``walking.leg_sync_band_mm`` /
+  ``travel_sync_band_mm``) and goes on once it is back inside (hold and continue).
+- **Force (pressure) control** for the legs in preload and transfer: the same LADRC on
+  the cap-side force ``p_A A_A - p_B A_B``, its reference ramped at
+  ``walking.force_ramp_kn_s``; ``b0`` is the position ``b0`` times the leg's stiffness
+  against the invert (oil column in series with the contact), bandwidths
+  ``walking.force_wc_rad_s`` and ``force_wo_rad_s``.
+- **The attitude held during transfer**: the releasing frame's legs stay in position
+  control; each reference follows its foot's unloading (``+ (F - F_0) / k_contact``:
+  the foot rises by what its contact decompresses), so the body keeps its height at
+  those legs while the receiving legs' forces ramp up.
+- Every other walk cylinder holds its position: in the active group (the phase's moving
+  and standing legs, the travel pair while it moves) with its group's LADRC; outside it
+  (frames at the slow cycle) with a slow proportional hold (:attr:`WalkSequencer.SLOW_HOLD_RAD_S`).
+
+Work per cycle is bounded: one reference sample per moving group, at most 14 controller
+updates and one stability margin (a hull of at most eight points).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from config import units
+from config.derived import hydraulic_stiffness_n_m
+from config.schema import ProjectConfig
+from ipc_app.control.ladrc import LADRC
+from ipc_app.control.plant_gain import cylinder_b0
+from ipc_app.control.sync import sync_errors
+from ipc_app.model.kinematics import fit_layer
+from ipc_app.model.support import (
+    WalkingMachine,
+    cog_projection,
+    stability_margin,
+    support_forces,
+)
+from ipc_app.planner.walk import PHASES, Move, Phase, WalkPlan
+
+FloatArray = NDArray[np.float64]
+
+#: phases by what they do
+TRAVEL = frozenset({"1", "6"})
+LOWER = frozenset({"2", "7a"})
+PRELOAD = frozenset({"3", "7b"})
+TRANSFER = frozenset({"4", "7c"})
+LIFT = frozenset({"5", "8"})
+MAIN = (0, 1, 2, 3)
+SUB = (4, 5, 6, 7)
+
+
+def walk_active_group(cfg: ProjectConfig, key: str) -> list[int]:
+    """``can_index`` of the cylinders whose frames run at the loop rate in phase ``key``
+    (the active group changes with the phase): while the travel pair moves, it and the
+    standing frame's legs; in every other phase the eight legs. The rest (the hanging
+    frame while the pair moves, the upper platform) run at their slow cycle and are held
+    by :attr:`WalkSequencer.SLOW_HOLD_RAD_S`."""
+    main = [cfg.cylinder(c).can_index for c in cfg.layers.lower.cylinders]
+    sub = sorted((c for c in cfg.cylinders if c.role == "sub_leg"), key=lambda c: c.position or 0)
+    sub_idx = [c.can_index for c in sub]
+    travel = [c.can_index for c in cfg.cylinders_by_can_index if c.role == "travel"]
+    if key in TRAVEL:
+        return travel + (main if key == "1" else sub_idx)
+    return main + sub_idx
+
+
+@dataclass
+class WalkFigures:
+    """One cycle of the walk, what the walk interlocks judge (SI units)."""
+
+    step: int = 0
+    phase: str = ""
+    #: the phase's reference clock (stops while a group is out of its band)
+    phase_t_s: float = 0.0
+    leg_force_n: tuple[float, ...] = ()
+    #: expected force of each leg now (the plan's, at least its eight-leg share)
+    expected_n: tuple[float, ...] = ()
+    #: largest |sync error| of the moving leg group / the travel pair (0: not moving)
+    leg_sync_m: float = 0.0
+    travel_sync_m: float = 0.0
+    #: the group out of its band now, and for how long
+    out_of_band: str = ""
+    out_of_band_s: float = 0.0
+    margin_m: float = math.inf
+    #: least margin along the present phase's commanded motion (checked at its start)
+    margin_ahead_m: float = math.inf
+    travel_force_n: float = 0.0
+    friction_capacity_n: float = math.inf
+    #: a leg whose lowering ended without a touch-down (its id), else ""
+    no_touchdown: str = ""
+    #: preload/transfer still not done after this long (0 while in time)
+    overdue_s: float = 0.0
+    #: the worst receiving leg's share at a transfer's end (id, ratio), else ("", 1.0)
+    share_off: tuple[str, float] = ("", 1.0)
+
+
+@dataclass
+class StepFigures:
+    """The service's figures of one step (for ``wara walk`` and the run record)."""
+
+    index: int
+    started_s: float = 0.0
+    duration_s: float = 0.0
+    max_leg_sync_error_m: float = 0.0
+    max_travel_sync_error_m: float = 0.0
+    min_stability_margin_m: float = math.inf
+    max_leg_force_ratio: float = 0.0
+    transfer_time_s: float = 0.0
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "index": self.index,
+            "duration_s": round(self.duration_s, 3),
+            "max_leg_sync_error_mm": round(units.to_mm(self.max_leg_sync_error_m), 4),
+            "max_travel_sync_error_mm": round(units.to_mm(self.max_travel_sync_error_m), 4),
+            "min_stability_margin_m": round(self.min_stability_margin_m, 4),
+            "max_leg_force_ratio": round(self.max_leg_force_ratio, 4),
+            "transfer_time_s": round(self.transfer_time_s, 3),
+        }
+
+
+@dataclass
+class _PhaseRun:
+    """The present phase as it runs."""
+
+    index: int
+    phase: Phase
+    t0: float  #: machine time it started
+    tau: float = 0.0  #: its reference clock
+    start_x: FloatArray = field(default_factory=lambda: np.zeros(0))
+    start_f: FloatArray = field(default_factory=lambda: np.zeros(0))
+    target_f: FloatArray = field(default_factory=lambda: np.zeros(0))
+    duration_s: float = 0.0
+    touched: list[bool] = field(default_factory=list)
+    baseline_pa: list[float] = field(default_factory=list)
+    frozen_x: list[float] = field(default_factory=list)
+    touch_f: list[float] = field(default_factory=list)
+    band_since: float | None = None
+    standing_share_n: FloatArray = field(default_factory=lambda: np.zeros(8))
+
+
+class WalkSequencer:
+    """Runs a walk plan on the machine; see the module docstring."""
+
+    #: slow hold of a walk cylinder outside the active group: command = gain * error / b0
+    SLOW_HOLD_RAD_S = 1.0
+    #: a position move ends when every moving rod is this close to its end reference
+    END_TOLERANCE_M = 1e-4
+    #: time constant of the low-pass that follows a lowering rod's free cap pressure, s
+    FREE_ROD_S = 0.25
+    #: preload ends with every preloaded leg within this fraction of its target
+    PRELOAD_TOLERANCE = 0.10
+
+    def __init__(self, cfg: ProjectConfig, period_s: float, plan: WalkPlan) -> None:
+        if cfg.walking is None or cfg.frames is None:
+            raise ValueError("the project has no frames and walking sections: it cannot walk")
+        self.cfg = cfg
+        self.walk = cfg.walking
+        self.period_s = period_s
+        self.plan = plan
+        self.n = len(cfg.cylinders)
+        self.leg_ids = plan.leg_ids
+        self.legs = [cfg.cylinder(c).can_index for c in self.leg_ids]
+        travel = [c for c in cfg.cylinders_by_can_index if c.role == "travel"]
+        self.travel = [c.can_index for c in travel]
+        self.upper = [cfg.cylinder(c).can_index for c in cfg.layers.upper.cylinders]
+        self.walk_cylinders = self.legs + self.travel + self.upper
+        by_index = cfg.cylinders_by_can_index
+        self.half = np.array([c.stroke_m / 2 for c in by_index])
+        self.e0 = travel[0].stroke_m / 2
+        self.cap = np.array([c.cap_area_m2 for c in by_index])
+        self.rod = np.array([c.rod_area_m2 for c in by_index])
+        ctl = cfg.control
+        self.b0 = np.zeros(self.n)
+        self.pos: dict[int, LADRC] = {}
+        for i in self.walk_cylinders:
+            cyl = by_index[i]
+            self.b0[i] = cylinder_b0(cyl, cfg.hydraulics, order=ctl.ladrc.order)
+            self.pos[i] = LADRC.from_config(ctl.ladrc, float(self.b0[i]), period_s)
+        self.k_contact = self.walk.contact.stiffness_n_m
+        self.force: dict[int, LADRC] = {}
+        for i in self.legs:
+            cyl = by_index[i]
+            plant = cyl.plant or cfg.hydraulics.cylinder_defaults
+            k_h = hydraulic_stiffness_n_m(cyl, plant, cfg.hydraulics)
+            k = 1.0 / (1.0 / k_h + 1.0 / self.k_contact)
+            b0 = cylinder_b0(cyl, cfg.hydraulics, order=1) * k
+            self.force[i] = LADRC(
+                1, b0, self.walk.force_wc_rad_s, self.walk.force_wo_rad_s, period_s,
+                rate_limit=ctl.ladrc.rate_limit_per_s,
+            )  # fmt: skip
+        self.feedforward = ctl.ladrc.reference_feedforward
+        self.lam = ctl.sync.coupling_lambda
+        self.scheme = ctl.sync.scheme
+        self.leg_band = units.mm(self.walk.leg_sync_band_mm)
+        self.travel_band = units.mm(self.walk.travel_sync_band_mm)
+        self.touch_pa = units.mpa(self.walk.touch_mpa)
+        self.td_travel = units.mm(self.walk.touchdown_travel_mm)
+        self.td_speed = units.mm(self.walk.touchdown_speed_mm_s)
+        traj = cfg.planner.trajectory
+        self.leg_v, self.leg_a = traj.max_rod_speed_m_s, traj.max_rod_accel_m_s2
+        self.machine = WalkingMachine(cfg)
+        self.point_cache: dict[int, tuple[float, FloatArray]] = {}
+        self.hold_ref = np.zeros(self.n)
+        self.force_mode: set[int] = set()
+        self.run: _PhaseRun | None = None
+        self.done = False
+        self.steps: list[StepFigures] = []
+        self.figures = WalkFigures()
+        self.last_refs = np.zeros(self.n)
+        #: (machine time, step, phase) of each phase start, for the run record
+        self.phase_log: list[tuple[float, int, str]] = []
+        self.leg_force_n = np.zeros(8)
+        #: force references of the legs in force control this cycle (NaN: not), N
+        self.force_ref_n = np.full(8, math.nan)
+        #: the standing frame's load equalization: reference offsets in its twist mode
+        self.twist_offset = np.zeros(8)
+
+    # ----------------------------------------------------------------- helpers
+
+    def forces_n(self, p: FloatArray) -> FloatArray:
+        """Cap-side force of each leg (8,), N: ``p_A A_A - p_B A_B``."""
+        idx = self.legs
+        return np.asarray(p[idx, 0] * self.cap[idx] - p[idx, 1] * self.rod[idx])
+
+    def x_s(self, x: FloatArray) -> float:
+        """S's position along the rails, measured: the travel pair's mean less ``e_0``."""
+        return float(np.mean(x[self.travel])) - self.e0
+
+    def set_upper(self, x: FloatArray) -> None:
+        """The upper platform's attitude fixes the workpiece's COG: from its rods."""
+        up = self.cfg.layers.upper
+        fit = fit_layer(x[self.upper] - self.half[self.upper], up.a_m, up.b_m)
+        self.machine = WalkingMachine(self.cfg, float(fit.roll), float(fit.pitch))
+
+    def share(self, x_s: float, legs: tuple[int, ...]) -> FloatArray:
+        """Expected forces (8,) with ``legs`` standing (minimum norm), N."""
+        out = np.zeros(8)
+        pts = self.machine.legs_xy(x_s)[list(legs)]
+        out[list(legs)] = support_forces(
+            pts, self.machine.mass_kg, self.machine.cog(x_s), self.machine.g_base
+        )
+        return out
+
+    def margin(self, x_s: float, legs: tuple[int, ...]) -> float:
+        point = cog_projection(self.machine.cog(x_s), self.machine.g_base)
+        return stability_margin(self.machine.legs_xy(x_s)[list(legs)], point)
+
+    def active_group(self) -> list[int]:
+        """The present phase's active group (:func:`walk_active_group`)."""
+        key = self.run.phase.key if self.run is not None else self.plan.phases[0].key
+        return walk_active_group(self.cfg, key)
+
+    @staticmethod
+    def _frame(ids: tuple[str, ...], leg_ids: tuple[str, ...]) -> tuple[int, ...]:
+        return tuple(leg_ids.index(c) for c in ids if c in leg_ids)
+
+    # ----------------------------------------------------------------- phases
+
+    def start(self, now: float, x: FloatArray, p: FloatArray) -> None:
+        """Engage at the measured state: every walk cylinder holds, the first phase starts."""
+        self.set_upper(x)
+        self.hold_ref = np.array(x, dtype=float)
+        for i, c in self.pos.items():
+            c.reset(float(x[i]))
+        self._begin(0, now, x, p)
+
+    def _begin(self, k: int, now: float, x: FloatArray, p: FloatArray) -> None:
+        ph = self.plan.phases[k]
+        f = self.forces_n(p)
+        for i in self.legs + self.travel:
+            self.hold_ref[i] = float(x[i])
+        self.twist_offset[:] = 0.0
+        self.point_cache.clear()
+        run = _PhaseRun(k, ph, now, start_x=np.array(x, dtype=float), start_f=f)
+        key = ph.key
+        x_s = self.x_s(x)
+        if k == 0 or ph.step != self.plan.phases[k - 1].step:
+            self.steps.append(StepFigures(ph.step, started_s=now))
+        self.phase_log.append((now, ph.step, key))
+        if key in TRAVEL:
+            run.duration_s = Move(ph.end_m[0] - x_s, *self._travel_move()).duration_s
+        elif key in LOWER:
+            fast = Move(self.walk.clearance_m - self.td_travel, self.leg_v, self.leg_a)
+            run.duration_s = fast.duration_s + 2 * self.td_travel / self.td_speed
+            frame = MAIN if key == "7a" else SUB
+            run.touched = [False] * 4
+            run.baseline_pa = [float(p[self.legs[j], 0]) for j in frame]
+            run.frozen_x = [0.0] * 4
+            run.touch_f = [0.0] * 4
+        elif key in LIFT:
+            run.duration_s = Move(-self.walk.clearance_m, self.leg_v, self.leg_a).duration_s
+        else:
+            receiving = SUB if key in ("3", "4") else MAIN
+            releasing = MAIN if receiving is SUB else SUB
+            if key in PRELOAD:
+                target = ph.leg_forces_n[-1].copy()
+            else:
+                target = self.share(x_s, receiving)
+                run.standing_share_n = self.share(x_s, releasing)
+            run.target_f = target
+            delta = max(abs(float(target[j] - f[j])) for j in receiving)
+            run.duration_s = delta / self.walk.force_ramp_n_s
+            for j in receiving:
+                i = self.legs[j]
+                if i not in self.force_mode:
+                    self.force_mode.add(i)
+                    self.force[i].reset(float(f[j]), self.pos[i].command)
+            for j in releasing:
+                i = self.legs[j]
+                if i in self.force_mode:  # bumpless back to position control
+                    self.force_mode.discard(i)
+                    self.pos[i].reset(float(x[i]), self.force[i].command)
+                    self.hold_ref[i] = float(x[i])
+        if key in TRAVEL or key in LOWER or key in LIFT:
+            for i in list(self.force_mode):  # every leg back in position control
+                self.force_mode.discard(i)
+                self.pos[i].reset(float(x[i]), self.force[i].command)
+                self.hold_ref[i] = float(x[i])
+        self.run = run
+        self.figures.margin_ahead_m = self._margin_ahead(ph, x_s)
+
+    def _travel_move(self) -> tuple[float, float]:
+        return self.walk.travel_speed_m_s, self.cfg.planner.trajectory.max_rod_accel_m_s2
+
+    def _margin_ahead(self, ph: Phase, x_s: float) -> float:
+        """The least margin along the phase's commanded motion, from the measured start,
+        with the legs that stand during it (after it, for a lift)."""
+        standing = self._frame(ph.standing, self.leg_ids)
+        if ph.key in TRAVEL:
+            xs = np.linspace(x_s, ph.end_m[0], 21)
+            return min(self.margin(float(v), standing) for v in xs)
+        return self.margin(x_s, standing)
+
+    def _next(self, now: float, x: FloatArray, p: FloatArray) -> None:
+        run = self.run
+        assert run is not None
+        step = self.steps[-1]
+        if run.phase.key in TRANSFER:
+            step.transfer_time_s += now - run.t0
+        k = run.index + 1
+        if k < len(self.plan.phases) and self.plan.phases[k].step == run.phase.step:
+            self._begin(k, now, x, p)
+            return
+        step.duration_s = now - step.started_s
+        if k < len(self.plan.phases):
+            self._begin(k, now, x, p)
+        else:
+            self.done = True
+            self.hold_ref = np.array(x, dtype=float)
+
+    def resume(self, x: FloatArray, p: FloatArray) -> None:
+        """Go on after a stop: every controller bumpless at the measurement; the phase
+        goes on from its reference clock."""
+        f = self.forces_n(p)
+        for i, c in self.pos.items():
+            c.reset(float(x[i]))
+        for j, i in enumerate(self.legs):
+            if i in self.force_mode:
+                self.force[i].reset(float(f[j]))
+
+    # ----------------------------------------------------------------- the cycle
+
+    def update(self, now: float, x: FloatArray, p: FloatArray, active: set[int]) -> FloatArray:
+        """Spool commands (19) for this cycle; :attr:`figures` is this cycle's."""
+        u = np.zeros(self.n)
+        refs = self.hold_ref.copy()
+        rates = np.zeros(self.n)
+        f = self.forces_n(p)
+        self.leg_force_n = f
+        fig = self.figures
+        run = self.run
+        if run is None or self.done:
+            self._hold(u, refs, rates, x, active)
+            self.last_refs = refs
+            return u
+        ph = run.phase
+        key = ph.key
+        dt = self.period_s
+        fig.step, fig.phase = ph.step, key
+        fig.leg_sync_m = fig.travel_sync_m = 0.0
+        fig.no_touchdown, fig.overdue_s, fig.share_off = "", 0.0, ("", 1.0)
+        f_ref: dict[int, tuple[float, float]] = {}
+        moving: list[int] = []
+        finished = False
+        progress = 1.0 if run.duration_s <= 0 else min(1.0, run.tau / run.duration_s)
+        kk = progress * (len(ph.leg_forces_n) - 1)
+        k0 = int(kk)
+        k1 = min(k0 + 1, len(ph.leg_forces_n) - 1)
+        plan_f = ph.leg_forces_n[k0] * (1 - (kk - k0)) + ph.leg_forces_n[k1] * (kk - k0)
+        if key in TRAVEL:  # one frame alone on the invert while the COG moves
+            self._equalize(refs, f, plan_f, self._frame(ph.standing, self.leg_ids))
+        if key in TRAVEL:
+            move = Move(ph.end_m[0] - (float(np.mean(run.start_x[self.travel])) - self.e0),
+                        *self._travel_move())  # fmt: skip
+            s = float(move.position(np.array([run.tau]))[0])
+            s1 = float(move.position(np.array([run.tau + dt]))[0])
+            for i in self.travel:
+                refs[i] = run.start_x[i] + s
+                rates[i] = (s1 - s) / dt if self.feedforward else 0.0
+            moving = list(self.travel)
+            band = self.travel_band
+            finished = run.tau >= run.duration_s and all(
+                abs(x[i] - refs[i]) <= self.END_TOLERANCE_M for i in self.travel
+            )
+        elif key in LOWER or key in LIFT:
+            frame = MAIN if key in ("5", "7a") else SUB
+            sign = 1.0
+            if key in LOWER:
+                s, v = self._lowering(run.tau)
+            else:
+                move = Move(-self.walk.clearance_m, self.leg_v, self.leg_a)
+                s = float(move.position(np.array([run.tau]))[0])
+                s1 = float(move.position(np.array([run.tau + dt]))[0])
+                v = (s1 - s) / dt
+            for k, j in enumerate(frame):
+                i = self.legs[j]
+                if key in LOWER and run.touched[k]:  # touched: it holds its touch force
+                    f_ref[i] = (run.touch_f[k], 0.0)
+                    continue
+                refs[i] = run.start_x[i] + sign * s
+                rates[i] = v if self.feedforward else 0.0
+                moving.append(i)
+            band = self.leg_band
+            if key in LOWER:
+                # touch-down is looked for from touchdown_travel above the expected ground
+                near = s >= self.walk.clearance_m - self.td_travel - 1e-9
+                for k, j in enumerate(frame):
+                    i = self.legs[j]
+                    if run.touched[k]:
+                        continue
+                    pa = float(p[i, 0])
+                    if near and pa - run.baseline_pa[k] > self.touch_pa:
+                        run.touched[k] = True
+                        run.frozen_x[k] = float(x[i])
+                        run.touch_f[k] = float(f[j])
+                        # force control from here: a stiff foot held in position would
+                        # keep what the position loop's overshoot pressed into it
+                        self.force_mode.add(i)
+                        self.force[i].reset(float(f[j]), self.pos[i].command)
+                        f_ref[i] = (run.touch_f[k], 0.0)
+                        if i in moving:
+                            moving.remove(i)
+                    else:  # the free rod's pressure, low-passed while it moves
+                        run.baseline_pa[k] += (pa - run.baseline_pa[k]) * dt / self.FREE_ROD_S
+                finished = all(run.touched)
+                if not finished and run.tau >= run.duration_s:
+                    j = frame[run.touched.index(False)]
+                    fig.no_touchdown = self.leg_ids[j]
+            else:
+                finished = run.tau >= run.duration_s and all(
+                    abs(x[self.legs[j]] - refs[self.legs[j]]) <= self.END_TOLERANCE_M for j in frame
+                )
+        else:
+            receiving = SUB if key in ("3", "4") else MAIN
+            releasing = MAIN if receiving is SUB else SUB
+            lam = 1.0 if run.duration_s <= 0 else min(1.0, run.tau / run.duration_s)
+            for j in receiving:
+                i = self.legs[j]
+                f0, f1 = float(run.start_f[j]), float(run.target_f[j])
+                rate = 0.0 if lam >= 1.0 else (f1 - f0) / run.duration_s
+                f_ref[i] = (f0 + lam * (f1 - f0), rate)
+            for j in releasing:  # the body held: follow the foot's unloading
+                i = self.legs[j]
+                refs[i] = run.start_x[i] + (f[j] - run.start_f[j]) / self.k_contact
+            band = self.leg_band
+            tf = run.target_f
+            if key in PRELOAD:
+                finished = lam >= 1.0 and all(
+                    abs(f[j] - tf[j]) <= self.PRELOAD_TOLERANCE * abs(tf[j]) for j in receiving
+                )
+            else:
+                unloaded = self.walk.unloaded_percent / 100.0
+                std = run.standing_share_n
+                released = all(f[j] < unloaded * std[j] for j in releasing)
+                worst = max(receiving, key=lambda j: abs(f[j] / tf[j] - 1.0))
+                ratio = float(f[worst] / tf[worst])
+                fig.share_off = (self.leg_ids[worst], ratio)
+                tol = self.walk.share_tolerance_percent / 100.0
+                finished = lam >= 1.0 and released and abs(ratio - 1.0) <= tol
+            overdue = now - run.t0 - self.walk.transfer_timeout_s
+            fig.overdue_s = max(0.0, overdue)
+
+        # synchronization of the moving group, its band: hold and continue
+        sync = 0.0
+        if len(moving) >= 2:
+            errs = sync_errors([refs[i] - x[i] for i in moving], self.scheme)
+            sync = max(abs(e) for e in errs)
+            for e, i in zip(errs, moving, strict=True):
+                refs[i] += self.lam * e
+        if key in TRAVEL:
+            fig.travel_sync_m = sync
+        elif moving:
+            fig.leg_sync_m = sync
+        out_of_band = bool(moving) and sync > band
+        if out_of_band:
+            if run.band_since is None:
+                run.band_since = now
+            fig.out_of_band = "travel" if key in TRAVEL else "legs"
+            fig.out_of_band_s = now - run.band_since
+            for i in moving:  # the group holds where it is (no feed-forward)
+                rates[i] = 0.0
+        else:
+            run.band_since = None
+            fig.out_of_band, fig.out_of_band_s = "", 0.0
+            run.tau += dt
+
+        # commands: force-controlled legs, position-controlled active ones, slow holds
+        self.force_ref_n[:] = math.nan
+        for i, (fr, rate) in f_ref.items():
+            j = self.legs.index(i)
+            self.force_ref_n[j] = fr
+            u[i] = self.force[i].update(fr, float(f[j]), rate if self.feedforward else 0.0)
+            refs[i] = float(x[i])
+        self._hold(u, refs, rates, x, active, skip=set(f_ref))
+
+        # the figures of the checks
+        x_s = self.x_s(x)
+        touching = tuple(j for j in range(8) if f[j] > self.touch_pa * self.cap[self.legs[j]])
+        fig.margin_m = self.margin(x_s, touching) if len(touching) >= 3 else -math.inf
+        standing = self._frame(ph.standing, self.leg_ids)
+        idx_t = self.travel
+        fig.travel_force_n = float(
+            np.sum(p[idx_t, 0] * self.cap[idx_t] - p[idx_t, 1] * self.rod[idx_t])
+        )
+        fig.friction_capacity_n = self.walk.foot_friction_coefficient * float(
+            sum(max(0.0, f[j]) for j in standing)
+        )
+        x_s_now = self.x_s(x) if key in TRAVEL else float(ph.x_s_m[0])
+        share8 = self._share8(x_s_now)
+        if key in PRELOAD or key in TRANSFER:
+            held = list(MAIN if key in ("3", "4") else SUB)
+        else:
+            held = list(self._frame(ph.standing, self.leg_ids))
+        expected = self._residual_share(x_s_now, share8, f, plan_f, held)
+        fig.expected_n = tuple(np.maximum(expected, share8).tolist())
+        fig.leg_force_n = tuple(f.tolist())
+        fig.phase_t_s = run.tau
+        st = self.steps[-1]
+        st.max_leg_sync_error_m = max(st.max_leg_sync_error_m, fig.leg_sync_m)
+        st.max_travel_sync_error_m = max(st.max_travel_sync_error_m, fig.travel_sync_m)
+        st.min_stability_margin_m = min(st.min_stability_margin_m, fig.margin_m)
+        ratio = max(fv / e for fv, e in zip(fig.leg_force_n, fig.expected_n, strict=True))
+        st.max_leg_force_ratio = max(st.max_leg_force_ratio, ratio)
+        self.last_refs = refs
+        if finished:
+            self._next(now, x, p)
+        return u
+
+    #: load equalization gain of the standing frame, m per N s (time constant about
+    #: 1 / (gain * leg stiffness), 2 s at 5e7 N/m)
+    EQUALIZE_M_PER_N_S = 1e-8
+    #: the twist mode of four legs at (s_i a, t_i b): legs 1 and 3 against 2 and 4
+    _TWIST = (1.0, -1.0, 1.0, -1.0)
+
+    def _equalize(
+        self, refs: FloatArray, f: FloatArray, plan_f: FloatArray, standing: tuple[int, ...]
+    ) -> None:
+        """Four legs standing in position control share the load as their heights make
+        them (statically indeterminate in the twist mode): their references move slowly
+        in that mode until the twist of their forces is the plan's (minimum norm)."""
+        if len(standing) != 4 or any(self.legs[j] in self.force_mode for j in standing):
+            return
+        err = sum(w * (f[j] - plan_f[j]) for w, j in zip(self._TWIST, standing, strict=True)) / 4
+        step = self.EQUALIZE_M_PER_N_S * err * self.period_s
+        for w, j in zip(self._TWIST, standing, strict=True):
+            self.twist_offset[j] -= w * step
+            refs[self.legs[j]] += self.twist_offset[j]
+
+    def _residual_share(
+        self, x_s: float, share8: FloatArray, f: FloatArray, plan_f: FloatArray, held: list[int]
+    ) -> FloatArray:
+        """Expected forces: a leg held in position carries its minimum-norm share of what
+        the other touching legs (force-controlled, or touched down) leave of the load (the
+        body's equilibrium with their measured forces); the others the plan's force."""
+        others = [j for j in range(8) if j not in held]
+        pts = self.machine.legs_xy(x_s)
+        a = np.vstack([np.ones(8), pts[:, 1], -pts[:, 0]])
+        rhs = a @ share8  # the load (any equilibrium gives it)
+        run = self.run
+        touching = {self.legs.index(i) for i in self.force_mode}
+        if run is not None and run.phase.key in LOWER:
+            frame = MAIN if run.phase.key == "7a" else SUB
+            touching |= {j for k, j in enumerate(frame) if run.touched[k]}
+        # a leg in the air carries nothing (its pressures show the motion's friction)
+        given = np.array([max(0.0, float(f[j])) if j in touching else 0.0 for j in others])
+        rest = rhs - a[:, others] @ given
+        a_r = a[:, held]
+        out = plan_f.copy()
+        out[held] = a_r.T @ np.linalg.solve(a_r @ a_r.T, rest)
+        return out
+
+    def _share8(self, x_s: float) -> FloatArray:
+        key = round(x_s * 1e3)  # per mm (the cache is emptied at each phase's start)
+        hit = self.point_cache.get(key)
+        if hit is None:
+            hit = (x_s, self.share(x_s, MAIN + SUB))
+            self.point_cache[key] = hit
+        return hit[1]
+
+    def _lowering(self, tau: float) -> tuple[float, float]:
+        """Distance lowered and its rate at ``tau``: the leg speed to ``touchdown_travel``
+        above the expected ground, then the touch-down speed to as far below it."""
+        fast = Move(self.walk.clearance_m - self.td_travel, self.leg_v, self.leg_a)
+        if tau < fast.duration_s:
+            s = float(fast.position(np.array([tau]))[0])
+            s1 = float(fast.position(np.array([tau + self.period_s]))[0])
+            return s, (s1 - s) / self.period_s
+        return fast.distance_m + self.td_speed * (tau - fast.duration_s), self.td_speed
+
+    def _hold(
+        self,
+        u: FloatArray,
+        refs: FloatArray,
+        rates: FloatArray,
+        x: FloatArray,
+        active: set[int],
+        skip: set[int] | None = None,
+    ) -> None:
+        """Position control of every walk cylinder not in force control: LADRC in the
+        active group, the slow proportional hold outside it."""
+        for i in self.walk_cylinders:
+            if skip and i in skip:
+                continue
+            if i in active:
+                u[i] = self.pos[i].update(float(refs[i]), float(x[i]), float(rates[i]))
+            else:
+                e = float(refs[i] - x[i])
+                u[i] = max(-1.0, min(1.0, self.SLOW_HOLD_RAD_S * e / self.b0[i]))
+                self.pos[i].reset(float(x[i]), u[i])
+
+    def phase_name(self) -> str:
+        return PHASES[self.run.phase.key] if self.run is not None else ""
