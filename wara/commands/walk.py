@@ -88,13 +88,20 @@ def run_walk_cmd(args: argparse.Namespace) -> int:
     def say(msg: str) -> None:
         print(f"wara walk: {msg}", file=sys.stderr)
 
-    out = run_walk(
-        args.config,
-        args.steps,
-        mode="lockstep" if args.lockstep else "realtime",
-        plot_dir=Path(args.plot) if args.plot else None,
-        progress=say,
-    )
+    from ipc_app.service.logs import configure_logging
+
+    # the service's log to stderr as JSON lines (warnings and faults), never into stdout
+    logs = configure_logging("WARNING")
+    try:
+        out = run_walk(
+            args.config,
+            args.steps,
+            mode="lockstep" if args.lockstep else "realtime",
+            plot_dir=Path(args.plot) if args.plot else None,
+            progress=say,
+        )
+    finally:
+        logs.stop()
     if args.json:
         print(json.dumps(out, indent=2))
     else:
