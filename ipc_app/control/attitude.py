@@ -18,7 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from config.schema import ProjectConfig
+from config.schema import Cylinder, ProjectConfig
 from ipc_app.control.ladrc import LADRC
 from ipc_app.control.pid import PID
 from ipc_app.control.plant_gain import cylinder_b0
@@ -27,6 +27,16 @@ from ipc_app.model.kinematics import layer_twist
 from ipc_app.planner.trajectory import Trajectory
 
 FloatArray = NDArray[np.float64]
+
+
+def cylinder_controller(cfg: ProjectConfig, cyl: Cylinder, period_s: float) -> Controller:
+    """The position controller of one cylinder as ``control`` configures it: LADRC with
+    the cylinder's plant gain, or PID."""
+    ctl = cfg.control
+    if ctl.controller == "ladrc":
+        b0 = cylinder_b0(cyl, cfg.hydraulics, order=ctl.ladrc.order)
+        return LADRC.from_config(ctl.ladrc, b0, period_s)
+    return PID.from_config(ctl.pid, period_s, rate_limit=ctl.ladrc.rate_limit_per_s)
 
 
 @dataclass(frozen=True)
@@ -57,14 +67,7 @@ class AttitudeController:
             self.layers[name] = idx
             members: list[Controller] = []
             for cid in ids:
-                cyl = cfg.cylinder(cid)
-                if ctl.controller == "ladrc":
-                    b0 = cylinder_b0(cyl, cfg.hydraulics, order=ctl.ladrc.order)
-                    members.append(LADRC.from_config(ctl.ladrc, b0, period_s))
-                else:
-                    members.append(
-                        PID.from_config(ctl.pid, period_s, rate_limit=ctl.ladrc.rate_limit_per_s)
-                    )
+                members.append(cylinder_controller(cfg, cfg.cylinder(cid), period_s))
             self.groups[name] = SyncGroup(members, ctl.sync.scheme, ctl.sync.coupling_lambda)
         if any(len(idx) != 4 for idx in self.layers.values()):
             raise ValueError("each layer needs exactly 4 attitude cylinders")

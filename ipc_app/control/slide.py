@@ -22,9 +22,7 @@ from numpy.typing import NDArray
 
 from config import units
 from config.schema import ProjectConfig
-from ipc_app.control.ladrc import LADRC
-from ipc_app.control.pid import PID
-from ipc_app.control.plant_gain import cylinder_b0
+from ipc_app.control.attitude import cylinder_controller
 from ipc_app.control.sync import Controller, SyncGroup
 from ipc_app.planner.trajectory import time_scaling_at
 
@@ -55,13 +53,7 @@ class SlideController:
             for c in cyls:
                 self.half[c.can_index] = c.stroke_m / 2
                 self.limit_m[c.can_index] = c.stroke_m / 2 - margin
-                if ctl.controller == "ladrc":
-                    b0 = cylinder_b0(c, cfg.hydraulics, order=ctl.ladrc.order)
-                    members.append(LADRC.from_config(ctl.ladrc, b0, period_s))
-                else:
-                    members.append(
-                        PID.from_config(ctl.pid, period_s, rate_limit=ctl.ladrc.rate_limit_per_s)
-                    )
+                members.append(cylinder_controller(cfg, c, period_s))
             self._ctrl[role] = members
         self.groups = {
             r: SyncGroup(m, ctl.sync.scheme, ctl.sync.coupling_lambda)
