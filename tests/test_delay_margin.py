@@ -17,7 +17,8 @@ import yaml
 from config import ProjectConfig, default_project_path, load_project
 from ipc_app.service.worker import PlannerWorker
 from wara.cli import EXIT_USAGE, main
-from wara.studies.delay_margin import REQUIRED_MS, run_one, run_study
+from wara.studies import REQUIRED_MS
+from wara.studies.delay_margin import run_one, run_study
 
 
 @pytest.fixture(scope="module")

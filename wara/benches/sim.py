@@ -13,7 +13,8 @@ from typing import Any
 
 from config.scenario import load_scenario, scenario_path
 from hil_sim._jit import HAVE_NUMBA
-from wara.studies.dual_cylinder import CONTROLLERS, StudyRun, evaluate, run_study
+from wara.studies import CONTROLLERS
+from wara.studies.dual_cylinder import StudyRun, evaluate, run_study
 
 
 def run(args: argparse.Namespace) -> dict[str, Any]:

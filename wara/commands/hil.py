@@ -30,7 +30,6 @@ from typing import Any
 from config import load_project
 from config.hil_scenario import EVENT_KINDS, HilScenario, load_hil_scenario
 from config.loader import parse_yaml_text, validate_data
-from hil_sim.simulator import HilSimulator
 from ipc_app.service.sdnotify import SystemdNotifier
 from plc_bridge.errors import BridgeError
 from wara.cli import UsageError
@@ -107,6 +106,8 @@ def _interrupt(_signum: int, _frame: object) -> None:
 
 
 def _run(args: argparse.Namespace) -> int:
+    from hil_sim.simulator import HilSimulator
+
     if args.cpus is not None:
         set_cpus(args.cpus)  # first, so every thread started later inherits it
     cfg = load_project(args.config)

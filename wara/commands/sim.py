@@ -27,8 +27,7 @@ from typing import Any
 from config.scenario import load_scenario
 from wara.cli import EXIT_FAILED, EXIT_OK, UsageError
 from wara.extras import require
-from wara.studies.delay_margin import DEFAULT_DELAYS_MS, REQUIRED_MS
-from wara.studies.dual_cylinder import CONTROLLERS, ControllerKind, StudyRun, evaluate, run_study
+from wara.studies import CONTROLLERS, DEFAULT_DELAYS_MS, REQUIRED_MS, ControllerKind
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -165,6 +164,8 @@ def _dual_cylinder(args: argparse.Namespace) -> int:
         raise UsageError(f"--plot {args.plot}: directory {Path(args.plot).parent} does not exist")
     if args.plot is not None:
         require("matplotlib", "--plot")
+    from wara.studies.dual_cylinder import StudyRun, evaluate, run_study
+
     kinds: list[ControllerKind] = (
         list(CONTROLLERS) if args.controller == "both" else [args.controller]
     )

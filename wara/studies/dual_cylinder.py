@@ -17,7 +17,7 @@ import itertools
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any, Literal
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -28,10 +28,9 @@ from hil_sim.disturbances import LoadStep, load_profile
 from hil_sim.hydraulics import CylinderBank, CylinderParams, orifice_flows
 from hil_sim.sensors import PositionTransducer
 from ipc_app.control import LADRC, PID, Controller, SyncGroup, cylinder_b0
+from wara.studies import CONTROLLERS, ControllerKind
 
 FloatArray = NDArray[np.float64]
-ControllerKind = Literal["ladrc", "pid"]
-CONTROLLERS: tuple[ControllerKind, ...] = ("ladrc", "pid")
 
 
 def quintic_waypoints(waypoints: tuple[tuple[float, float], ...], t_s: FloatArray) -> FloatArray:
