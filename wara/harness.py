@@ -34,7 +34,13 @@ from config.hil_scenario import HilScenario
 from config.schema import ProjectConfig, Realtime
 from hil_sim.simulator import HilSimulator
 from ipc_app.service.core import ServiceCore
-from ipc_app.service.loop import FixedRateLoop, OsApi, RealtimeReport, freeze_startup_heap
+from ipc_app.service.loop import (
+    SWITCH_INTERVAL_S,
+    FixedRateLoop,
+    OsApi,
+    RealtimeReport,
+    freeze_startup_heap,
+)
 from ipc_app.service.modes import Mode
 from ipc_app.service.record import RunRecorder
 from ipc_app.service.worker import PlannerWorker
@@ -46,8 +52,6 @@ from wara.examples import HOLD_MEASURE_S, ExampleResult, judge_example
 #: them, not they for those (docs/service.md, "The one-process demo's timing").
 RT_PRIORITY = 10
 
-#: The interpreter's thread switch interval while a real-time run goes (default 5 ms).
-SWITCH_INTERVAL_S = 0.0005
 
 _channels = itertools.count()
 

@@ -19,6 +19,7 @@ from __future__ import annotations
 import contextlib
 import os
 import signal
+import sys
 import threading
 import time
 from collections.abc import Callable
@@ -33,7 +34,7 @@ from ipc_app.service.core import ServiceCore
 from ipc_app.service.ctl import CtlError, CtlHandlers, CtlServer
 from ipc_app.service.interlocks import Cause, Interlock
 from ipc_app.service.logs import configure_logging
-from ipc_app.service.loop import FixedRateLoop
+from ipc_app.service.loop import SWITCH_INTERVAL_S, FixedRateLoop
 from ipc_app.service.record import RunRecorder, new_run_dir
 from ipc_app.service.sdnotify import SystemdNotifier
 from ipc_app.service.worker import PlannerWorker
@@ -213,6 +214,10 @@ def run_service(
         for sig in (signal.SIGTERM, signal.SIGINT):
             signal.signal(sig, lambda *_: stop.set())
     ctl.start()
+    # The loop thread must get the GIL soon after its deadline, also while the control
+    # channel's threads build a status (the OPC UA server asks 20 times a second).
+    switch_interval = sys.getswitchinterval()
+    sys.setswitchinterval(SWITCH_INTERVAL_S)
     loop.start()
     notifier.ready(f"controlling at {cfg.control.loop_rate_hz:g} Hz")
     log.info(
@@ -238,6 +243,7 @@ def run_service(
             break
     notifier.stopping()
     loop.stop()
+    sys.setswitchinterval(switch_interval)
     core.modes.stop("service stopping")
     link.send_valve_commands(np.zeros(len(cfg.cylinders)))
     ctl.stop()

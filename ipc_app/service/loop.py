@@ -225,6 +225,12 @@ class _Counters:
 # --------------------------------------------------------------------------- the loop
 
 
+#: The interpreter's thread switch interval while a real-time loop runs (default 5 ms,
+#: the whole period): the loop thread waiting for the GIL gets it within this. Set by
+#: the service (``run_service``) and the real-time harness.
+SWITCH_INTERVAL_S = 0.0005
+
+
 class FixedRateLoop:
     """Run ``step(cycle_index, t_now)`` every ``period_s`` on absolute deadlines.
 
