@@ -352,3 +352,30 @@ def test_serve_with_opcua_and_no_users_file_is_one_line(tmp_path: Path) -> None:
     last = p.stderr.strip().splitlines()[-1]
     assert last.startswith("wara serve: error: the OPC UA server did not start: opcua: ")
     assert "no users file" in last and "wara opcua adduser" in last
+
+
+@pytest.mark.slow
+def test_bench_opcua_reports_the_loop_and_the_latency_with_its_parts() -> None:
+    """`wara bench opcua --json --quick` as a commissioning engineer runs it: both phases'
+    loop figures, the latency of the clients' state notifications and the part of it
+    before the server wrote the value, and the server's feed reports (no timing goal)."""
+    from wara.demo_two_process import netns_problem
+
+    why = netns_problem()
+    if why is not None:
+        pytest.skip(f"the two-process bench needs a private network namespace: {why}")
+    run = subprocess.run(
+        [sys.executable, "-m", "wara", "bench", "opcua", "--json", "--quick"],
+        capture_output=True, text=True, timeout=900, check=False,
+    )  # fmt: skip
+    assert run.returncode == 0, run.stderr[-3000:]
+    out = json.loads(run.stdout)
+    assert out["passed"] is True, out.get("error")
+    for phase in ("without", "with"):
+        assert out[phase]["measured_cycles"] > 1000
+    lat = out["latency_ms"]
+    assert lat["samples"] >= 8 * out["clients"]  # 2 cycles x 4 changes, every client
+    assert 0 < lat["to_server_p50"] <= lat["p50"] <= lat["p99"] <= lat["max"]
+    assert out["server_feed"] and all(
+        f["configured_period_ms"] == 50.0 and f["updates"] > 0 for f in out["server_feed"]
+    )

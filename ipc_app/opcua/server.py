@@ -24,6 +24,7 @@ import math
 import socket
 import time
 from collections.abc import Awaitable, Callable
+from datetime import UTC
 from pathlib import Path
 from typing import Any
 
@@ -36,6 +37,7 @@ from asyncua.crypto.truststore import TrustStore
 from asyncua.crypto.validator import CertificateValidator, CertificateValidatorOptions
 from asyncua.server.user_managers import UserManager
 
+from config import units
 from config.schema import OpcUa, ProjectConfig
 from ipc_app.opcua import model as m
 from ipc_app.opcua import pki
@@ -171,6 +173,37 @@ class _TrustDir:
 def endpoint_url(opc: OpcUa, host: str | None = None) -> str:
     h = host or (socket.gethostname() if opc.host in ("0.0.0.0", "::") else opc.host)
     return f"opc.tcp://{h}:{opc.port}/wara/"
+
+
+FEED_REPORT_S = 10.0
+#: the feed lets the event loop run (publish, answer) after this many writes
+WRITES_PER_YIELD = 16
+
+
+class _FeedFigures:
+    """The feed's timings over one report interval (``opcua_feed`` log line)."""
+
+    def __init__(self, since: float) -> None:
+        self.since = since
+        self.n = 0
+        self.status_max_s = self.write_max_s = self.write_sum_s = 0.0
+
+    def add(self, status_s: float, write_s: float) -> None:
+        self.n += 1
+        self.status_max_s = max(self.status_max_s, status_s)
+        self.write_max_s = max(self.write_max_s, write_s)
+        self.write_sum_s += write_s
+
+    def summary(self, now: float, period_s: float) -> dict[str, float]:
+        span = now - self.since
+        return {
+            "updates": self.n,
+            "period_ms": round(units.to_ms(span / max(self.n, 1)), 1),
+            "configured_period_ms": round(units.to_ms(period_s), 1),
+            "status_max_ms": round(units.to_ms(self.status_max_s), 1),
+            "write_mean_ms": round(units.to_ms(self.write_sum_s / max(self.n, 1)), 1),
+            "write_max_ms": round(units.to_ms(self.write_max_s), 1),
+        }
 
 
 class OpcUaServer:
@@ -411,11 +444,20 @@ class OpcUaServer:
     # ------------------------------------------------------------------ the feed
 
     async def update(self, status: dict[str, Any] | None) -> None:
-        """Write the variables whose value changed (status None: the service is gone)."""
-        assert self.reachable is not None
+        """Write the variables whose value changed (status None: the service is gone).
+
+        Straight into the address space (``Server.write_attribute_value``: no session,
+        no write request built per value), one timestamp for the whole status, in the
+        model's order (the states first); every :data:`WRITES_PER_YIELD` writes the event
+        loop may publish what is written so far.
+        """
+        assert self.reachable is not None and self.server is not None
         await self.reachable.write_value(status is not None)
         if status is None:
             return
+        stamp = ua.DateTime.now(UTC)
+        write = self.server.write_attribute_value
+        written = 0
         for i, (var, val) in enumerate(zip(self.model, m.values(self.model, status), strict=True)):
             old = self.last[i]
             if old == val or (
@@ -427,14 +469,22 @@ class OpcUaServer:
                 continue
             self.last[i] = val
             v = ua.LocalizedText(val) if var.kind == "LocalizedText" else val
-            await self.nodes[i].write_value(ua.Variant(v, VARIANT[var.kind]))
+            dv = ua.DataValue(
+                ua.Variant(v, VARIANT[var.kind]), SourceTimestamp=stamp, ServerTimestamp=stamp
+            )
+            await write(self.nodes[i].nodeid, dv)
+            written += 1
+            if written % WRITES_PER_YIELD == 0:
+                await asyncio.sleep(0)
         self.updates += 1
 
     async def feed(self) -> None:
         period = self.opc.update_period_ms / 1000.0
         was_up = None
         nxt = time.monotonic()
+        figures = _FeedFigures(time.monotonic())
         while True:
+            t0 = time.monotonic()
             try:
                 st: dict[str, Any] | None = await asyncio.to_thread(
                     request, "status", socket_path=self.ctl_socket, timeout_s=2.0, retry_s=0.0
@@ -446,10 +496,16 @@ class OpcUaServer:
             if st is not None and was_up is not True:
                 log.info("opcua_service_reachable")
             was_up = st is not None
+            t1 = time.monotonic()
             try:
                 await self.update(st)
             except Exception:  # a bug in the model must not end the feed
                 log.exception("opcua_update_failed")
+            t2 = time.monotonic()
+            figures.add(t1 - t0, t2 - t1)
+            if t2 - figures.since >= FEED_REPORT_S:
+                log.info("opcua_feed", **figures.summary(t2, period))
+                figures = _FeedFigures(t2)
             nxt = max(nxt + period, time.monotonic())
             await asyncio.sleep(nxt - time.monotonic())
 

@@ -16,6 +16,7 @@ loop to its notification at a client (p50/p99/max; goal p99 < 200 ms).
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import socket
@@ -121,6 +122,21 @@ def _next_report(svc: Any, watch: Any) -> None:
     svc.wait(pred, 30.0, poll_s=0.2)
 
 
+def _feed_reports(log_path: Path) -> list[dict[str, Any]]:
+    """The OPC UA server's ``opcua_feed`` log lines (its status and write timings)."""
+    out = []
+    for line in log_path.read_text(encoding="utf-8", errors="replace").splitlines():
+        with contextlib.suppress(ValueError):
+            rec = json.loads(line)
+            if isinstance(rec, dict) and rec.get("event") == "opcua_feed":
+                out.append({k: v for k, v in rec.items() if k not in ("event", "level", "logger")})
+    return out
+
+
+def _p99(xs: list[float]) -> float:
+    return xs[min(len(xs) - 1, int(0.99 * len(xs)))]
+
+
 def inside(work: Path, config_path: str, cycles: int) -> dict[str, Any]:
     from ipc_app.opcua.process import OpcUaProcess
 
@@ -130,14 +146,15 @@ def inside(work: Path, config_path: str, cycles: int) -> dict[str, Any]:
     codes: dict[str, int] = {}
     phases: dict[str, Any] = {}
     lat: list[float] = []
+    to_server: list[float] = []
     notes: dict[str, Any] = {}
     with d2.service_and_simulator(work, config_path, say, codes) as (svc, _sim, placement):
         for phase in ("without", "with"):
             watch = d2._LoopWatch()
             srv = clients = None
             if phase == "with":
-                srv = OpcUaProcess(config_path, work / "ctl.sock", server_args,
-                                   stderr=(work / "opcua.log").open("w"))  # fmt: skip
+                srv_log = (work / "opcua.log").open("w", buffering=1)
+                srv = OpcUaProcess(config_path, work / "ctl.sock", server_args, stderr=srv_log)
                 srv.start()
                 clients = subprocess.Popen(
                     [sys.executable, "-m", "wara.benches.opcua_clients", *client_args],
@@ -160,9 +177,12 @@ def inside(work: Path, config_path: str, cycles: int) -> dict[str, Any]:
                 out, _ = clients.communicate(timeout=60)
                 got = json.loads(out.strip().splitlines()[-1])
                 lat = sorted(got["latencies_s"])
+                to_server = sorted(got["to_server_s"])
                 notes = {"notifications": got["notifications"], "clients": got["clients"]}
                 srv.stop()
-    p99 = lat[min(len(lat) - 1, int(0.99 * len(lat)))] if lat else None
+                srv_log.close()
+                notes["server_feed"] = _feed_reports(work / "opcua.log")
+    p99 = _p99(lat) if lat else None
     w, wo = phases.get("with", {}), phases.get("without", {})
     return {
         "bench": "opcua",
@@ -179,6 +199,9 @@ def inside(work: Path, config_path: str, cycles: int) -> dict[str, Any]:
             "p99": units.to_ms(p99) if p99 is not None else None,
             "max": units.to_ms(lat[-1]) if lat else None,
             "goal_p99_below": units.to_ms(LATENCY_GOAL_S),
+            # of it, the part before the server wrote the variable (its ServerTimestamp)
+            "to_server_p50": units.to_ms(statistics.median(to_server)) if to_server else None,
+            "to_server_p99": units.to_ms(_p99(to_server)) if to_server else None,
         },
         **notes,
         "exit_codes": codes,

@@ -15,6 +15,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import json
+import math
 import signal
 import sys
 import time
@@ -42,6 +43,7 @@ class _Handler:
         self.out = out
         self.sinces: set[float] = set()
         self.arrivals: list[float] = []
+        self.written: list[float] = []  # each change's ServerTimestamp, CLOCK_MONOTONIC
         self.state: int | None = None
 
     def datachange_notification(self, node: Any, val: Any, data: Any) -> None:
@@ -53,15 +55,19 @@ class _Handler:
         elif key == self.state_id:
             if self.state is not None and int(val) != self.state:
                 self.arrivals.append(now)
+                stamp = data.monitored_item.Value.ServerTimestamp
+                self.written.append(
+                    stamp.timestamp() - (time.time() - now) if stamp is not None else math.nan
+                )
             self.state = int(val)
 
-    def latencies(self) -> list[float]:
-        """Each change's arrival less the latest transition before it."""
+    def latencies(self) -> list[tuple[float, float]]:
+        """Per change: (arrival, server's write) less the latest transition before it."""
         out = []
-        for t in self.arrivals:
+        for t, w in zip(self.arrivals, self.written, strict=True):
             before = [s for s in self.sinces if s <= t]
             if before:
-                out.append(t - max(before))
+                out.append((t - max(before), w - max(before)))
         return out
 
 
@@ -106,7 +112,9 @@ async def main(argv: list[str]) -> None:
     for c in clients:
         with contextlib.suppress(Exception):
             await c.disconnect()
-    out["latencies_s"] = [x for h in handlers for x in h.latencies()]
+    pairs = [x for h in handlers for x in h.latencies()]
+    out["latencies_s"] = [a for a, _ in pairs]
+    out["to_server_s"] = [w for _, w in pairs if w == w]
     print(json.dumps(out), flush=True)
 
 
