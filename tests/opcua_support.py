@@ -70,6 +70,14 @@ class FakeService:
             self.mode, self.target = "EXECUTE", [roll, pitch]
             return {"mode": "EXECUTE"}
 
+    def walk(self, steps: int) -> dict[str, Any]:
+        with self.lock:
+            self.calls.append(("walk", steps))
+            if self.mode != "IDLE":
+                return {"ok": False, "code": "refused", "error": f"walk refused in {self.mode}"}
+            self.mode = "EXECUTE"
+            return {"mode": "EXECUTE"}
+
     def audit(self, user: str, action: str, result: str) -> dict[str, Any]:
         with self.lock:
             self.audits.append((user, action, result))
@@ -78,6 +86,7 @@ class FakeService:
     def handlers(self) -> CtlHandlers:
         return CtlHandlers(
             adjust=self.adjust,
+            walk=self.walk,
             status=self.status,
             stop=lambda: self._set("stop", "IDLE", ("IDLE", "EXECUTE", "HELD", "COMPLETE")),
             reset=lambda: self._set("reset", "IDLE", ("STOPPED",)),

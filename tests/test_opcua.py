@@ -119,7 +119,13 @@ def test_model_values_are_si_and_follow_the_status() -> None:
     assert vals[("Interlocks", "Twist", "Cause")] == "twist 1.6 mm > 1.5 mm"
     assert vals[("Interlocks", "SyncError", "Latched")] is False
     assert vals[("PackML", "Status", "CycleStep")] == -1  # no walk in the status
-    status["cycle"] = {"step": 3, "phase": "transfer"}
+    status["walk"] = {"steps": 3, "step": 1, "phase": "7a", "phase_name": "lower M"}
+    vals = dict(zip((v.path for v in model), m.values(model, status), strict=True))
+    assert (vals[("PackML", "Status", "CycleStep")], vals[("PackML", "Status", "CyclePhase")]) == (
+        1,
+        "7a lower M",
+    )
+    status["cycle"] = {"step": 3, "phase": "transfer"}  # a ring cycle's, over its walk's
     vals = dict(zip((v.path for v in model), m.values(model, status), strict=True))
     assert (vals[("PackML", "Status", "CycleStep")], vals[("PackML", "Status", "CyclePhase")]) == (
         3,
@@ -211,6 +217,16 @@ def test_node_client_browses_subscribes_and_calls(tmp_path: Path) -> None:
         # an engineer may do what an operator may
         rig.service.mode = "IDLE"
         assert _node(rig, tmp_path, "call-start", "en", S.PASSWORDS["en"])["ok"]
+        # a walk with its number of steps; 0 steps is refused before the service hears it
+        rig.service.mode = "IDLE"
+        walk = _node(rig, tmp_path, "call-walk", "op", S.PASSWORDS["op"])
+        assert walk["ok"], walk
+        assert [c for c in rig.service.calls if c[0] == "walk"] == [("walk", 3)]
+        assert [(u, a) for u, a, _ in rig.service.audits[-2:]] == [
+            ("op", "StartWalk"),
+            ("op", "StartWalk"),
+        ]
+        assert "refused: Steps must be an integer 1..1000" in rig.service.audits[-2][2]
 
 
 @pytest.mark.slow

@@ -138,6 +138,17 @@ def mode(st: Status) -> str:
     return m if isinstance(m, str) else "STOPPED"
 
 
+def _step_phase(s: Status) -> tuple[Any, Any]:
+    """(step, phase) of the ring cycle (``cycle``), else of the walk (``walk``: its step
+    and phase, e.g. ``7a lower M``)."""
+    if isinstance(s.get("cycle"), Mapping):
+        return _get(s, "cycle", "step"), _get(s, "cycle", "phase")
+    if isinstance(w := s.get("walk"), Mapping):
+        name = " ".join(str(w[k]) for k in ("phase", "phase_name") if w.get(k))
+        return w.get("step"), name
+    return None, None
+
+
 def variables(cfg: ProjectConfig) -> list[Var]:
     """Every variable of the model for this project (the attitude cylinders by id)."""
     out: list[Var] = [
@@ -181,17 +192,17 @@ def variables(cfg: ProjectConfig) -> list[Var]:
             SECOND,
             ns=NS_PACKML,
         ),
-        # the walk or ring cycle: present only when the service reports it
+        # the ring cycle's or the walk's step and phase: only when the service reports one
         Var(
             ("PackML", "Status", "CycleStep"),
             "Int32",
-            lambda s: int(v) if isinstance(v := _get(s, "cycle", "step"), int) else -1,
+            lambda s: int(v) if isinstance(v := _step_phase(s)[0], int) else -1,
             ns=NS_PACKML,
         ),
         Var(
             ("PackML", "Status", "CyclePhase"),
             "String",
-            lambda s: str(_get(s, "cycle", "phase") or ""),
+            lambda s: str(_step_phase(s)[1] or ""),
             ns=NS_PACKML,
         ),
         Var(

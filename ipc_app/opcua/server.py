@@ -42,7 +42,7 @@ from config.schema import OpcUa, ProjectConfig
 from ipc_app.opcua import model as m
 from ipc_app.opcua import pki
 from ipc_app.opcua.users import CONTROL_ROLES, Users, UsersError, load_users
-from ipc_app.service.ctl import CtlError, request
+from ipc_app.service.ctl import MAX_WALK_STEPS, CtlError, request
 
 log = structlog.get_logger("wara.opcua")
 
@@ -362,6 +362,25 @@ class OpcUaServer:
             ua.QualifiedName("StartAdjustment", w),
             start,
             start_in,
+            out,
+        )
+        walk_in = [_arg("Steps", _nid(ua.ObjectIds.UInt32), "steps to walk (1..1000)")]
+
+        async def start_walk(parent: Any, steps: Any) -> Any:
+            n = steps.Value if isinstance(steps, ua.Variant) else steps
+            if isinstance(n, bool) or not isinstance(n, int) or not 1 <= n <= MAX_WALK_STEPS:
+                return await self._refused(
+                    "StartWalk",
+                    f"Steps must be an integer 1..{MAX_WALK_STEPS}",
+                    ua.StatusCodes.BadInvalidArgument,
+                )
+            return await self._command(f"StartWalk(steps={n})", "walk", {"steps": n})
+
+        await machine.add_method(
+            _nid(f"{MACHINE}.StartWalk", w),
+            ua.QualifiedName("StartWalk", w),
+            start_walk,
+            walk_in,
             out,
         )
         for name, cmd in (

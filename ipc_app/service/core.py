@@ -46,6 +46,7 @@ from ipc_app.control.walk import WalkSequencer
 from ipc_app.model.composition import check_attitude
 from ipc_app.model.kinematics import fit_layer
 from ipc_app.planner.walk import WalkPlan, WalkStart, plan_walk
+from ipc_app.service.ctl import MAX_WALK_STEPS
 from ipc_app.service.interlocks import (
     Cause,
     Interlock,
@@ -436,8 +437,12 @@ class ServiceCore:
         """Walk ``steps`` steps: planned here from the measured state and refused (with
         the phase, instant and limit) before anything moves if a constraint breaks; then
         the loop runs the step sequencer (EXECUTE) until the last phase (COMPLETE)."""
-        if not 1 <= steps <= 1000:
-            return {"ok": False, "code": "bad_request", "error": f"steps 1..1000, got {steps}"}
+        if not 1 <= steps <= MAX_WALK_STEPS:
+            return {
+                "ok": False,
+                "code": "bad_request",
+                "error": f"steps 1..{MAX_WALK_STEPS}, got {steps}",
+            }
         plan = self.plan_walk_here(steps)
         if isinstance(plan, dict):
             return plan

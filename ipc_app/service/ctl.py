@@ -124,6 +124,10 @@ TICK_S = 0.2
 Reply = dict[str, Any]
 
 
+#: the most steps one walk request takes
+MAX_WALK_STEPS = 1000
+
+
 class CtlError(Exception):
     """The control channel could not be used (bad reply, socket in use, ...)."""
 
@@ -246,8 +250,15 @@ def parse(line: bytes) -> Request | Reply:
             return _error("bad_request", str(exc))
     if cmd == "walk":
         steps = req.get("steps")
-        if isinstance(steps, bool) or not isinstance(steps, int) or not 1 <= steps <= 1000:
-            return _error("bad_request", f"'steps' must be an integer 1..1000, got {_brief(steps)}")
+        if (
+            isinstance(steps, bool)
+            or not isinstance(steps, int)
+            or not 1 <= steps <= MAX_WALK_STEPS
+        ):
+            return _error(
+                "bad_request",
+                f"'steps' must be an integer 1..{MAX_WALK_STEPS}, got {_brief(steps)}",
+            )
         return Request(cmd, (steps,))
     if cmd != "adjust":
         return Request(cmd)

@@ -5,7 +5,7 @@
 // SCENARIO: "full" (browse to the Machinery and PackML nodes, subscribe to the attitude
 // and the PackML state at 10 Hz, call StartAdjustment and Stop, see the state change),
 // "session" (open a session only: for the refusals), "call-start" (call StartAdjustment
-// only). Prints one JSON object on stdout: {"ok": bool, "error": ..., ...}.
+// only), "call-walk" (StartWalk with 0 steps, refused, then with 3). Prints one JSON object on stdout: {"ok": bool, "error": ..., ...}.
 "use strict";
 const {
   OPCUAClient,
@@ -86,6 +86,10 @@ async function main() {
       { dataType: DataType.Double, value: 0.02 },
     ]);
     out.ok = out.start.status === "Good";
+  } else if (scenario === "call-walk") {
+    out.refused = await call("StartWalk", [{ dataType: DataType.UInt32, value: 0 }]);
+    out.walk = await call("StartWalk", [{ dataType: DataType.UInt32, value: 3 }]);
+    out.ok = out.walk.status === "Good" && out.refused.status === "BadInvalidArgument";
   } else if (scenario === "full") {
     // browse by path, as a SCADA integrator would
     const paths = {
