@@ -3,8 +3,8 @@
 It never runs in the service's process: it takes the service's status over the control
 socket every ``opcua.update_period_ms`` (``status`` is answered by the control channel's
 I/O thread from the loop's last published snapshot, so the loop never waits for it) and
-sends the methods' commands down the same socket (``adjust``, ``stop``, ``hold``,
-``unhold``, ``reset``, ``clear``), each followed by an ``audit`` entry (who, what,
+sends the methods' commands down the same socket (``adjust``, ``walk``, ``stop``,
+``hold``, ``unhold``, ``reset``, ``clear``), each followed by an ``audit`` entry (who, what,
 result) that the service logs and writes into its run record.
 
 Security: one endpoint, the configured policy with SignAndEncrypt; client certificates
@@ -13,6 +13,11 @@ must be in the trust store (``pki_dir/trusted``); a user name and password is re
 anonymous session browse, read and subscribe. Methods: operator and engineer; a viewer
 or an anonymous session is refused with BadUserAccessDenied. Writes to the address space
 are refused to everyone (every variable is read-only). docs/opcua.md has the model.
+
+Over 500 lines because the security set-up (users, roles, trust store), the address
+space built from :mod:`ipc_app.opcua.model`, the methods with their audit, and the feed
+are one asyncua server object; the model's table and the users file are modules of
+their own.
 """
 
 from __future__ import annotations
