@@ -362,13 +362,6 @@ class OpcUaServer:
                 {"roll_deg": math.degrees(r), "pitch_deg": math.degrees(p)},
             )
 
-        await machine.add_method(
-            _nid(f"{MACHINE}.StartAdjustment", w),
-            ua.QualifiedName("StartAdjustment", w),
-            start,
-            start_in,
-            out,
-        )
         walk_in = [_arg("Steps", _nid(ua.ObjectIds.UInt32), "steps to walk (1..1000)")]
 
         async def start_walk(parent: Any, steps: Any) -> Any:
@@ -381,13 +374,10 @@ class OpcUaServer:
                 )
             return await self._command(f"StartWalk(steps={n})", "walk", {"steps": n})
 
-        await machine.add_method(
-            _nid(f"{MACHINE}.StartWalk", w),
-            ua.QualifiedName("StartWalk", w),
-            start_walk,
-            walk_in,
-            out,
-        )
+        methods: list[tuple[str, Callable[..., Awaitable[Any]], list[ua.Argument]]] = [
+            ("StartAdjustment", start, start_in),
+            ("StartWalk", start_walk, walk_in),
+        ]
         for name, cmd in (
             ("Stop", "stop"),
             ("Hold", "hold"),
@@ -395,12 +385,10 @@ class OpcUaServer:
             ("Reset", "reset"),
             ("Clear", "clear"),
         ):
+            methods.append((name, self._simple(name, cmd), []))
+        for name, fn, args in methods:
             await machine.add_method(
-                _nid(f"{MACHINE}.{name}", w),
-                ua.QualifiedName(name, w),
-                self._simple(name, cmd),
-                [],
-                out,
+                _nid(f"{MACHINE}.{name}", w), ua.QualifiedName(name, w), fn, args, out
             )
 
     def _simple(self, name: str, cmd: str) -> Callable[[Any], Awaitable[Any]]:
