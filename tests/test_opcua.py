@@ -12,6 +12,7 @@ import signal
 import socket
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 from types import SimpleNamespace
@@ -205,6 +206,11 @@ def test_node_client_browses_subscribes_and_calls(tmp_path: Path) -> None:
             "operation_mode": "Processing",
             "packml_state": 4,
         }
+        assert out["types"] == {  # instances of the Machinery NodeSet's types
+            "identification": "Machinery:MachineIdentificationType",
+            "item_state": "Machinery:MachineryItemState_StateMachineType",
+            "operation_mode": "Machinery:MachineryOperationModeStateMachineType",
+        }
         assert out["roll_unit"] == "rad"
         assert out["states"][0] == 4 and 6 in out["states"] and out["states"][-1] == 4
         assert out["rolls"][0] == pytest.approx(math.radians(0.5))
@@ -395,3 +401,72 @@ def test_bench_opcua_reports_the_loop_and_the_latency_with_its_parts() -> None:
     assert out["server_feed"] and all(
         f["configured_period_ms"] == 50.0 and f["updates"] > 0 for f in out["server_feed"]
     )
+
+
+@pytest.mark.slow
+def test_demo_with_opcua_serves_the_demo_to_a_client_with_the_printed_credentials(
+    tmp_path: Path,
+) -> None:
+    """`wara demo --opcua` as a commissioning engineer uses it: the printed endpoint, user
+    and password file let a client (its certificate trusted as the printed line says)
+    open a SignAndEncrypt session and follow the PackML state through the examples."""
+    from asyncua import Client
+
+    from ipc_app.opcua import pki
+
+    cert, key = S.make_client_cert(tmp_path / "client")
+    pki.trust(tmp_path / "opcua-demo" / "pki", cert)  # as `wara opcua cert --trust` does
+    env = dict(os.environ, WARA_DATA_DIR=str(tmp_path))
+    demo = subprocess.Popen(
+        [sys.executable, "-m", "wara", "demo", "--opcua"],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env,
+    )  # fmt: skip
+    assert demo.stderr is not None
+    lines: list[str] = []
+    named = threading.Event()
+    found: dict[str, str] = {}
+
+    def drain(stream: Any) -> None:  # all of it, so the demo never blocks on the pipe
+        for line in stream:
+            lines.append(line)
+            if "OPC UA server: " in line:
+                found["url"] = line.split("OPC UA server: ", 1)[1].split()[0]
+            if "password in " in line:
+                found["pw_file"] = line.rsplit("password in ", 1)[1].strip()
+            if len(found) == 2:
+                named.set()
+        named.set()
+
+    reader = threading.Thread(target=drain, args=(demo.stderr,), daemon=True)
+    reader.start()
+    named.wait(300.0)
+    assert len(found) == 2, f"the demo did not name its endpoint: {lines[-20:]}"
+    url, pw_file = found["url"], found["pw_file"]
+    password = Path(pw_file).read_text(encoding="utf-8").strip()
+
+    async def follow() -> list[int]:
+        c = Client(url.replace("0.0.0.0", "127.0.0.1"), timeout=30)
+        c.application_uri = S.CLIENT_URI
+        await c.set_security_string(f"Basic256Sha256,SignAndEncrypt,{cert},{key}")
+        c.set_user("operator")
+        c.set_password(password)
+        seen: list[int] = []
+        async with c:
+            ns = await c.get_namespace_index("urn:wara:ipc")
+            node = c.get_node(f"ns={ns};s=W-ARa.PackML.Status.StateCurrent")
+            end = time.monotonic() + 240.0
+            while time.monotonic() < end and 6 not in seen:
+                seen.append(int(await node.read_value()))
+                await asyncio.sleep(0.2)
+        return seen
+
+    try:
+        seen = asyncio.run(follow())
+        demo.wait(timeout=600)
+    finally:
+        if demo.poll() is None:
+            demo.kill()
+            demo.wait()
+        reader.join(10.0)
+    assert 6 in seen, seen  # Execute, while the demo's first example runs
+    assert demo.returncode == 0, "".join(lines[-20:])

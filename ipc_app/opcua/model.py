@@ -20,9 +20,34 @@ from ipc_app.service.interlocks import Interlock
 from ipc_app.service.modes import PACKML_STATES, UNIT_MODES, UnitMode
 
 #: The namespaces of the model (the companion specifications' URIs, and ours).
+NS_DI = "http://opcfoundation.org/UA/DI/"
 NS_MACHINERY = "http://opcfoundation.org/UA/Machinery/"
 NS_PACKML = "http://opcfoundation.org/UA/PackML/"
 NS_WARA = "urn:wara:ipc"
+#: the companion specifications' namespaces (their NodeSets are loaded)
+COMPANIONS = (NS_DI, NS_MACHINERY, NS_PACKML)
+
+#: The objects under the machine that are instances of a companion type: path ->
+#: (namespace of the browse name, namespace of the type, the type's numeric id in it).
+TYPED: dict[tuple[str, ...], tuple[str, str, int]] = {
+    ("Identification",): (NS_DI, NS_MACHINERY, 1012),  # MachineIdentificationType
+    ("MachineryBuildingBlocks", "MachineryItemState"): (
+        NS_MACHINERY,
+        NS_MACHINERY,
+        1002,  # MachineryItemState_StateMachineType
+    ),
+    ("MachineryBuildingBlocks", "MachineryOperationMode"): (
+        NS_MACHINERY,
+        NS_MACHINERY,
+        1008,  # MachineryOperationModeStateMachineType
+    ),
+}
+# PackML's objects are not PackMLBaseObjectType instances: that type brings methods
+# (SetUnitMode, RemoteCommand, SetParameter, ...) and a state machine of its own that
+# the server would carry without serving them; its objects keep the type's browse names
+# (Status, UnitModeCurrent) in the PackML namespace, with the state in Status.
+#: The other objects under these roots: folders with a browse name in this namespace.
+COMPANION_ROOTS = {"MachineryBuildingBlocks": NS_MACHINERY, "PackML": NS_PACKML}
 
 Status = Mapping[str, Any]
 

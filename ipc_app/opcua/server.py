@@ -181,6 +181,11 @@ def endpoint_url(opc: OpcUa, host: str | None = None) -> str:
 
 
 FEED_REPORT_S = 10.0
+#: the companion specifications' NodeSets, loaded in this order (nodesets/README.md)
+NODESETS = tuple(
+    Path(__file__).parent / "nodesets" / f"Opc.Ua.{name}.NodeSet2.xml"
+    for name in ("Di", "Machinery", "PackML")
+)
 #: the feed lets the event loop run (publish, answer) after this many writes
 WRITES_PER_YIELD = 16
 
@@ -269,19 +274,15 @@ class OpcUaServer:
         return srv
 
     async def _model(self, srv: Server) -> None:
-        ns = {
-            uri: await srv.register_namespace(uri)
-            for uri in (m.NS_WARA, m.NS_MACHINERY, m.NS_PACKML)
-        }
-        w = ns[m.NS_WARA]
-        machines = await srv.nodes.objects.add_folder(
-            _nid("Machines", w), ua.QualifiedName("Machines", ns[m.NS_MACHINERY])
+        for path in NODESETS:  # DI, Machinery, PackML: their types and the Machines folder
+            await srv.import_xml(str(path))
+        ns = {uri: await srv.get_namespace_index(uri) for uri in m.COMPANIONS}
+        ns[m.NS_WARA] = w = await srv.register_namespace(m.NS_WARA)
+        machines = await srv.nodes.objects.get_child(
+            ua.QualifiedName("Machines", ns[m.NS_MACHINERY])
         )
         machine = await machines.add_object(_nid(MACHINE, w), ua.QualifiedName(MACHINE, w))
-        ident = await machine.add_object(
-            _nid(f"{MACHINE}.Identification", w),
-            ua.QualifiedName("Identification", ns[m.NS_MACHINERY]),
-        )
+        ident = await self._instance(srv, machine, ("Identification",), ns, w)
         from importlib.metadata import PackageNotFoundError, version
 
         try:
@@ -297,30 +298,30 @@ class OpcUaServer:
             ("Location", self.cfg.project.section),
             ("SoftwareRevision", sw),
         ):
-            await ident.add_property(
-                _nid(f"{MACHINE}.Identification.{name}", w),
-                ua.QualifiedName(name, ns[m.NS_MACHINERY]),
-                val,
-            )
-        folders: dict[tuple[str, ...], Any] = {(): machine}
+            nid = _nid(f"{MACHINE}.Identification.{name}", w)
+            if nid in srv.iserver.aspace:  # a property of MachineIdentificationType
+                await srv.get_node(nid).write_value(val)
+            else:
+                await ident.add_property(nid, ua.QualifiedName(name, ns[m.NS_DI]), val)
+        folders: dict[tuple[str, ...], Any] = {(): machine, ("Identification",): ident}
         for var in self.model:
             parent = machine
             for depth in range(1, len(var.path)):
                 key = var.path[:depth]
                 if key not in folders:
-                    qn = ns[m.NS_MACHINERY if key[0] == "MachineryBuildingBlocks" else var.ns]
-                    if key[0] == "PackML":
-                        qn = ns[m.NS_PACKML]
-                    folders[key] = await folders[key[:-1]].add_object(
-                        _nid(".".join((MACHINE, *key)), w), ua.QualifiedName(key[-1], qn)
-                    )
+                    folders[key] = await self._instance(srv, folders[key[:-1]], key, ns, w)
                 parent = folders[key]
             init: Any = ua.LocalizedText("") if var.kind == "LocalizedText" else INITIAL[var.kind]
-            node = await parent.add_variable(
-                _nid(".".join((MACHINE, *var.path)), w),
-                ua.QualifiedName(var.path[-1], ns[var.ns]),
-                ua.Variant(init, VARIANT[var.kind]),
-            )
+            nid = _nid(".".join((MACHINE, *var.path)), w)
+            if nid in srv.iserver.aspace:  # a variable of the instance's type
+                node = srv.get_node(nid)
+                await node.write_value(ua.Variant(init, VARIANT[var.kind]))
+            else:
+                node = await parent.add_variable(
+                    nid,
+                    ua.QualifiedName(var.path[-1], ns[var.ns]),
+                    ua.Variant(init, VARIANT[var.kind]),
+                )
             if var.unit is not None:
                 await node.add_property(
                     _nid(".".join((MACHINE, *var.path, "EngineeringUnits")), w),
@@ -340,6 +341,27 @@ class OpcUaServer:
             False,
         )
         await self._methods(machine, w)
+
+    async def _instance(
+        self, srv: Server, parent: Any, key: tuple[str, ...], ns: dict[str, int], w: int
+    ) -> Any:
+        """The object at ``key`` under the machine: an instance of its companion type
+        (:data:`ipc_app.opcua.model.TYPED`: its children get the ids ``W-ARa.<path>``),
+        a folder, or a plain object, with its browse name in its specification's
+        namespace."""
+        nid = _nid(".".join((MACHINE, *key)), w)
+        typed = m.TYPED.get(key)
+        if typed is not None:
+            bname_ns, type_ns, type_id = typed
+            return await parent.add_object(
+                nid,
+                ua.QualifiedName(key[-1], ns[bname_ns]),
+                objecttype=_nid(type_id, ns[type_ns]),
+            )
+        if key[0] in m.COMPANION_ROOTS:
+            bname = ua.QualifiedName(key[-1], ns[m.COMPANION_ROOTS[key[0]]])
+            return await parent.add_folder(nid, bname)
+        return await parent.add_object(nid, ua.QualifiedName(key[-1], w))
 
     async def _methods(self, machine: Any, w: int) -> None:
         out = [_arg("Result", _nid(ua.ObjectIds.String), "the service's answer")]

@@ -18,6 +18,7 @@ const {
   TimestampsToReturn,
   DataType,
   makeBrowsePath,
+  BrowseDirection,
   StatusCodes,
 } = require("node-opcua-client");
 const { OPCUACertificateManager } = require("node-opcua-certificate-manager");
@@ -70,6 +71,7 @@ async function main() {
   const ns = (await session.readNamespaceArray()).indexOf(NS);
   const nsMach = (await session.readNamespaceArray()).indexOf("http://opcfoundation.org/UA/Machinery/");
   const nsPack = (await session.readNamespaceArray()).indexOf("http://opcfoundation.org/UA/PackML/");
+  const nsDi = (await session.readNamespaceArray()).indexOf("http://opcfoundation.org/UA/DI/");
   const id = (s) => `ns=${ns};s=W-ARa.${s}`;
   const objectId = id("").slice(0, -1);
 
@@ -92,11 +94,13 @@ async function main() {
     out.ok = out.walk.status === "Good" && out.refused.status === "BadInvalidArgument";
   } else if (scenario === "full") {
     // browse by path, as a SCADA integrator would
+    const machine = `/${nsMach}:Machines/${ns}:W-ARa`;
+    const blocks = `${machine}/${nsMach}:MachineryBuildingBlocks`;
     const paths = {
-      identification: `/${nsMach}:Machines/${ns}:W-ARa/${nsMach}:Identification/${nsMach}:Manufacturer`,
-      item_state: `/${nsMach}:Machines/${ns}:W-ARa/${nsMach}:MachineryBuildingBlocks/${nsMach}:MachineryItemState/${nsMach}:CurrentState`,
-      operation_mode: `/${nsMach}:Machines/${ns}:W-ARa/${nsMach}:MachineryBuildingBlocks/${nsMach}:MachineryOperationMode/${nsMach}:CurrentState`,
-      packml_state: `/${nsMach}:Machines/${ns}:W-ARa/${nsPack}:PackML/${nsPack}:Status/${nsPack}:StateCurrent`,
+      identification: `${machine}/${nsDi}:Identification/${nsDi}:Manufacturer`,
+      item_state: `${blocks}/${nsMach}:MachineryItemState/CurrentState`,
+      operation_mode: `${blocks}/${nsMach}:MachineryOperationMode/CurrentState`,
+      packml_state: `${machine}/${nsPack}:PackML/${nsPack}:Status/${nsPack}:StateCurrent`,
     };
     out.browse = {};
     for (const [k, p] of Object.entries(paths)) {
@@ -105,6 +109,26 @@ async function main() {
       const dv = await session.read({ nodeId: r.targets[0].targetId, attributeId: AttributeIds.Value });
       const v = dv.value.value;
       out.browse[k] = v && v.text !== undefined ? v.text : v;
+    }
+    // the companion types of the objects, as a SCADA's type-based import finds them
+    const typed = {
+      identification: `${machine}/${nsDi}:Identification`,
+      item_state: `${blocks}/${nsMach}:MachineryItemState`,
+      operation_mode: `${blocks}/${nsMach}:MachineryOperationMode`,
+    };
+    out.types = {};
+    for (const [k, p] of Object.entries(typed)) {
+      const r = await session.translateBrowsePath(makeBrowsePath("ObjectsFolder", p));
+      if (r.statusCode !== StatusCodes.Good) throw new Error(`browse ${k}: ${r.statusCode.name}`);
+      const b = await session.browse({
+        nodeId: r.targets[0].targetId,
+        referenceTypeId: "HasTypeDefinition",
+        browseDirection: BrowseDirection.Forward,
+        includeSubtypes: true,
+        resultMask: 0x3f,
+      });
+      const ref = b.references[0];
+      out.types[k] = `${ref.nodeId.namespace === nsMach ? "Machinery" : ref.nodeId.namespace}:${ref.browseName.name}`;
     }
     const eu = await session.read({ nodeId: id("Attitude.MeasuredRoll.EngineeringUnits"), attributeId: AttributeIds.Value });
     out.roll_unit = eu.value.value.displayName.text;
