@@ -67,3 +67,19 @@ def test_help_lists_every_verb() -> None:
     assert proc.returncode == 0, proc.stderr
     for module in cli.COMMANDS:
         assert re.search(rf"^\s+{cli.verb_of(module)}\s", proc.stdout, re.M), proc.stdout
+
+
+def test_a_reader_that_goes_away_ends_the_command_quietly() -> None:
+    """`wara plan ... --json | head -c 1`: the pipe closed before the output is written
+    ends the command with 141 (SIGPIPE's code), no traceback on stderr."""
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "wara", "plan", "--roll-deg", "2", "--pitch-deg", "1", "--json"],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    assert proc.stdout is not None and proc.stderr is not None
+    proc.stdout.close()  # before the interpreter has started: the write finds no reader
+    err = proc.stderr.read()
+    assert proc.wait(timeout=120) == 141, err
+    assert "Traceback" not in err and "BrokenPipeError" not in err, err

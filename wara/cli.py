@@ -5,13 +5,14 @@ cantools does) exposing ``register(subparsers)``; adding a verb is one line in
 :data:`COMMANDS`. A run imports only its verb's module (``wara ctl`` does not load the
 simulator); ``wara``, ``wara --help`` or an unknown verb import them all. Exit codes: 0
 success, 1 the job ran but did not meet its goal, 2 bad arguments or configuration, 3
-unreachable target.
+unreachable target, 141 the reader of the output went away (as a shell reports SIGPIPE).
 """
 
 from __future__ import annotations
 
 import argparse
 import importlib
+import os
 import sys
 from collections.abc import Sequence
 
@@ -21,6 +22,7 @@ EXIT_OK = 0
 EXIT_FAILED = 1
 EXIT_USAGE = 2
 EXIT_INFEASIBLE = 3
+EXIT_BROKEN_PIPE = 128 + 13  # SIGPIPE
 
 #: Modules under wara.commands, in the order ``wara --help`` lists them; each registers
 #: the verb of its name (without a ``_cmd`` suffix, which keeps ``config_cmd`` apart from
@@ -82,6 +84,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = parser.parse_args(argv)
     try:
         code = args.func(args)
+        sys.stdout.flush()  # here, so a reader that went away is seen below
+    except BrokenPipeError:  # the reader of our output went away (`wara ... | head`)
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())  # the interpreter's last flush goes nowhere
+        return EXIT_BROKEN_PIPE
     except ConfigError as exc:
         for line in str(exc).splitlines():  # one line per problem, each self-contained
             print(f"wara: configuration error: {line}", file=sys.stderr)
