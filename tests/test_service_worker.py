@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -112,3 +113,44 @@ def test_bad_config_fails_in_the_caller(tmp_path: Path) -> None:
 def test_bad_start_extensions_refused(worker: PlannerWorker) -> None:
     with pytest.raises(ValueError, match="four extensions"):
         worker.submit(10, 1.0, 1.0, start_upper_m=(0.0, 0.0))
+
+
+def test_the_planner_process_ends_when_the_service_is_killed(tmp_path: Path) -> None:
+    """A service killed with SIGKILL leaves no planner process behind: the idle worker
+    sees it is orphaned within about PARENT_CHECK_S and ends."""
+    import os
+    import signal
+    import subprocess
+    import sys
+
+    script = (
+        "import sys, time\n"
+        "from ipc_app.service.worker import PlannerWorker\n"
+        "w = PlannerWorker(None)\n"
+        "w.start()\n"
+        "end = time.monotonic() + 120\n"
+        "while w.worker_pid is None and time.monotonic() < end:\n"
+        "    time.sleep(0.05)\n"
+        "print('PID', w.worker_pid, flush=True)\n"
+        "time.sleep(600)\n"
+    )
+    parent = subprocess.Popen([sys.executable, "-c", script], stdout=subprocess.PIPE, text=True)
+    assert parent.stdout is not None
+    line = ""
+    while not line.startswith("PID "):  # structlog's console lines come first
+        line = parent.stdout.readline()
+        assert line, "the stand-in service ended without starting its planner"
+    pid = int(line.split()[1])
+    os.kill(parent.pid, signal.SIGKILL)
+    parent.wait(10)
+    end = time.monotonic() + WAIT_S
+    while time.monotonic() < end:
+        try:
+            os.kill(pid, 0)
+        except ProcessLookupError:
+            return
+        with contextlib.suppress(ChildProcessError):
+            os.waitpid(pid, os.WNOHANG)  # not our child; reaped by init
+        time.sleep(0.1)
+    os.kill(pid, signal.SIGKILL)
+    raise AssertionError(f"planner process {pid} still runs {WAIT_S} s after the service died")

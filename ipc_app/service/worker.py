@@ -132,7 +132,23 @@ def _resolve(dotted: str) -> Callable[[ProjectConfig, PlanRequest], Plan]:
     return fn
 
 
-def _child_main(config_path: str | None, plan_fn: str, requests: Any, results: Any) -> None:
+#: how often an idle planner process checks that the service is still there
+PARENT_CHECK_S = 1.0
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # there, another user's
+        return True
+    return True
+
+
+def _child_main(
+    config_path: str | None, plan_fn: str, requests: Any, results: Any, owner_pid: int
+) -> None:
     """The worker process: load the config once, then plan requests until ``None``."""
     try:
         cfg = load_project(config_path)
@@ -142,7 +158,12 @@ def _child_main(config_path: str | None, plan_fn: str, requests: Any, results: A
         return
     results.put(("ready", os.getpid()))
     while True:
-        req: PlanRequest | None = requests.get()
+        try:
+            req: PlanRequest | None = requests.get(timeout=PARENT_CHECK_S)
+        except queue.Empty:
+            if not _alive(owner_pid):  # the service was killed (its forkserver lives on
+                return  # as long as this process holds its "alive" pipe)
+            continue
         if req is None:
             return
         t0 = time.perf_counter()
@@ -193,6 +214,8 @@ class PlannerWorker:
         self._pending_since = 0.0
         self._sent = False  # pending request handed to the current process
         self._out: queue.SimpleQueue[PlanResult] = queue.SimpleQueue()
+        #: the planner process's pid once it is ready (the last one started)
+        self.worker_pid: int | None = None
         self._wake_r, self._wake_w = os.pipe()
         os.set_blocking(self._wake_w, False)
         self._closing = threading.Event()
@@ -331,7 +354,7 @@ class PlannerWorker:
         requests, results = self._ctx.Queue(), self._ctx.Queue()
         proc = self._ctx.Process(
             target=_child_main,
-            args=(self._config_path, self._plan_fn, requests, results),
+            args=(self._config_path, self._plan_fn, requests, results, os.getpid()),
             name="wara-planner-worker",
             daemon=True,
         )
@@ -378,6 +401,7 @@ class PlannerWorker:
                     break
                 if kind == "ready":
                     was_ready = self._ready = True
+                    self.worker_pid = int(payload)
                     log.info("planner_ready", pid=payload)
                 elif kind == "fatal":
                     log.error("planner_worker_fatal", error=payload)
