@@ -39,6 +39,7 @@ COMMANDS: tuple[str, ...] = (
     "hil",
     "walk",
     "place",
+    "cycle",
     "survey",
     "opcua",
     "campaign",
