@@ -471,6 +471,7 @@ class ServiceCore:
         out = self.modes.walk(f"{plan.steps} step(s) of {plan.step_length_m:.3f} m")
         if not out.accepted:
             return {"ok": False, "code": "refused", "error": out.message, "mode": str(out.mode)}
+        self._end_place(inp.t)  # a walk from a placed pose: the placement's hold ends
         walker = WalkSequencer(self.cfg, self.period_s, plan)
         walker.start(inp.t, inp.positions.value, inp.pressures.value)
         self.walker = walker
@@ -628,6 +629,8 @@ class ServiceCore:
         )
         if not out.accepted:
             return {"ok": False, "code": "refused", "error": out.message, "mode": str(out.mode)}
+        self._end_walk()  # a placement from a walk's end state: the walk's hold ends
+        self._end_place(inp.t)
         placer.start(inp.t, inp.positions.value)
         self.placer = placer
         self._place_phase = -1
