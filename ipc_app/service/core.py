@@ -728,7 +728,7 @@ class ServiceCore:
         p = np.nan_to_num(inp.pressures.value, nan=0.0)
         was_done = walker.done
         band_was = walker.figures.out_of_band
-        u = walker.update(now, x, p, set(self.limits.active))
+        u = walker.update(now, x, p, set(self.limits.active), inp.pressures.age_s)
         band = walker.figures.out_of_band
         if band != band_was and self.record is not None:  # the sync band: hold, go on
             fig = walker.figures
