@@ -234,3 +234,51 @@ def test_attitude_adjustment_from_the_walks_end_state(tmp_path: Path) -> None:
     assert result["adjust"]["ok"] and result["ok"], out["fault_reasons"]
     roll, pitch = (v * 57.29577951308232 for v in result["achieved"])
     assert abs(roll - 1.0) <= 0.01 and abs(pitch - 0.5) <= 0.01
+
+
+def _hmi_walk(tmp_path: Path, walk_steps: int) -> tuple[Harness, list[dict[str, Any]], Any]:
+    """The HMI asks for a walk through the PLC (PLC_HmiTarget, TargetRequest WALK) at 0.5 s;
+    run until the walk executes (or 3 s)."""
+    from wara.walk import walk_scenario
+
+    cfg_path = project(tmp_path)
+    cfg = load_project(cfg_path)
+    ev = {"kind": "hmi_target", "at_s": 0.5, "request": "walk", "walk_steps": walk_steps}
+    sc = walk_scenario(HilScenario.model_validate({"events": [ev]}))
+    with recorder(tmp_path, cfg_path) as rec:
+        h = Harness(cfg, cfg_path, mode="lockstep", scenario=sc, record=rec)
+        try:
+            h.start()
+            assert h.wait_for(Mode.IDLE, 20.0)
+            started = h.wait_for(Mode.EXECUTE, 3.0)
+            h.advance(0.5)
+            spool = float(abs(h.sim.rig.spool_m).max())  # every valve's spool, m
+            word = h.core.handshake.word
+            out = (started, h.core.modes.mode, word.ack_seq, word.ack_status, spool)
+        finally:
+            h.close()
+    return h, events(tmp_path / "run"), out
+
+
+def test_the_hmi_asks_for_a_walk_through_the_plc_and_it_starts(tmp_path: Path) -> None:
+    from plc_bridge.link import TargetAck
+
+    h, evs, (started, mode, ack_seq, ack_status, _spool) = _hmi_walk(tmp_path, 1)
+    assert started and mode is Mode.EXECUTE
+    assert h.sim.hmi_issued == [1] and (ack_seq, ack_status) == (1, TargetAck.ACCEPTED)
+    assert [e["steps"] for e in evs if e["kind"] == "walk"] == [1]
+    assert [e["phase"] for e in evs if e["kind"] == "walk_phase"][:1] == ["1"]
+
+
+def test_a_malformed_hmi_walk_request_is_refused_with_its_reason_and_nothing_moves(
+    tmp_path: Path,
+) -> None:
+    from plc_bridge.link import TargetAck
+
+    _h, evs, (started, mode, ack_seq, ack_status, spool) = _hmi_walk(tmp_path, 0)
+    assert not started and mode is Mode.IDLE
+    assert (ack_seq, ack_status) == (1, TargetAck.REJECTED)
+    (refused,) = [e for e in evs if e["kind"] == "hmi_refused"]
+    assert refused["reason"] == "HMI walk refused: WalkSteps 0 (a walk is 1..3 steps)"
+    assert not [e for e in evs if e["kind"] in ("walk", "walk_phase")]
+    assert spool == 0.0  # every valve closed: nothing is driven
