@@ -82,13 +82,15 @@ from ipc_app.service.modes import (
 from ipc_app.service.record import RunRecorder
 from ipc_app.service.walk_interlocks import WalkLimits, walk_causes, walk_resume_cause
 from ipc_app.service.worker import PlanResult
-from plc_bridge.link import ControlWord, IpcLink, LinkState, TargetAck, TargetRequest
+from plc_bridge.link import ControlWord, HmiTarget, IpcLink, LinkState, TargetAck, TargetRequest
 from plc_bridge.link import Mode as PlcMode
 
 log = structlog.get_logger("wara.service")
 
 #: Numeric mode in the run record (``mode_code`` column): the PackML state number.
 _MODE_CODES = {m: PACKML_STATES[str(m)] for m in Mode}
+#: the most steps an HMI WALK request carries (PLC_HmiTarget's WalkSteps, 2 bits)
+HMI_WALK_STEPS_MAX = 3
 
 
 #: Modes at the start of a cycle in which its motion checks may run.
@@ -443,35 +445,79 @@ class ServiceCore:
         )
         return plan_walk(cfg, steps, start)
 
-    def request_walk(self, steps: int, wait_s: float = 0.0) -> dict[str, Any]:
+    def request_walk(self, steps: int, wait_s: float = 0.0, hmi_seq: int = 0) -> dict[str, Any]:
         """Walk ``steps`` steps: planned here from the measured state and refused (with
         the phase, instant and limit) before anything moves if a constraint breaks; then
-        the loop runs the step sequencer (EXECUTE) until the last phase (COMPLETE)."""
+        the loop runs the step sequencer (EXECUTE) until the last phase (COMPLETE).
+        ``hmi_seq``: the HMI's TargetSeq of a WALK request (answered ACCEPTED, REJECTED,
+        COMPLETED); 0 for a local request."""
         if not 1 <= steps <= 1000:
-            return {"ok": False, "code": "bad_request", "error": f"steps 1..1000, got {steps}"}
+            out = {"ok": False, "code": "bad_request", "error": f"steps 1..1000, got {steps}"}
+            return self._walk_refused(out, hmi_seq)
         plan = self.plan_walk_here(steps)
         if isinstance(plan, dict):
-            return plan
+            return self._walk_refused(plan, hmi_seq)
         if not plan.feasible:
             ref = plan.refusal
             assert ref is not None
             if self.record is not None:
                 self.record.event(self._now, "walk_refused", refusal=ref.to_dict())
-            return {
+            out = {
                 "ok": False,
                 "code": "infeasible",
                 "error": f"walk refused: {ref.message}",
                 "refusal": ref.to_dict(),
             }
-        return self._in_loop(lambda inp: self._do_walk(inp, plan), wait_s)
+            return self._walk_refused(out, hmi_seq)
+        return self._in_loop(lambda inp: self._do_walk(inp, plan, hmi_seq), wait_s)
 
-    def _do_walk(self, inp: MachineInputs, plan: WalkPlan) -> dict[str, Any]:
+    def _walk_refused(self, out: dict[str, Any], hmi_seq: int) -> dict[str, Any]:
+        """A refused walk: an HMI request is answered REJECTED (in the loop)."""
+        if hmi_seq:
+            reason = str(out.get("error", ""))
+            self._in_loop(lambda inp: self._hmi_refused(inp.t, hmi_seq, reason), 0.0)
+        return out
+
+    def _hmi_refused(self, now: float, seq: int, reason: str) -> dict[str, Any]:
+        self.handshake.ack(TargetAck.REJECTED, seq)
+        log.warning("hmi request refused", seq=seq, reason=reason)
+        if self.record is not None:
+            self.record.event(now, "hmi_refused", seq=seq, reason=reason)
+        return {"ok": False, "error": reason}
+
+    def _hmi_walk(self, hmi: HmiTarget, now: float) -> None:
+        """The HMI's WALK request: a malformed step count is refused here; a valid one is
+        planned off the loop (one thread per request: planning is not the loop's work)
+        and answered with its TargetSeq."""
+        if not 1 <= hmi.walk_steps <= HMI_WALK_STEPS_MAX:
+            reason = (
+                f"HMI walk refused: WalkSteps {hmi.walk_steps} "
+                f"(a walk is 1..{HMI_WALK_STEPS_MAX} steps)"
+            )
+            self._hmi_refused(now, hmi.seq, reason)
+            return
+        threading.Thread(
+            target=self.request_walk,
+            args=(hmi.walk_steps,),
+            kwargs={"hmi_seq": hmi.seq},
+            name="wara-hmi-walk",
+            daemon=True,
+        ).start()
+
+    def _do_walk(self, inp: MachineInputs, plan: WalkPlan, hmi_seq: int = 0) -> dict[str, Any]:
         if not inp.positions_valid:
-            return {"ok": False, "code": "refused", "error": "walk refused: no valid positions"}
+            err = "walk refused: no valid positions"
+            if hmi_seq:
+                self._hmi_refused(inp.t, hmi_seq, err)
+            return {"ok": False, "code": "refused", "error": err}
         out = self.modes.walk(f"{plan.steps} step(s) of {plan.step_length_m:.3f} m")
         if not out.accepted:
+            if hmi_seq:
+                self._hmi_refused(inp.t, hmi_seq, out.message)
             return {"ok": False, "code": "refused", "error": out.message, "mode": str(out.mode)}
         self._end_place(inp.t)  # a walk from a placed pose: the placement's hold ends
+        self.handshake.serve(hmi_seq)
+        self.handshake.ack(TargetAck.ACCEPTED)
         walker = WalkSequencer(self.cfg, self.period_s, plan)
         walker.start(inp.t, inp.positions.value, inp.pressures.value)
         self.walker = walker
@@ -880,6 +926,8 @@ class ServiceCore:
             elif hmi.request == TargetRequest.CANCEL:
                 self.modes.stop("HMI cancel")
                 self.handshake.ack(TargetAck.NONE, hmi.seq)
+            elif hmi.request == TargetRequest.WALK:
+                self._hmi_walk(hmi, now)
 
         self._run_calls(inp)
         self._planning(x, valid, now)
@@ -922,7 +970,7 @@ class ServiceCore:
         p = np.nan_to_num(inp.pressures.value, nan=0.0)
         was_done = walker.done
         band_was = walker.figures.out_of_band
-        u = walker.update(now, x, p, set(self.limits.active))
+        u = walker.update(now, x, p, set(self.limits.active), inp.pressures.age_s)
         band = walker.figures.out_of_band
         if band != band_was and self.record is not None:  # the sync band: hold, go on
             fig = walker.figures
@@ -941,6 +989,7 @@ class ServiceCore:
                 self.modes.fault(cause)
             if walker.done:
                 self.modes.motion_done()
+                self.handshake.ack(TargetAck.COMPLETED)
                 self.motion.duration_s = now - self.motion.started_s
                 if self.record is not None:
                     self.record.event(now, "walk_done", steps=[s.to_dict() for s in walker.steps])
