@@ -108,13 +108,16 @@ class EStop(_Timed):
 
 
 class HmiTargetEvent(Strict):
-    """The operator sends a target attitude of the workpiece plane from the HMI."""
+    """The operator sends a target attitude of the workpiece plane from the HMI, a cancel,
+    or a walk of ``walk_steps`` steps (the frame's ``WalkSteps``: 0..3; 0 with ``walk``
+    is the malformed request the service refuses)."""
 
     kind: Literal["hmi_target"]
     at_s: NonNegative
     roll_deg: Annotated[float, Field(ge=-45, le=45)] = 0.0
     pitch_deg: Annotated[float, Field(ge=-45, le=45)] = 0.0
-    request: Literal["new_target", "cancel"] = "new_target"
+    request: Literal["new_target", "cancel", "walk"] = "new_target"
+    walk_steps: Annotated[int, Field(ge=0, le=3)] = 0
 
 
 class PlcSilent(_Timed):

@@ -57,6 +57,26 @@ class Strict(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
 
+class Cycle(Strict):
+    """The ring cycle (placement.md section 4; docs/placement.md, "The ring cycle")."""
+
+    #: steps of the walk to the ring (and back, unloaded); 0: the machine stands at the ring
+    walk_steps: Annotated[int, Field(ge=0, le=1000)] = 0
+    #: in the simulated cycle (``wara cycle``, the demo) the operator's confirmation that
+    #: the part is fixed comes automatically after this much machine time of the hold
+    fixing_confirm_after_s: Annotated[Finite, Field(gt=0, le=3600)] = 5.0
+    #: the simulated survey: points measured on the placed part's front joint face
+    survey_points: Annotated[int, Field(ge=4, le=100)] = 8
+    #: and the noise of each measured coordinate (1 sigma, a total station's)
+    survey_noise_mm: Annotated[Finite, Field(ge=0, le=10)] = 1.0
+    #: a ring cycle's machine time, the fixing hold excluded, is judged against this
+    max_cycle_time_min: Annotated[Finite, Field(gt=0, le=600)] = 15.0
+
+    @property
+    def survey_noise_m(self) -> float:
+        return units.mm(self.survey_noise_mm)
+
+
 # --------------------------------------------------------------------------- project
 
 
@@ -769,11 +789,17 @@ class ProjectConfig(Strict):
     walking: Walking | None = None
     #: placing the part in six degrees of freedom; needs ``tunnel.alignment``
     placement: Placement | None = None
+    #: the ring cycle (walk, place, fix, release, survey, record, walk back); needs placement
+    cycle: Cycle | None = None
 
     @model_validator(mode="after")
     def _placement_needs_alignment(self) -> ProjectConfig:
         if self.placement is not None and self.tunnel.alignment is None:
             raise ValueError("placement needs the design axis: give tunnel.alignment")
+        if self.cycle is not None and self.placement is None:
+            raise ValueError("cycle needs the placement section (the cycle places the part)")
+        if self.cycle is not None and self.cycle.walk_steps > 0 and self.walking is None:
+            raise ValueError("cycle.walk_steps > 0 needs the frames and walking sections")
         return self
 
     opcua: OpcUa = OpcUa()

@@ -352,9 +352,17 @@ class HilSimulator:
                 self._hmi_issued.add(k)
                 self._hmi_seq = (self._hmi_seq % 255) + 1
                 self.hmi_issued.append(self._hmi_seq)
-                req = TargetRequest.CANCEL if ev.request == "cancel" else TargetRequest.NEW_TARGET
+                req = {"cancel": TargetRequest.CANCEL, "walk": TargetRequest.WALK}.get(
+                    ev.request, TargetRequest.NEW_TARGET
+                )
                 self.plc.set_hmi_target(
-                    HmiTarget(units.deg(ev.roll_deg), units.deg(ev.pitch_deg), req, self._hmi_seq)
+                    HmiTarget(
+                        units.deg(ev.roll_deg),
+                        units.deg(ev.pitch_deg),
+                        req,
+                        self._hmi_seq,
+                        walk_steps=ev.walk_steps,
+                    )
                 )
             elif isinstance(ev, StuckValve):
                 i = self._cyl_of[k]

@@ -126,11 +126,11 @@ def test_model_values_are_si_and_follow_the_status() -> None:
         1,
         "7a lower M",
     )
-    status["cycle"] = {"step": 3, "phase": "transfer"}  # a ring cycle's, over its walk's
+    status["cycle"] = {"ring": 3, "phase": "place", "since_s": 2.0}  # over its walk's
     vals = dict(zip((v.path for v in model), m.values(model, status), strict=True))
     assert (vals[("PackML", "Status", "CycleStep")], vals[("PackML", "Status", "CyclePhase")]) == (
         3,
-        "transfer",
+        "place",
     )
     ids = {v.path[1] for v in model if v.path[0] == "Cylinders"}
     assert ids == {*cfg.layers.lower.cylinders, *cfg.layers.upper.cylinders}

@@ -41,6 +41,7 @@ COMMANDS: tuple[str, ...] = (
     "hil",
     "walk",
     "place",
+    "cycle",
     "survey",
     "opcua",
     "campaign",

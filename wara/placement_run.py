@@ -11,8 +11,9 @@ The phases of placement.md section 2, each checked before it starts:
    layers hold their end point on their slower frames: both groups at the loop rate
    would load the bus to 65 %, over ``can.max_bus_load_percent``).
 
-The loop runs the controllers directly (read -> update -> write every period), not the
-service core, which has no placement mode yet.
+The loop runs the controllers' :class:`~ipc_app.control.placement.PlacementSequencer`
+directly (read -> update -> write every period), without the service core around it
+(``wara ctl place`` runs the same sequencer in the service).
 """
 
 from __future__ import annotations
@@ -28,7 +29,8 @@ from config import ProjectConfig, units
 from hil_sim.placement import pose_from_home
 from hil_sim.simulator import HilSimulator
 from ipc_app.control.attitude import AttitudeController
-from ipc_app.control.slide import SLIDE_ROLES, SlideController
+from ipc_app.control.placement import PlacementSequencer
+from ipc_app.control.slide import SLIDE_ROLES
 from ipc_app.model.placement import Pose, compose, deviation, joint_figures
 from ipc_app.planner.placement import home_pose, judge, plan_from_deviation
 from ipc_app.planner.plan import plan as plan_attitude
@@ -40,8 +42,6 @@ _channels = itertools.count()
 #: 1 mm of the target, angles within 0.01 deg.
 GOAL_MM = 1.0
 GOAL_DEG = 0.01
-#: Settling after each phase before the next starts (s).
-SETTLE_S = (1.0, 2.0)
 
 
 def run_placement_lockstep(
@@ -65,23 +65,15 @@ def run_placement_lockstep(
     link = IpcLink(cfg, can.Bus(interface="virtual", channel=channel), clock=sim.clock)
     period = cfg.control.period_s
     att = AttitudeController(cfg, period)
-    slide = SlideController(cfg, period)
     attitude_set = att.layers["lower"] + att.layers["upper"]
     phase_s: dict[str, float] = {}
     worst = {"sync_error_mm": 0.0}
 
-    def cycle(t_end: float, moving_slide: bool) -> None:
+    def cycle(t_end: float, step: Any) -> None:
         while sim.t_s < t_end - 1e-9:
             link.poll()
             x = link.positions_m().value  # read
-            u = att.update(sim.t_s, x)  # update
-            if moving_slide:
-                u = u + slide.update(sim.t_s, x)
-                worst["sync_error_mm"] = max(
-                    worst["sync_error_mm"], units.to_mm(slide.sync_error_m)
-                )
-            for m in att.metrics.values():
-                worst["sync_error_mm"] = max(worst["sync_error_mm"], units.to_mm(m.sync_error_m))
+            u = step(sim.t_s, x)  # update
             link.send_valve_commands(np.nan_to_num(u))  # write
             sim.step(period)
 
@@ -89,12 +81,8 @@ def run_placement_lockstep(
         link.set_active_cylinders(attitude_set)
         link.set_control(mode=Mode.ATTITUDE_ADJUST, enable=True)
         link.poll()
-        x0 = link.positions_m().value
-        att.engage(x0, sim.t_s, None)
-        cycle(sim.t_s + 0.3, False)  # the link up, every frame fresh
-        # 1. attitude and height: the trajectory from the measured start less the
-        # height, the lower layer's references shifted by it
-        t0 = sim.t_s
+        att.engage(link.positions_m().value, sim.t_s, None)
+        cycle(sim.t_s + 0.3, att.update)  # the link up, every frame fresh
         x = link.positions_m().value
         lo, up = att.layers["lower"], att.layers["upper"]
         half = att.half_stroke
@@ -109,17 +97,18 @@ def run_placement_lockstep(
         )
         if not att_plan.feasible or att_plan.trajectory is None:
             return {**out, "passed": False, "reasons": list(att_plan.reasons)}
-        att.set_offset("lower", heave)
-        att.engage(x, t0, att_plan.trajectory)
-        cycle(t0 + att_plan.trajectory.duration_s + SETTLE_S[0], False)
-        att.hold(att.final_references())
-        phase_s["attitude"] = sim.t_s - t0
-        # 2. yaw, lateral and gap
-        link.set_active_cylinders(slide.active)
-        t1 = sim.t_s
-        duration = slide.engage(link.positions_m().value, t1, ext)
-        cycle(t1 + duration + SETTLE_S[1], True)
-        phase_s["slide"] = sim.t_s - t1
+        placer = PlacementSequencer(cfg, period, att, att_plan.trajectory, heave, ext)
+        placer.start(sim.t_s, x)
+        phase = 0
+        while not placer.done:
+            cycle(sim.t_s + period, placer.update)
+            if placer.phase != phase:  # the slide axes at the loop rate
+                phase = placer.phase
+                link.set_active_cylinders(placer.active_group())
+            if sim.t_s > 600.0:
+                return {**out, "passed": False, "reasons": ["the move did not end in 600 s"]}
+        phase_s = dict(placer.phase_times_s)
+        worst["sync_error_mm"] = units.to_mm(placer.max_sync_error_m)
         r, t = pose_from_home(cfg, sim.rig)
     finally:
         link.close()

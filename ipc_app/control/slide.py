@@ -112,10 +112,14 @@ class SlideController:
             vp * dist / opts.max_rod_speed_m_s, math.sqrt(ap * dist / opts.max_rod_accel_m_s2)
         )
         self.t_start = t_now
+        self.reset(x)
+        return self.duration_s
+
+    def reset(self, x_rod_m: FloatArray) -> None:
+        """Every controller reset at its measurement with a zero command (bumpless)."""
         for role, members in self._ctrl.items():
             for c, i in zip(members, self.index[role], strict=True):
-                c.reset(float(x[i]))
-        return self.duration_s
+                c.reset(float(x_rod_m[i]))
 
     def motion_done(self, t_now: float) -> bool:
         return t_now - self.t_start >= self.duration_s

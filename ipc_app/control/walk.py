@@ -151,6 +151,10 @@ class _PhaseRun:
     duration_s: float = 0.0
     touched: list[bool] = field(default_factory=list)
     baseline_pa: list[float] = field(default_factory=list)
+    #: a lowering leg's free-rod cap-side force (the motion's friction), low-passed, N
+    free_f: list[float] = field(default_factory=list)
+    #: the lowering is in its slow part (touch-down looked for)
+    near: bool = False
     frozen_x: list[float] = field(default_factory=list)
     touch_f: list[float] = field(default_factory=list)
     band_since: float | None = None
@@ -233,6 +237,11 @@ class WalkSequencer:
         self.force_ref_n = np.full(8, math.nan)
         #: the standing frame's load equalization: reference offsets in its twist mode
         self.twist_offset = np.zeros(8)
+        #: each leg's last two pressure samples: cap-side force, N, and sample time, s
+        self._f_last = np.zeros(8)
+        self._f_prev = np.zeros(8)
+        self._t_last = np.full(8, -math.inf)
+        self._t_prev = np.full(8, -math.inf)
 
     # ----------------------------------------------------------------- helpers
 
@@ -304,6 +313,7 @@ class WalkSequencer:
             frame = MAIN if key == "7a" else SUB
             run.touched = [False] * 4
             run.baseline_pa = [float(p[self.legs[j], 0]) for j in frame]
+            run.free_f = [float(f[j]) for j in frame]
             run.frozen_x = [0.0] * 4
             run.touch_f = [0.0] * 4
         elif key in LIFT:
@@ -379,13 +389,25 @@ class WalkSequencer:
 
     # ----------------------------------------------------------------- the cycle
 
-    def update(self, now: float, x: FloatArray, p: FloatArray, active: set[int]) -> FloatArray:
-        """Spool commands (19) for this cycle; :attr:`figures` is this cycle's."""
+    def update(
+        self,
+        now: float,
+        x: FloatArray,
+        p: FloatArray,
+        active: set[int],
+        p_age_s: FloatArray | None = None,
+    ) -> FloatArray:
+        """Spool commands (19) for this cycle; :attr:`figures` is this cycle's.
+
+        ``p_age_s``: the age of each cylinder's pressure sample (19,), s; the checks' leg
+        forces are taken at one instant from it (:meth:`aligned_forces_n`). None: every
+        sample is taken as of ``now``."""
         u = np.zeros(self.n)
         refs = self.hold_ref.copy()
         rates = np.zeros(self.n)
         f = self.forces_n(p)
         self.leg_force_n = f
+        f_check = self.aligned_forces_n(now, f, p_age_s)
         fig = self.figures
         run = self.run
         if run is None or self.done:
@@ -443,6 +465,7 @@ class WalkSequencer:
             if key in LOWER:
                 # touch-down is looked for from touchdown_travel above the expected ground
                 near = s >= self.walk.clearance_m - self.td_travel - 1e-9
+                run.near = near
                 for k, j in enumerate(frame):
                     i = self.legs[j]
                     if run.touched[k]:
@@ -452,15 +475,23 @@ class WalkSequencer:
                         run.touched[k] = True
                         run.frozen_x[k] = float(x[i])
                         run.touch_f[k] = float(f[j])
-                        # force control from here: a stiff foot held in position would
-                        # keep what the position loop's overshoot pressed into it
+                        # then it stops: force control from here, at rest (its valve
+                        # closed; a stiff foot held in position would keep what the
+                        # position loop's overshoot pressed into it, and started from
+                        # the lowering's command it would go on pressing the invert for
+                        # the loop's time constant: seen, twice the touch force)
                         self.force_mode.add(i)
-                        self.force[i].reset(float(f[j]), self.pos[i].command)
+                        self.force[i].reset(float(f[j]), 0.0)
                         f_ref[i] = (run.touch_f[k], 0.0)
                         if i in moving:
                             moving.remove(i)
-                    else:  # the free rod's pressure, low-passed while it moves
-                        run.baseline_pa[k] += (pa - run.baseline_pa[k]) * dt / self.FREE_ROD_S
+                    elif pa - run.baseline_pa[k] <= 0.5 * self.touch_pa:
+                        # the free rod's pressure and force, low-passed while it moves; a
+                        # sample more than half the touch rise above it is the foot
+                        # pressing the invert, not the free motion: the values hold
+                        a = dt / self.FREE_ROD_S
+                        run.baseline_pa[k] += (pa - run.baseline_pa[k]) * a
+                        run.free_f[k] += (float(f[j]) - run.free_f[k]) * a
                 finished = all(run.touched)
                 if not finished and run.tau >= run.duration_s:
                     j = frame[run.touched.index(False)]
@@ -550,9 +581,9 @@ class WalkSequencer:
             held = list(MAIN if key in ("3", "4") else SUB)
         else:
             held = list(self._frame(ph.standing, self.leg_ids))
-        expected = self._residual_share(x_s_now, share8, f, plan_f, held)
+        expected = self._residual_share(x_s_now, share8, f_check, plan_f, held)
         fig.expected_n = tuple(np.maximum(expected, share8).tolist())
-        fig.leg_force_n = tuple(f.tolist())
+        fig.leg_force_n = tuple(f_check.tolist())
         fig.phase_t_s = run.tau
         st = self.steps[-1]
         st.max_leg_sync_error_m = max(st.max_leg_sync_error_m, fig.leg_sync_m)
@@ -589,23 +620,67 @@ class WalkSequencer:
         self, x_s: float, share8: FloatArray, f: FloatArray, plan_f: FloatArray, held: list[int]
     ) -> FloatArray:
         """Expected forces: a leg held in position carries its minimum-norm share of what
-        the other touching legs (force-controlled, or touched down) leave of the load (the
-        body's equilibrium with their measured forces); the others the plan's force."""
+        the other legs leave of the load (the body's equilibrium with their contact
+        forces, :meth:`contact_n`); the others the plan's force."""
         others = [j for j in range(8) if j not in held]
         pts = self.machine.legs_xy(x_s)
         a = np.vstack([np.ones(8), pts[:, 1], -pts[:, 0]])
         rhs = a @ share8  # the load (any equilibrium gives it)
-        run = self.run
-        touching = {self.legs.index(i) for i in self.force_mode}
-        if run is not None and run.phase.key in LOWER:
-            frame = MAIN if run.phase.key == "7a" else SUB
-            touching |= {j for k, j in enumerate(frame) if run.touched[k]}
-        # a leg in the air carries nothing (its pressures show the motion's friction)
-        given = np.array([max(0.0, float(f[j])) if j in touching else 0.0 for j in others])
-        rest = rhs - a[:, others] @ given
+        contact = self.contact_n(f)
+        rest = rhs - a[:, others] @ contact[others]
         a_r = a[:, held]
         out = plan_f.copy()
         out[held] = a_r.T @ np.linalg.solve(a_r @ a_r.T, rest)
+        return out
+
+    def contact_n(self, f: FloatArray) -> FloatArray:
+        """Each leg's foot force as the pressures show it (8,), N: a leg in force control
+        or touched down its cap-side force; a lowering leg not (yet) touched down, in the
+        slow part of its lowering, what its force rose above its free-rod value (a foot
+        that presses the invert before its touch-down is declared carries that load);
+        any other leg of the lowering frame 0 (in the air, its pressures show only the
+        motion's friction). The standing frame's legs: their force."""
+        out = np.maximum(f, 0.0)
+        run = self.run
+        if run is not None and run.phase.key in LOWER:
+            frame = MAIN if run.phase.key == "7a" else SUB
+            for k, j in enumerate(frame):
+                if not run.touched[k]:
+                    out[j] = max(0.0, float(f[j]) - run.free_f[k]) if run.near else 0.0
+        return out
+
+    def aligned_forces_n(self, now: float, f: FloatArray, age_s: FloatArray | None) -> FloatArray:
+        """The legs' cap-side forces (8,) at one instant, N, for the checks.
+
+        The PLC samples each cylinder's pressures at its fast cycle (50 ms), the frames
+        of different cylinders at different instants; while feet touch down or take load
+        the forces change by up to some 10 kN within that cycle, and a standing leg's
+        force from one instant judged against a share computed from the others' forces
+        of another is off by as much (seen: 113 % of the share in the touch-down of M
+        while S stands, every leg within 2 % of its share in the simulator's truth).
+        So each leg's force is taken at the instant of the oldest latest sample: a leg
+        sampled since is interpolated between its last two samples. Constant work: eight
+        legs, two samples each."""
+        if age_s is None:
+            return f
+        ts = now - np.asarray(age_s, dtype=float)[self.legs]
+        for j in range(8):
+            if not math.isfinite(ts[j]):
+                continue
+            if ts[j] > self._t_last[j] + 1e-9:
+                self._f_prev[j], self._t_prev[j] = self._f_last[j], self._t_last[j]
+                self._t_last[j] = ts[j]
+            self._f_last[j] = f[j]
+        known = self._t_last[np.isfinite(self._t_last)]
+        if known.size == 0:
+            return f
+        t_c = float(known.min())
+        out = np.array(f, dtype=float)
+        for j in range(8):
+            t1, t0 = self._t_last[j], self._t_prev[j]
+            if math.isfinite(t0) and t1 > t_c and t1 > t0:
+                w = min(1.0, max(0.0, (t_c - t0) / (t1 - t0)))
+                out[j] = self._f_prev[j] + w * (self._f_last[j] - self._f_prev[j])
         return out
 
     def _share8(self, x_s: float) -> FloatArray:

@@ -93,6 +93,17 @@ class Pose(NamedTuple):
         return cls(float(t[0]), float(t[1]), float(t[2]), roll, pitch, yaw)
 
 
+def sheet_deviation(
+    y_mm: float, z_mm: float, roll_deg: float, pitch_deg: float, yaw_deg: float
+) -> Pose:
+    """A part's deviation from its design as a survey sheet states it (y, z in mm;
+    roll, pitch, yaw in deg; none along the axis) as a :class:`Pose` in SI units."""
+    return Pose(
+        0.0, units.mm(y_mm), units.mm(z_mm), units.deg(roll_deg), units.deg(pitch_deg),
+        units.deg(yaw_deg),
+    )  # fmt: skip
+
+
 def compose(outer: Pose, inner: Pose) -> Pose:
     """``outer ∘ inner``: a pose given in ``outer``'s frame, expressed in the frame below."""
     r = outer.matrix @ inner.matrix

@@ -164,10 +164,10 @@ def mode(st: Status) -> str:
 
 
 def _step_phase(s: Status) -> tuple[Any, Any]:
-    """(step, phase) of the ring cycle (``cycle``), else of the walk (``walk``: its step
-    and phase, e.g. ``7a lower M``)."""
-    if isinstance(s.get("cycle"), Mapping):
-        return _get(s, "cycle", "step"), _get(s, "cycle", "phase")
+    """(step, phase) of the ring cycle (``cycle``: its ring and phase), else of the walk
+    (``walk``: its step and phase, e.g. ``7a lower M``)."""
+    if isinstance(c := s.get("cycle"), Mapping):
+        return c.get("ring"), c.get("phase")
     if isinstance(w := s.get("walk"), Mapping):
         name = " ".join(str(w[k]) for k in ("phase", "phase_name") if w.get(k))
         return w.get("step"), name

@@ -30,6 +30,7 @@ import numpy as np
 import structlog
 
 from config import load_project
+from ipc_app.model.placement import sheet_deviation
 from ipc_app.service.core import ServiceCore
 from ipc_app.service.ctl import CtlError, CtlHandlers, CtlServer
 from ipc_app.service.interlocks import Cause, Interlock
@@ -73,6 +74,7 @@ def service_handlers(
         jog=lambda c, d: _reply(core().request_jog(c, d, wait_s=wait_s)),
         audit=lambda u, a, r: core().audit(u, a, r),
         walk=lambda n: _reply(core().request_walk(n, wait_s=wait_s)),
+        place=lambda r, d: _reply(core().request_place(r, sheet_deviation(*d), wait_s=wait_s)),
     )
 
 

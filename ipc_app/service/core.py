@@ -42,9 +42,14 @@ import structlog
 from config import units
 from config.schema import ProjectConfig
 from ipc_app.control.attitude import AttitudeController
+from ipc_app.control.placement import PlacementSequencer
+from ipc_app.control.slide import SLIDE_ROLES
 from ipc_app.control.walk import WalkSequencer
 from ipc_app.model.composition import check_attitude
 from ipc_app.model.kinematics import fit_layer
+from ipc_app.model.placement import Pose
+from ipc_app.planner.placement import PlacementPlan, plan_from_deviation
+from ipc_app.planner.plan import plan as plan_attitude
 from ipc_app.planner.walk import WalkPlan, WalkStart, plan_walk
 from ipc_app.service.ctl import MAX_WALK_STEPS
 from ipc_app.service.interlocks import (
@@ -78,13 +83,15 @@ from ipc_app.service.modes import (
 from ipc_app.service.record import RunRecorder
 from ipc_app.service.walk_interlocks import WalkLimits, walk_causes, walk_resume_cause
 from ipc_app.service.worker import PlanResult
-from plc_bridge.link import ControlWord, IpcLink, LinkState, TargetAck, TargetRequest
+from plc_bridge.link import ControlWord, HmiTarget, IpcLink, LinkState, TargetAck, TargetRequest
 from plc_bridge.link import Mode as PlcMode
 
 log = structlog.get_logger("wara.service")
 
 #: Numeric mode in the run record (``mode_code`` column): the PackML state number.
 _MODE_CODES = {m: PACKML_STATES[str(m)] for m in Mode}
+#: the most steps an HMI WALK request carries (PLC_HmiTarget's WalkSteps, 2 bits)
+HMI_WALK_STEPS_MAX = 3
 
 
 #: Modes at the start of a cycle in which its motion checks may run.
@@ -215,6 +222,12 @@ class ServiceCore:
         self._walk_phase = -1
         self._walk_stop: tuple[np.ndarray, np.ndarray] | None = None
         self._attitude_limits = self.limits
+        # the placement move: its sequencer while one runs (and holds after it)
+        self.placer: PlacementSequencer | None = None
+        self.placement: dict[str, Any] | None = None  # the ring, plan and figures
+        self._place_phase = -1
+        #: the ring cycle's present ring and phase, as its driver reports them (status)
+        self.cycle: dict[str, Any] | None = None
 
     @staticmethod
     def record_columns(cfg: ProjectConfig) -> list[str]:
@@ -433,38 +446,79 @@ class ServiceCore:
         )
         return plan_walk(cfg, steps, start)
 
-    def request_walk(self, steps: int, wait_s: float = 0.0) -> dict[str, Any]:
+    def request_walk(self, steps: int, wait_s: float = 0.0, hmi_seq: int = 0) -> dict[str, Any]:
         """Walk ``steps`` steps: planned here from the measured state and refused (with
         the phase, instant and limit) before anything moves if a constraint breaks; then
-        the loop runs the step sequencer (EXECUTE) until the last phase (COMPLETE)."""
+        the loop runs the step sequencer (EXECUTE) until the last phase (COMPLETE).
+        ``hmi_seq``: the HMI's TargetSeq of a WALK request (answered ACCEPTED, REJECTED,
+        COMPLETED); 0 for a local request."""
         if not 1 <= steps <= MAX_WALK_STEPS:
-            return {
-                "ok": False,
-                "code": "bad_request",
-                "error": f"steps 1..{MAX_WALK_STEPS}, got {steps}",
-            }
+            why = f"steps 1..{MAX_WALK_STEPS}, got {steps}"
+            return self._walk_refused({"ok": False, "code": "bad_request", "error": why}, hmi_seq)
         plan = self.plan_walk_here(steps)
         if isinstance(plan, dict):
-            return plan
+            return self._walk_refused(plan, hmi_seq)
         if not plan.feasible:
             ref = plan.refusal
             assert ref is not None
             if self.record is not None:
                 self.record.event(self._now, "walk_refused", refusal=ref.to_dict())
-            return {
+            out = {
                 "ok": False,
                 "code": "infeasible",
                 "error": f"walk refused: {ref.message}",
                 "refusal": ref.to_dict(),
             }
-        return self._in_loop(lambda inp: self._do_walk(inp, plan), wait_s)
+            return self._walk_refused(out, hmi_seq)
+        return self._in_loop(lambda inp: self._do_walk(inp, plan, hmi_seq), wait_s)
 
-    def _do_walk(self, inp: MachineInputs, plan: WalkPlan) -> dict[str, Any]:
+    def _walk_refused(self, out: dict[str, Any], hmi_seq: int) -> dict[str, Any]:
+        """A refused walk: an HMI request is answered REJECTED (in the loop)."""
+        if hmi_seq:
+            reason = str(out.get("error", ""))
+            self._in_loop(lambda inp: self._hmi_refused(inp.t, hmi_seq, reason), 0.0)
+        return out
+
+    def _hmi_refused(self, now: float, seq: int, reason: str) -> dict[str, Any]:
+        self.handshake.ack(TargetAck.REJECTED, seq)
+        log.warning("hmi request refused", seq=seq, reason=reason)
+        if self.record is not None:
+            self.record.event(now, "hmi_refused", seq=seq, reason=reason)
+        return {"ok": False, "error": reason}
+
+    def _hmi_walk(self, hmi: HmiTarget, now: float) -> None:
+        """The HMI's WALK request: a malformed step count is refused here; a valid one is
+        planned off the loop (one thread per request: planning is not the loop's work)
+        and answered with its TargetSeq."""
+        if not 1 <= hmi.walk_steps <= HMI_WALK_STEPS_MAX:
+            reason = (
+                f"HMI walk refused: WalkSteps {hmi.walk_steps} "
+                f"(a walk is 1..{HMI_WALK_STEPS_MAX} steps)"
+            )
+            self._hmi_refused(now, hmi.seq, reason)
+            return
+        threading.Thread(
+            target=self.request_walk,
+            args=(hmi.walk_steps,),
+            kwargs={"hmi_seq": hmi.seq},
+            name="wara-hmi-walk",
+            daemon=True,
+        ).start()
+
+    def _do_walk(self, inp: MachineInputs, plan: WalkPlan, hmi_seq: int = 0) -> dict[str, Any]:
         if not inp.positions_valid:
-            return {"ok": False, "code": "refused", "error": "walk refused: no valid positions"}
+            err = "walk refused: no valid positions"
+            if hmi_seq:
+                self._hmi_refused(inp.t, hmi_seq, err)
+            return {"ok": False, "code": "refused", "error": err}
         out = self.modes.walk(f"{plan.steps} step(s) of {plan.step_length_m:.3f} m")
         if not out.accepted:
+            if hmi_seq:
+                self._hmi_refused(inp.t, hmi_seq, out.message)
             return {"ok": False, "code": "refused", "error": out.message, "mode": str(out.mode)}
+        self._end_place(inp.t)  # a walk from a placed pose: the placement's hold ends
+        self.handshake.serve(hmi_seq)
+        self.handshake.ack(TargetAck.ACCEPTED)
         walker = WalkSequencer(self.cfg, self.period_s, plan)
         walker.start(inp.t, inp.positions.value, inp.pressures.value)
         self.walker = walker
@@ -547,6 +601,177 @@ class ServiceCore:
             "steps_done": [s.to_dict() for s in w.steps if s.duration_s > 0],
         }
 
+    # ------------------------------------------------------------------ the placement
+
+    def request_place(
+        self, ring: int, previous_deviation: Pose, wait_s: float = 0.0
+    ) -> dict[str, Any]:
+        """Place ring ``ring``'s part: its target planned from the previous part's
+        deviation from its design (:func:`plan_from_deviation`, in the caller's thread),
+        then :meth:`request_place_plan`."""
+        if self.cfg.placement is None:
+            msg = "the project has no placement section (and tunnel.alignment): it cannot place"
+            return {"ok": False, "code": "bad_request", "error": msg}
+        if not 1 <= ring <= 99_999:
+            return {"ok": False, "code": "bad_request", "error": f"ring 1..99999, got {ring}"}
+        return self.request_place_plan(
+            plan_from_deviation(self.cfg, ring, previous_deviation), wait_s
+        )
+
+    def request_place_plan(self, plan: PlacementPlan, wait_s: float = 0.0) -> dict[str, Any]:
+        """Move the part to ``plan``'s target: refused (exit 3 in ``wara ctl``, with the
+        binding limit) when the plan is infeasible; the attitude trajectory planned here
+        from the measured state, every move checked before anything moves; then the loop
+        runs the :class:`PlacementSequencer` (EXECUTE) until both phases have settled
+        (COMPLETE, holding the pose)."""
+
+        def refused(code: str, msg: str, **more: Any) -> dict[str, Any]:
+            if self.record is not None:
+                self.record.event(self._now, "place_refused", ring=plan.ring, error=msg)
+            return {"ok": False, "code": code, "error": msg, **more}
+
+        if not plan.feasible:
+            return refused(
+                "infeasible", "place refused: " + "; ".join(plan.reasons), reasons=plan.reasons,
+                plan=plan.to_dict(),
+            )  # fmt: skip
+        inp = self._inputs
+        if inp is None or not inp.positions_valid:
+            return refused("refused", "place refused: no valid positions")
+        x = inp.positions.value
+        half = self.stroke / 2
+        lo, up = self.attitude.layers["lower"], self.attitude.layers["upper"]
+        heave = plan.heave_m
+        roll_deg, pitch_deg = plan.attitude_world_deg
+        att = plan_attitude(
+            self.cfg, roll_deg, pitch_deg,
+            start_lower_m=tuple((x[lo] - half[lo] - heave).tolist()),
+            start_upper_m=tuple((x[up] - half[up]).tolist()),
+        )  # fmt: skip
+        if not att.feasible or att.trajectory is None:
+            return refused(
+                "infeasible", "place refused: " + "; ".join(att.reasons), reasons=list(att.reasons)
+            )
+        ext = {
+            a.group: tuple(units.mm(e) for e in a.extensions_mm)
+            for a in plan.actuators
+            if a.group in SLIDE_ROLES
+        }
+        try:
+            placer = PlacementSequencer(
+                self.cfg, self.period_s, self.attitude, att.trajectory, heave, ext
+            )
+        except ValueError as exc:
+            return refused("infeasible", f"place refused: {exc}")
+        return self._in_loop(lambda i: self._do_place(i, plan, placer), wait_s)
+
+    def _do_place(
+        self, inp: MachineInputs, plan: PlacementPlan, placer: PlacementSequencer
+    ) -> dict[str, Any]:
+        if not inp.positions_valid:
+            return {"ok": False, "code": "refused", "error": "place refused: no valid positions"}
+        tgt = plan.to_dict()["target_deviation"]
+        out = self.modes.place(
+            f"ring {plan.ring}: y {tgt['y_mm']:+.2f} mm, z {tgt['z_mm']:+.2f} mm from its design"
+        )
+        if not out.accepted:
+            return {"ok": False, "code": "refused", "error": out.message, "mode": str(out.mode)}
+        self._end_walk()  # a placement from a walk's end state: the walk's hold ends
+        self._end_place(inp.t)
+        placer.start(inp.t, inp.positions.value)
+        self.placer = placer
+        self._place_phase = -1
+        self.placement = {"ring": plan.ring, "plan": plan.to_dict(), "started_s": inp.t}
+        self.motion = MotionStats(started_s=inp.t, plan=self.placement["plan"])
+        if self.record is not None:
+            self.record.event(inp.t, "place", ring=plan.ring, plan=self.placement["plan"])
+        self._place_group(inp.t)
+        return {"ok": True, "mode": str(self.modes.mode), "ring": plan.ring}
+
+    def _place_update(
+        self, inp: MachineInputs, placer: PlacementSequencer
+    ) -> tuple[np.ndarray, np.ndarray | None]:
+        """A placement's cycle: the sequencer drives both sets of axes."""
+        now = inp.t
+        if not (self.modes.valves_enabled and inp.positions_valid):
+            return np.zeros(len(self.cfg.cylinders)), None
+        was_done = placer.done
+        u = placer.update(now, np.nan_to_num(inp.positions.value, nan=0.0))
+        self._last_drive_t = now
+        self._motion_figures(now)
+        if self.modes.mode == Mode.EXECUTE and placer.done and not was_done:
+            self.modes.motion_done()
+            self.motion.duration_s = now - self.motion.started_s
+            if self.placement is not None:
+                self.placement["phase_times_s"] = dict(placer.phase_times_s)
+            if self.record is not None:
+                self.record.event(
+                    now,
+                    "place_done",
+                    ring=self.placement["ring"] if self.placement else None,
+                    phase_times_s=placer.phase_times_s,
+                    max_sync_error_mm=units.to_mm(placer.max_sync_error_m),
+                )
+        self._place_group(now)
+        return u, placer.last_refs
+
+    def _place_group(self, now: float) -> None:
+        """The present phase's group on the link; a phase change is an event."""
+        p = self.placer
+        assert p is not None
+        if p.phase == self._place_phase:
+            return
+        self._place_phase = p.phase
+        group = p.active_group()
+        watched = p.watched()
+        self.bus_load = self.link.set_active_cylinders(group, now)
+        self.reader = Reader(self.link, watched)
+        self.limits = replace(self._attitude_limits, active=tuple(watched))
+        log.info("place phase", phase=p.phase_name)
+        if self.record is not None:
+            self.record.event(
+                now, "place_phase", phase=p.phase_name, active=group,
+                bus_load_percent=round(self.bus_load.load_percent, 2),
+            )  # fmt: skip
+
+    def _end_place(self, now: float) -> None:
+        """Back to the attitude group (stopped, or a new motion from the placed pose)."""
+        p = self.placer
+        if p is None:
+            return
+        p.finish()
+        self.placer = None
+        self._place_phase = -1
+        self.bus_load = self.link.set_active_cylinders(self.active)
+        self.reader = Reader(self.link, self.active)
+        self.limits = self._attitude_limits
+        if self.record is not None:
+            self.record.event(now, "place_end", phase=p.phase_name, mode=str(self.modes.mode))
+
+    def note_cycle(self, ring: int, phase: str, **figures: Any) -> None:
+        """The ring cycle's driver enters ``phase`` of ring ``ring``: in the status
+        (``cycle``), the run record (a ``cycle_phase`` event with ``figures``) and the log."""
+        self.cycle = {"ring": ring, "phase": phase, "since_s": self._now, **figures}
+        log.info("cycle phase", ring=ring, phase=phase, **figures)
+        if self.record is not None:
+            self.record.event(self._now, "cycle_phase", ring=ring, phase=phase, **figures)
+
+    def place_status(self) -> dict[str, Any] | None:
+        """The placement's ring, phase and figures for ``wara ctl status`` (None: none)."""
+        p, info = self.placer, self.placement
+        if p is None or info is None:
+            return None
+        plan = info["plan"]
+        return {
+            "ring": info["ring"],
+            "phase": p.phase_name,
+            "done": p.done,
+            "phase_times_s": {k: round(v, 3) for k, v in p.phase_times_s.items()},
+            "max_sync_error_mm": round(units.to_mm(p.max_sync_error_m), 4),
+            "target_deviation": plan["target_deviation"],
+            "expected_table4": {k: v["value"] for k, v in plan["table4"].items() if v},
+        }
+
     def request_adjust(
         self, roll_deg: float, pitch_deg: float, wait_s: float = 0.0, hmi_seq: int = 0
     ) -> dict[str, Any]:
@@ -615,6 +840,11 @@ class ServiceCore:
         walk = self.walk_status()
         if walk is not None:
             snap["walk"] = walk
+        place = self.place_status()
+        if place is not None:
+            snap["place"] = place
+        if self.cycle is not None:
+            snap["cycle"] = dict(self.cycle)
         return snap
 
     # ------------------------------------------------------------------ the step
@@ -697,6 +927,8 @@ class ServiceCore:
             elif hmi.request == TargetRequest.CANCEL:
                 self.modes.stop("HMI cancel")
                 self.handshake.ack(TargetAck.NONE, hmi.seq)
+            elif hmi.request == TargetRequest.WALK:
+                self._hmi_walk(hmi, now)
 
         self._run_calls(inp)
         self._planning(x, valid, now)
@@ -707,6 +939,12 @@ class ServiceCore:
             walker = None
         if walker is not None:
             return self._walk_update(inp, walker)
+        placer = self.placer
+        if placer is not None and self.modes.mode in (Mode.IDLE, Mode.STARTING):
+            self._end_place(now)  # stopped, or a new motion from the placed pose
+            placer = None
+        if placer is not None:
+            return self._place_update(inp, placer)
         if self.modes.mode == Mode.EXECUTE and self.attitude.motion_done(now):
             self.modes.motion_done()
             self.handshake.ack(TargetAck.COMPLETED)
@@ -733,7 +971,7 @@ class ServiceCore:
         p = np.nan_to_num(inp.pressures.value, nan=0.0)
         was_done = walker.done
         band_was = walker.figures.out_of_band
-        u = walker.update(now, x, p, set(self.limits.active))
+        u = walker.update(now, x, p, set(self.limits.active), inp.pressures.age_s)
         band = walker.figures.out_of_band
         if band != band_was and self.record is not None:  # the sync band: hold, go on
             fig = walker.figures
@@ -752,6 +990,7 @@ class ServiceCore:
                 self.modes.fault(cause)
             if walker.done:
                 self.modes.motion_done()
+                self.handshake.ack(TargetAck.COMPLETED)
                 self.motion.duration_s = now - self.motion.started_s
                 if self.record is not None:
                     self.record.event(now, "walk_done", steps=[s.to_dict() for s in walker.steps])
@@ -810,6 +1049,8 @@ class ServiceCore:
     def _stopped_here(self, now: float) -> None:
         """A motion stops (suspended or held): where the references were, and when."""
         ref = self.attitude.last_references if self.walker is None else self.walker.last_refs
+        if self.placer is not None and self.placer.last_refs is not None:
+            ref = self.placer.last_refs
         self._stop_ref = (ref if ref is not None else self.attitude.references(now)).copy()
         self._suspended_at = now
 
@@ -824,6 +1065,8 @@ class ServiceCore:
             # the walk's phase clock stood still while stopped: its controllers restart
             self.walker.resume(np.nan_to_num(x), np.nan_to_num(self._inputs.pressures.value))
         self.attitude.resume(x, shift)
+        if self.placer is not None:
+            self.placer.resume(np.nan_to_num(x), shift)
         self.motion.started_s += shift
         event(reason)
         return shift

@@ -107,6 +107,7 @@ COMMANDS = (
     "jog",
     "audit",
     "walk",
+    "place",
 )
 #: The longest ``result`` an ``audit`` entry may carry.
 MAX_AUDIT_CHARS = 400
@@ -171,6 +172,8 @@ class CtlHandlers:
     #: an entry of another front end's audit trail (user, action, result)
     audit: Callable[[str, str, str], Reply] | None = None
     walk: Callable[[int], Reply] | None = None
+    #: place ring N's part; the previous part's deviation (y mm, z mm, roll, pitch, yaw deg)
+    place: Callable[[int, tuple[float, ...]], Reply] | None = None
 
 
 def _error(code: str, message: str) -> Reply:
@@ -260,6 +263,26 @@ def parse(line: bytes) -> Request | Reply:
                 f"'steps' must be an integer 1..{MAX_WALK_STEPS}, got {_brief(steps)}",
             )
         return Request(cmd, (steps,))
+    if cmd == "place":
+        ring = req.get("ring")
+        if isinstance(ring, bool) or not isinstance(ring, int) or not 1 <= ring <= 99_999:
+            return _error("bad_request", f"'ring' must be an integer 1..99999, got {_brief(ring)}")
+        dev = req.get("previous_deviation", [0.0] * 5)
+        if not isinstance(dev, list) or len(dev) != 5:
+            return _error(
+                "bad_request",
+                "'previous_deviation' must be five numbers [y_mm, z_mm, roll_deg, pitch_deg, "
+                f"yaw_deg], got {_brief(dev)}",
+            )
+        try:
+            vals = tuple(
+                _number({"v": v}, "v", "mm" if k < 2 else "degrees") for k, v in enumerate(dev)
+            )
+        except ValueError as exc:
+            return _error("bad_request", f"previous_deviation: {exc}")
+        if max(abs(vals[0]), abs(vals[1])) > 50 or max(abs(v) for v in vals[2:]) > 10:
+            return _error("bad_request", "previous_deviation: at most 50 mm and 10 deg")
+        return Request(cmd, (ring, vals))
     if cmd != "adjust":
         return Request(cmd)
     try:

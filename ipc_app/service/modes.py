@@ -172,6 +172,10 @@ RULES: dict[str, Rule] = {
         _rule("walk", {Mode.IDLE, Mode.COMPLETE}, Mode.EXECUTE, "STARTING",
               "N steps of the walk, planned and checked before anything moves",
               units=frozenset({UnitMode.PRODUCTION}), command="walk"),
+        _rule("place", {Mode.IDLE, Mode.COMPLETE}, Mode.EXECUTE, "STARTING",
+              "the part to its planned target pose (attitude and height, then yaw, "
+              "lateral and gap), checked before anything moves",
+              units=frozenset({UnitMode.PRODUCTION}), command="place"),
         _rule("jog", {Mode.IDLE, Mode.COMPLETE}, Mode.EXECUTE, "STARTING",
               "one cylinder at the jog speed, the others held (interlocks on)",
               units=frozenset({UnitMode.MANUAL}), command="jog"),
@@ -380,6 +384,15 @@ class ModeMachine:
         """IDLE or COMPLETE -> EXECUTE for a walk (``what``: the steps), in PRODUCTION."""
         with self._lock:
             out = self._go_locked("walk", f"walk {what}")
+            if out.accepted:
+                self._s.target_deg = None
+            return out
+
+    def place(self, what: str) -> Outcome:
+        """IDLE or COMPLETE -> EXECUTE for a placement move (``what``: the ring and its
+        target), in PRODUCTION."""
+        with self._lock:
+            out = self._go_locked("place", f"place {what}")
             if out.accepted:
                 self._s.target_deg = None
             return out

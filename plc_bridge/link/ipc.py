@@ -318,6 +318,7 @@ def _hmi_target(d: dict[str, float]) -> HmiTarget:
         pitch_rad=units.deg(d["TargetPitch"]),
         request=TargetRequest(int(d["TargetRequest"])),
         seq=int(d["TargetSeq"]),
+        walk_steps=int(d["WalkSteps"]),
     )
 
 

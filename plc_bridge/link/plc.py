@@ -168,6 +168,7 @@ class PlcLink(LinkSide):
                 "TargetPitch": 0.0 if t is None else units.to_deg(t.pitch_rad),
                 "TargetRequest": 0 if t is None else int(t.request),
                 "TargetSeq": 0 if t is None else t.seq & 0xFF,
+                "WalkSteps": 0 if t is None else t.walk_steps & 0x3,
             }
         else:  # pragma: no cover - the DBC has no other PLC message
             return None

@@ -38,6 +38,7 @@ class TargetRequest(IntEnum):
     NONE = 0
     NEW_TARGET = 1
     CANCEL = 2
+    WALK = 3
 
 
 class Fault(IntEnum):
@@ -90,12 +91,14 @@ class PlcStatus:
 
 @dataclass(frozen=True)
 class HmiTarget:
-    """PLC_HmiTarget: the operator's target attitude of the workpiece plane."""
+    """PLC_HmiTarget: the operator's target attitude of the workpiece plane, or a walk of
+    ``walk_steps`` steps (``request`` WALK)."""
 
     roll_rad: float
     pitch_rad: float
     request: TargetRequest = TargetRequest.NEW_TARGET
     seq: int = 0
+    walk_steps: int = 0
 
 
 @dataclass(frozen=True)

@@ -7,6 +7,7 @@
     wara ctl clear | hold | unhold
     wara ctl unit-mode PRODUCTION|MAINTENANCE|MANUAL
     wara ctl jog --cylinder main_leg_1 --distance-mm 2   # MANUAL only
+    wara ctl place --ring 5 --previous-deviation 6,-6,0,0,0.03
     wara ctl --socket /tmp/wara-test/ctl.sock status
 
 The socket defaults to the service's (``$WARA_CTL_SOCKET``, ``/run/wara/ctl.sock`` on an
@@ -67,6 +68,16 @@ def register(sub: argparse._SubParsersAction) -> None:
     jog.add_argument("--distance-mm", type=float, required=True, help="rod travel, mm (+ out)")
     walk = verbs.add_parser("walk", parents=[common], help="walk N steps (planned first)")
     walk.add_argument("--steps", type=int, required=True, help="number of steps (1..1000)")
+    place = verbs.add_parser(
+        "place", parents=[common], help="place ring N's part at its planned target pose"
+    )
+    place.add_argument("--ring", type=int, required=True, help="the ring being built (1..99999)")
+    place.add_argument(
+        "--previous-deviation",
+        default=None,
+        metavar="Y_MM,Z_MM,ROLL_DEG,PITCH_DEG,YAW_DEG",
+        help="the previous part's deviation from its design (default none)",
+    )
     p.set_defaults(func=run)
 
 
@@ -82,6 +93,17 @@ def run(args: argparse.Namespace) -> int:
         if not 1 <= args.steps <= 1000:
             raise UsageError(f"--steps must be within 1..1000, got {args.steps}")
         fields = {"steps": args.steps}
+        timeout_s = 30.0
+    elif args.verb == "place":
+        from wara.commands.place import parse_deviation
+
+        if not 1 <= args.ring <= 99_999:
+            raise UsageError(f"--ring must be within 1..99999, got {args.ring}")
+        dev = [0.0] * 5
+        if args.previous_deviation is not None:
+            d = parse_deviation(args.previous_deviation)
+            dev = [d.to_dict()[k] for k in ("y_mm", "z_mm", "roll_deg", "pitch_deg", "yaw_deg")]
+        fields = {"ring": args.ring, "previous_deviation": dev}
         timeout_s = 30.0
     elif args.verb == "unit-mode":
         fields = {"unit_mode": args.unit_mode}

@@ -21,7 +21,7 @@ from acceptance.store import AcceptanceStore, StoreError, default_db_path
 from config import load_project, units
 from config.files import InputFileError
 from config.schema import ProjectConfig
-from ipc_app.model.placement import Pose, compose, design_pose, to_ring_frame
+from ipc_app.model.placement import Pose, compose, design_pose, sheet_deviation, to_ring_frame
 from ipc_app.planner.placement import PlacementPlan, plan_from_deviation, plan_target
 from ipc_app.planner.survey import SurveyError, read_survey
 from wara.cli import EXIT_FAILED, EXIT_INFEASIBLE, EXIT_OK, UsageError
@@ -101,9 +101,7 @@ def parse_deviation(text: str) -> Pose:
         )
     if max(abs(v[0]), abs(v[1])) > 50 or max(abs(x) for x in v[2:]) > 10:
         raise UsageError("--previous-deviation: at most 50 mm and 10 deg (a typo, not a survey)")
-    return Pose(
-        0.0, units.mm(v[0]), units.mm(v[1]), units.deg(v[2]), units.deg(v[3]), units.deg(v[4])
-    )
+    return sheet_deviation(*v)
 
 
 def as_built_from_store(cfg: ProjectConfig, store: AcceptanceStore) -> tuple[int, Pose]:

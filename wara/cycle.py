@@ -1,0 +1,380 @@
+"""The ring cycle: ``wara cycle`` (placement.md section 4; docs/placement.md).
+
+The HIL simulator and the IPC service on one in-process bus (:class:`~wara.harness.Harness`);
+per ring, the phases of the cycle, each asked of the service as ``wara ctl`` asks
+for it and each shown in the service's status (``cycle``), run record (``cycle_phase``
+events) and log:
+
+1. ``walk``: ``cycle.walk_steps`` steps to the ring (0: the machine stands at it);
+2. ``place``: the target planned from the previous part's as-built pose (the survey of
+   the ring before; for the first ring, the given deviation) and moved to
+   (:meth:`ServiceCore.request_place_plan`);
+3. ``fixing``: the pose held until the operator confirms the part is fixed; here the
+   confirmation comes after ``cycle.fixing_confirm_after_s`` of machine time;
+4. ``release``: the hold ends with a controlled stop (valves closed). The simulated rig
+   has no bolted state: the part's as-built pose is the simulator's truth at the
+   confirmation;
+5. ``survey``: ``cycle.survey_points`` points on the part's front joint face, the
+   truth plus ``cycle.survey_noise_mm`` of noise per coordinate, fitted as
+   ``wara survey import`` fits a file (:func:`~ipc_app.planner.survey.fit_survey`);
+6. ``record``: the ring's acceptance record (the surveyed Table 4 items) and, attached,
+   the plan, the cycle's figures and the surveyed pose (where the next ring's plan and
+   ``wara place plan --from-store`` find it);
+7. ``walk_back``: the same steps back, unloaded.
+
+A stop at any point (``wara ctl stop``; a latched fault) leaves the service holding
+safely (valves closed) and ends the cycle with the phase it was in.
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from acceptance.store import AcceptanceStore, RingMeasurement
+from config import load_project, units
+from config.schema import ProjectConfig
+from hil_sim.placement import pose_from_home
+from ipc_app.model.placement import (
+    Pose,
+    compose,
+    design_pose,
+    deviation,
+    joint_figures,
+    to_ring_frame,
+    tunnel_frame,
+)
+from ipc_app.planner.placement import PlacementPlan, home_pose, judge, plan_target
+from ipc_app.planner.survey import SurveyError, SurveyPoint, fit_survey
+from ipc_app.service.modes import Mode
+from ipc_app.service.record import RunRecorder
+from wara.harness import Harness
+from wara.placement_run import GOAL_DEG, GOAL_MM
+from wara.walk import walk_scenario
+
+#: The phases of one ring, in order.
+PHASES: tuple[str, ...] = ("walk", "place", "fixing", "release", "survey", "record", "walk_back")
+#: The Table 4 items in the cycle's per-ring figures: (key of the result, acceptance key).
+ITEMS: tuple[tuple[str, str], ...] = (
+    ("vertical_misalignment_mm", "vertical_misalignment_mm"),
+    ("horizontal_misalignment_mm", "horizontal_misalignment_mm"),
+    ("gap_mm", "max_gap_mm"),
+    ("centreline_deviation_x_mm", "centreline_deviation_x_mm"),
+    ("centreline_deviation_y_mm", "centreline_deviation_y_mm"),
+    ("pitch_deg", "pitch_angle_deg"),
+    ("tilt_deg", "tilt_angle_deg"),
+    ("rotation_deg", "rotation_angle_deg"),
+)
+#: How long a motion phase may take in machine time before the cycle gives up (s).
+MOTION_LIMIT_S = 600.0
+
+
+class CycleRefused(Exception):
+    """A ring's target is unreachable (the plan's binding limit): nothing of it moved."""
+
+
+def survey_faces(cfg: ProjectConfig, n: int) -> list[tuple[float, float]]:
+    """``n`` points (part-frame y, z) spread over the front joint face: two rows near
+    its bottom and top edges, along the part's length, 0.5 m in from its ends."""
+    half = cfg.workpiece.length_m / 2.0 - 0.5
+    top = cfg.workpiece.height_m - 0.2
+    rows = (0.2, top)
+    per = [(n + 1) // 2, n // 2]
+    out: list[tuple[float, float]] = []
+    for z, m in zip(rows, per, strict=True):
+        ys = np.linspace(-half, half, m) if m > 1 else np.array([0.0])
+        out.extend((float(y), z) for y in ys)
+    return out
+
+
+def simulated_survey(
+    cfg: ProjectConfig, ring: int, truth: Pose, rng: np.random.Generator
+) -> list[SurveyPoint]:
+    """The face points of ``truth`` (ring ``ring``'s T) in the project frame, each
+    coordinate with the survey's noise: what a total station would export."""
+    assert cfg.cycle is not None
+    faces = survey_faces(cfg, cfg.cycle.survey_points)
+    half = cfg.workpiece.width_m / 2.0
+    local = truth.apply(np.array([[half, fy, fz] for fy, fz in faces]))
+    world = tunnel_frame(cfg, ring).apply(local)
+    world = world + rng.normal(0.0, cfg.cycle.survey_noise_m, world.shape)
+    return [
+        SurveyPoint(k + 1, f"P{k}", (fy, fz), (float(p[0]), float(p[1]), float(p[2])))
+        for k, ((fy, fz), p) in enumerate(zip(faces, world, strict=True), start=1)
+    ]
+
+
+def _items(figures: dict[str, Any]) -> dict[str, float]:
+    return {out: figures[key] for out, key in ITEMS}
+
+
+class _Cycle:
+    def __init__(
+        self,
+        cfg: ProjectConfig,
+        h: Harness,
+        store: AcceptanceStore,
+        rng: np.random.Generator,
+        say: Callable[[str], None],
+        on_cycle: Callable[[Harness, str], None] | None,
+    ) -> None:
+        self.cfg, self.h, self.store, self.rng, self.say = cfg, h, store, rng, say
+        self.on_cycle = on_cycle
+        self.phase = ""
+        self.dt = h.period if h.mode == "lockstep" else 0.05
+
+    def enter(self, ring: int, phase: str, **figures: Any) -> float:
+        self.phase = phase
+        self.h.core.note_cycle(ring, phase, **figures)
+        self.say(f"ring {ring}: {phase}")
+        return self.h.sim.t_s
+
+    def advance(self, seconds: float) -> None:
+        self.h.advance(seconds)
+        if self.on_cycle is not None:
+            self.on_cycle(self.h, self.phase)
+
+    def until_complete(self, what: str) -> None:
+        """Advance while the motion runs; it must end in COMPLETE."""
+        core = self.h.core
+        waited = 0.0
+        while core.modes.mode in (Mode.STARTING, Mode.EXECUTE, Mode.SUSPENDED):
+            if waited > MOTION_LIMIT_S:
+                raise RuntimeError(f"{what} did not end within {MOTION_LIMIT_S:.0f} s")
+            self.advance(self.dt)
+            waited += self.dt
+        if core.modes.mode != Mode.COMPLETE:
+            raise RuntimeError(f"{what} ended in {core.modes.mode}: {self.h.fault_note()}")
+
+    def hold_for(self, seconds: float) -> None:
+        """Advance ``seconds`` with the pose held (COMPLETE); a stop ends it."""
+        t_end = self.h.sim.t_s + seconds
+        while self.h.sim.t_s < t_end - 1e-9:
+            self.advance(min(self.dt, t_end - self.h.sim.t_s))
+            if self.h.core.modes.mode != Mode.COMPLETE:
+                raise RuntimeError(
+                    f"the hold ended in {self.h.core.modes.mode}: {self.h.fault_note()}"
+                )
+
+    def walk(self, ring: int, steps: int) -> None:
+        res = self.h.core.request_walk(steps, wait_s=5.0 if self.h.mode == "realtime" else 0.0)
+        if not res.get("ok"):
+            raise RuntimeError(f"walk refused: {res.get('error')}")
+        self.advance(self.dt)  # the loop takes the request
+        self.until_complete(f"ring {ring}'s walk")
+
+    def truth(self, ring: int) -> Pose:
+        r, t = pose_from_home(self.cfg, self.h.sim.rig)
+        return compose(home_pose(self.cfg, ring), Pose.from_matrix(r, t))
+
+    def ring(self, ring: int, previous: Pose, previous_truth: Pose) -> dict[str, Any]:
+        """One ring's cycle; ``previous`` / ``previous_truth``: the part before, as
+        surveyed and as built, in its own ring's T."""
+        cfg = self.cfg
+        assert cfg.cycle is not None
+        steps = cfg.cycle.walk_steps
+        times: dict[str, float] = {}
+        t0 = self.enter(ring, "walk", steps=steps)
+        if steps > 0:
+            self.walk(ring, steps)
+        times["walk"] = self.h.sim.t_s - t0
+        t0 = self.enter(ring, "place")
+        plan: PlacementPlan = plan_target(cfg, to_ring_frame(cfg, previous, ring - 1, ring), ring)
+        if not plan.feasible:
+            raise CycleRefused(f"ring {ring}: " + "; ".join(plan.reasons))
+        res = self.h.core.request_place_plan(plan)
+        if not res.get("ok"):
+            if res.get("code") == "infeasible":
+                raise CycleRefused(f"ring {ring}: {res.get('error')}")
+            raise RuntimeError(f"place refused: {res.get('error')}")
+        self.advance(self.dt)  # the loop takes the request
+        self.until_complete(f"ring {ring}'s placement")
+        times["place"] = self.h.sim.t_s - t0
+        t0 = self.enter(ring, "fixing", confirm_after_s=cfg.cycle.fixing_confirm_after_s)
+        self.hold_for(cfg.cycle.fixing_confirm_after_s)
+        as_built = self.truth(ring)  # what the bolts fix
+        times["fixing"] = self.h.sim.t_s - t0
+        t0 = self.enter(ring, "release")
+        self.h.core.modes.stop(f"ring {ring} released: the part is fixed")
+        self.advance(self.dt)
+        times["release"] = self.h.sim.t_s - t0
+        t0 = self.enter(ring, "survey", points=cfg.cycle.survey_points)
+        try:
+            fit = fit_survey(cfg, ring, simulated_survey(cfg, ring, as_built, self.rng))
+        except SurveyError as exc:
+            raise RuntimeError(f"ring {ring}: survey: {exc}") from None
+        if not fit.accepted:
+            raise RuntimeError(f"ring {ring}: survey refused: {'; '.join(fit.reasons)}")
+        times["survey"] = self.h.sim.t_s - t0
+        design = plan.design
+        prev_t = to_ring_frame(cfg, previous_truth, ring - 1, ring)
+        prev_s = to_ring_frame(cfg, previous, ring - 1, ring)
+        truth_fig = joint_figures(cfg, prev_t, as_built, design)
+        survey_fig = joint_figures(cfg, prev_s, fit.pose, design)
+        table4 = judge(cfg, truth_fig)
+        err = deviation(as_built, plan.target)
+        errors = {
+            "x_mm": units.to_mm(err.x),
+            "y_mm": units.to_mm(err.y),
+            "z_mm": units.to_mm(err.z),
+            "roll_deg": units.to_deg(err.roll),
+            "pitch_deg": units.to_deg(err.pitch),
+            "yaw_deg": units.to_deg(err.yaw),
+        }
+        gap_error_mm = units.to_mm(truth_fig.max_gap_m - plan.figures.max_gap_m)
+        t0 = self.enter(ring, "record")
+        surveyed = _items(survey_fig.to_dict())
+        self.store.add(
+            RingMeasurement(
+                ring,
+                dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
+                {key: survey_fig.to_dict()[key] for _, key in ITEMS},
+                operator="wara cycle",
+                remarks="simulated survey (HIL truth plus survey noise)",
+            ),
+            source="cycle",
+        )
+        times["record"] = self.h.sim.t_s - t0
+        t0 = self.enter(ring, "walk_back", steps=steps)
+        if steps > 0:
+            raise RuntimeError(
+                "walk back refused: the walk planner plans forward steps only "
+                "(cycle.walk_steps 0: the machine stands at the ring)"
+            )
+        times["walk_back"] = self.h.sim.t_s - t0
+        machine_s = sum(v for k, v in times.items() if k != "fixing")
+        truth_dev = deviation(as_built, design)
+        row: dict[str, Any] = {
+            "ring": ring,
+            **_items(truth_fig.to_dict()),
+            "surveyed": surveyed,
+            "target_deviation": plan.to_dict()["target_deviation"],
+            "as_built_deviation": {
+                "y_mm": units.to_mm(truth_dev.y),
+                "z_mm": units.to_mm(truth_dev.z),
+            },
+            "error_from_target": errors,
+            "gap_error_mm": gap_error_mm,
+            "survey_rms_residual_mm": units.to_mm(fit.rms_residual_m),
+            "table4_truth": table4,
+            "cycle_time_s": machine_s,
+            "fixing_hold_s": times["fixing"],
+            "phase_times_s": times,
+        }
+        goals = {
+            "table4_within_limits": all(v["passed"] is not False for v in table4.values()),
+            "position_within_1_mm": max(abs(errors[k]) for k in ("x_mm", "y_mm", "z_mm"))
+            <= GOAL_MM,
+            "gap_within_1_mm_of_target": abs(gap_error_mm) <= GOAL_MM,
+            "angles_within_0_01_deg": max(
+                abs(errors[k]) for k in ("roll_deg", "pitch_deg", "yaw_deg")
+            )
+            <= GOAL_DEG,
+            "cycle_time_within_limit": machine_s <= 60.0 * cfg.cycle.max_cycle_time_min,
+        }
+        row["goals"] = goals
+        row["passed"] = all(goals.values())
+        self.store.attach_plan(
+            ring,
+            {"kind": "ring_cycle", "plan": plan.to_dict(), "cycle": {
+                k: v for k, v in row.items() if k not in ("surveyed",)}},
+            final_attitude={"as_built_pose": fit.pose.to_dict()},
+        )  # fmt: skip
+        self._surveyed, self._truth = fit.pose, as_built
+        return row
+
+
+def run_cycle(
+    config_path: str | None,
+    rings: int,
+    *,
+    first_ring: int = 2,
+    previous_deviation: Pose | None = None,
+    db_path: Path,
+    mode: str = "lockstep",
+    seed: int = 0,
+    record: RunRecorder | None = None,
+    progress: Callable[[str], None] | None = None,
+    on_cycle: Callable[[Harness, str], None] | None = None,
+    cfg: ProjectConfig | None = None,
+) -> dict[str, Any]:
+    """``rings`` ring cycles from ring ``first_ring``; the part before it (ring
+    ``first_ring - 1``) lies ``previous_deviation`` from its design. The JSON-ready
+    result: ``passed``, ``refused``, ``rings`` (one object per ring), ``steering``.
+    ``cfg``: the project as loaded from ``config_path`` (tests: a changed one)."""
+    if cfg is None:
+        cfg = load_project(config_path)
+    if cfg.cycle is None:
+        raise ValueError("the project has no cycle section")
+    say = progress or (lambda _s: None)
+    wall0 = time.perf_counter()
+    if first_ring < 2:
+        raise ValueError(
+            f"the first ring of a cycle is 2 or later (a part before it), got {first_ring}"
+        )
+    dev = previous_deviation or Pose()
+    previous = _moved(design_pose(cfg, first_ring - 1), dev)
+    out: dict[str, Any] = {"passed": False, "refused": None, "error": None, "rings": []}
+    # the walking rig (feet on the invert) only when the cycle walks
+    scenario = walk_scenario() if cfg.cycle.walk_steps > 0 else None
+    h = Harness(cfg, config_path, mode=mode, record=record, seed=seed, scenario=scenario)
+    rng = np.random.default_rng(seed)
+    cyc: _Cycle | None = None
+    try:
+        h.start()
+        if not h.wait_for(Mode.IDLE, 20.0):
+            out["error"] = f"service did not come up: {h.fault_note()}"
+            return out
+        with AcceptanceStore.open(db_path, create=True) as store:
+            cyc = _Cycle(cfg, h, store, rng, say, on_cycle)
+            truth_prev = previous
+            for ring in range(first_ring, first_ring + rings):
+                row = cyc.ring(ring, previous, truth_prev)
+                out["rings"].append(row)
+                previous, truth_prev = cyc._surveyed, cyc._truth
+    except CycleRefused as exc:
+        out["refused"] = str(exc)
+        out["error"] = str(exc)
+    except RuntimeError as exc:
+        out["error"] = f"{cyc.phase if cyc else 'start'}: {exc}"
+    finally:
+        out["final_mode"] = str(h.core.modes.mode)
+        out["valves_enabled"] = h.core.modes.valves_enabled
+        out["fault_reasons"] = list(h.core.modes.fault_reasons)
+        out["stopped_in_phase"] = cyc.phase if (cyc and out["error"]) else None
+        h.close()
+    rows = out["rings"]
+    last = [units.to_mm(dev.y), units.to_mm(dev.z)]
+    corrections: list[float] = []
+    for r in rows:
+        now = [r["as_built_deviation"]["y_mm"], r["as_built_deviation"]["z_mm"]]
+        corrections.append(max(abs(a - b) for a, b in zip(now, last, strict=True)))
+        last = now
+    assert cfg.placement is not None
+    out["steering"] = {
+        "start_deviation_mm": [units.to_mm(dev.y), units.to_mm(dev.z)],
+        "max_correction_per_ring_mm": cfg.placement.max_correction_per_ring_mm,
+        "correction_per_ring_mm": corrections,
+        "last_as_built_deviation_mm": last,
+        "returned_within_1_mm": bool(rows) and max(abs(v) for v in last) <= GOAL_MM,
+    }
+    out["db"] = str(db_path)
+    out["wall_time_s"] = time.perf_counter() - wall0
+    out["passed"] = bool(
+        out["error"] is None and len(rows) == rings and all(r["passed"] for r in rows)
+    )
+    return out
+
+
+def _moved(design: Pose, dev: Pose) -> Pose:
+    """``design`` with a survey sheet's deviation added (positions and angles)."""
+    pos = design.position + dev.position
+    return Pose(
+        float(pos[0]), float(pos[1]), float(pos[2]),
+        design.roll + dev.roll, design.pitch + dev.pitch, design.yaw + dev.yaw,
+    )  # fmt: skip
