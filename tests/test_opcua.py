@@ -396,7 +396,9 @@ def test_bench_opcua_reports_the_loop_and_the_latency_with_its_parts() -> None:
     for phase in ("without", "with"):
         assert out[phase]["measured_cycles"] > 1000
     lat = out["latency_ms"]
-    assert lat["samples"] >= 8 * out["clients"]  # 2 cycles x 4 changes, every client
+    # 2 cycles of 4 changes; a STARTING shorter than the 100 ms publishing interval is
+    # overwritten in the client's queue of one before it is sent
+    assert lat["samples"] >= 2 * 2 * out["clients"]
     assert 0 < lat["to_server_p50"] <= lat["p50"] <= lat["p99"] <= lat["max"]
     assert out["server_feed"] and all(
         f["configured_period_ms"] == 50.0 and f["updates"] > 0 for f in out["server_feed"]
