@@ -304,7 +304,14 @@ def boot(command: list[str], args: argparse.Namespace) -> int:
         ]
         if not args.kvm:
             vng.append("--disable-kvm")
+        qemu_opts = []
+        if not args.kvm:  # one host thread per vCPU (multi-threaded TCG)
+            qemu_opts += ["-accel", "tcg,thread=multi"]
+        # virtme-ng's seven virtio-serial devices have 31 ports each by default: hundreds of
+        # event fds that qemu's main loop polls on every wake-up (over half its CPU here)
+        qemu_opts += ["-global", "virtio-serial-pci.max_ports=2"]
         vng += ["--exec", guest_script(command, marker, wheelhouse)]
+        vng.append(f"--qemu-opts={' '.join(qemu_opts)}")  # greedy: the last option
         accel = "KVM" if args.kvm else "TCG (no KVM)"
         say(f"booting {kernel} in qemu, {accel}, {args.cpus} CPUs, {args.memory}")
         t0 = time.monotonic()
