@@ -542,6 +542,9 @@ class Safety(Strict):
     command_timeout_ms: TimeoutMs = 100.0
     #: IPC: a suspended motion that has not resumed within this latches FAULT
     max_suspend_ms: TimeoutMs = 250.0
+    #: IPC: start-up (STOPPED) not complete within this ends in ABORTED (``start-up``, with
+    #: what is missing)
+    boot_timeout_s: Annotated[Finite, Field(gt=0, le=3600)] = 5.0
 
 
 # --------------------------------------------------------------------------- OPC UA

@@ -45,6 +45,13 @@ def test_guest_script_brings_up_vcan0_then_runs_the_command_in_the_repo(tmp_path
     assert str(REPO / "out") in run_in_vm.CACHE_ENV["NUMBA_CACHE_DIR"]  # shared read-write
 
 
+def test_qemu_gets_threaded_tcg_and_few_serial_ports() -> None:
+    tcg = run_in_vm.qemu_opts(kvm=False)
+    assert tcg[:2] == ["-accel", "tcg,thread=multi"]
+    assert "virtio-serial-pci.max_ports=2" in tcg
+    assert "-accel" not in run_in_vm.qemu_opts(kvm=True)  # virtme-ng picks KVM itself
+
+
 @pytest.mark.slow  # compiles the plant: half a minute
 def test_prewarm_fills_the_numba_cache_the_guest_reads(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch

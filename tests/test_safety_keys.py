@@ -142,6 +142,18 @@ def max_suspend(cfg: ProjectConfig) -> Any:
         core.link.close()
 
 
+def boot_timeout(cfg: ProjectConfig) -> Any:
+    """Start-up with no PLC status for 6 s: still waiting, or ABORTED."""
+    core = _core(cfg)
+    lost = {"status": None, "status_age_s": np.inf}
+    try:
+        for t in np.arange(0.0, 6.01, 0.5):
+            core.update(machine_inputs(cfg, t=float(t), **lost))
+        return core.modes.mode, core.modes.fault_interlocks
+    finally:
+        core.link.close()
+
+
 CASES: dict[str, tuple[float, Callable[[ProjectConfig], Any]]] = {
     # key: (changed value, the situation)
     "max_twist_mm": (1.0, twist),
@@ -153,6 +165,7 @@ CASES: dict[str, tuple[float, Callable[[ProjectConfig], Any]]] = {
     "plc_heartbeat_timeout_ms": (200.0, heartbeat),
     "command_timeout_ms": (200.0, command_timeout),
     "max_suspend_ms": (150.0, max_suspend),
+    "boot_timeout_s": (10.0, boot_timeout),
 }
 
 
@@ -194,3 +207,5 @@ def test_the_cases_see_the_reaction_they_stand_for() -> None:
         Mode.ABORTED,
         (Interlock.SUSPEND_TIMEOUT,),
     )
+    assert boot_timeout(cfg) == (Mode.ABORTED, (Interlock.PLC_HEARTBEAT, Interlock.STARTUP))
+    assert boot_timeout(_with(cfg, boot_timeout_s=10.0)) == (Mode.STOPPED, ())

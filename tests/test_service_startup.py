@@ -18,6 +18,7 @@ import pytest
 import structlog
 import yaml
 
+from config import load_project
 from config.loader import default_project_path
 from wara.cli import main
 
@@ -154,13 +155,12 @@ def _lockstep(*events: dict[str, Any]) -> Any:
 def test_boot_ends_in_a_fault_when_the_plc_never_hears_the_commands() -> None:
     """The IPC's frames held on the wire: the PLC reports the commands stale, every input
     of the IPC is fresh. start-up (STOPPED) ends in ABORTED `start-up` with that reason once
-    ServiceCore.BOOT_TIMEOUT_S is over, and a reset is refused while it lasts; once the
+    `safety.boot_timeout_s` is over, and a reset is refused while it lasts; once the
     PLC hears the commands the reset is taken (IDLE)."""
-    from ipc_app.service.core import ServiceCore
     from ipc_app.service.interlocks import Interlock
     from ipc_app.service.modes import Mode
 
-    timeout = ServiceCore.BOOT_TIMEOUT_S
+    timeout = load_project().safety.boot_timeout_s
     demo = _lockstep(
         {"kind": "wire_stall", "start_s": 0.0, "end_s": timeout + 1.0, "direction": "ipc_to_plc"}
     )
@@ -190,19 +190,14 @@ def test_boot_ends_in_a_fault_when_the_plc_never_hears_the_commands() -> None:
 
 
 def test_boot_completes_when_the_link_comes_fresh_within_the_timeout() -> None:
-    from ipc_app.service.core import ServiceCore
     from ipc_app.service.modes import Mode
 
+    timeout = load_project().safety.boot_timeout_s
     demo = _lockstep(
-        {
-            "kind": "wire_stall",
-            "start_s": 0.0,
-            "end_s": ServiceCore.BOOT_TIMEOUT_S - 1.0,
-            "direction": "ipc_to_plc",
-        }
+        {"kind": "wire_stall", "start_s": 0.0, "end_s": timeout - 1.0, "direction": "ipc_to_plc"}
     )
     try:
-        assert demo.wait_for(Mode.IDLE, ServiceCore.BOOT_TIMEOUT_S + 1.0)
+        assert demo.wait_for(Mode.IDLE, timeout + 1.0)
         assert not demo.core.modes.faults
     finally:
         demo.close()

@@ -158,8 +158,6 @@ class ServiceCore:
     HOLD_SETTLE_S = 1.0
     #: Cycles of fresh frames before a suspended motion is checked and resumed.
     RESUME_FRESH_CYCLES = 3
-    #: Start-up not complete after this long: ABORTED (``start-up``, with what is missing).
-    BOOT_TIMEOUT_S = 5.0
 
     def __init__(
         self,
@@ -168,14 +166,13 @@ class ServiceCore:
         planner: Planner,
         *,
         record: RunRecorder | None = None,
-        boot_timeout_s: float = BOOT_TIMEOUT_S,
     ) -> None:
         self.cfg = cfg
         self.link = link
         self.planner = planner
         self.record = record
         self.period_s = cfg.control.period_s
-        self.boot_timeout_s = boot_timeout_s
+        self.boot_timeout_s = cfg.safety.boot_timeout_s
         self.attitude = AttitudeController(cfg, self.period_s)
         self.active = self.attitude.layers["lower"] + self.attitude.layers["upper"]
         self.bus_load = link.set_active_cylinders(self.active)

@@ -162,10 +162,10 @@ SPECS: dict[Interlock, Spec] = {
         "(where: the server's state; the service binds it again)",
     ),
     Interlock.STARTUP: Spec(
-        None,
+        "safety.boot_timeout_s",
         Applies.STARTUP,
         "s",
-        "start-up not complete after `ServiceCore.BOOT_TIMEOUT_S` (5 s) because the link "
+        "start-up not complete within the timeout because the link "
         "is not fresh: rod positions or the PLC status stale, or the PLC reporting the "
         "IPC's commands stale (detail: which); an interlock condition present then is "
         "latched as itself",

@@ -20,6 +20,7 @@ import shutil
 import subprocess
 import sys
 import sysconfig
+import tempfile
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -70,18 +71,37 @@ def _ensure_vcan0() -> None:
     _sh("ip", "link", "set", "vcan0", "up")
 
 
+def _run_timed(argv: list[str], env: dict[str, str], timeout_s: float, steps: Path) -> Any:
+    """Run ``argv``; each stdout line (install.sh's ``+ command`` and ``# step``) goes to
+    ``steps`` with the seconds since the start, so a slow step shows in the test's files."""
+    t0 = time.monotonic()
+    with tempfile.TemporaryFile("w+") as err, steps.open("w") as log:
+        proc = subprocess.Popen(
+            argv, stdout=subprocess.PIPE, stderr=err, text=True, env=env, bufsize=1
+        )
+        assert proc.stdout is not None
+        out: list[str] = []
+        for line in proc.stdout:
+            out.append(line)
+            log.write(f"{time.monotonic() - t0:8.1f} s  {line}")
+            log.flush()
+            if time.monotonic() - t0 > timeout_s:
+                proc.kill()
+                break
+        rc = proc.wait()
+        log.write(f"{time.monotonic() - t0:8.1f} s  exit {rc}\n")
+        err.seek(0)
+        return subprocess.CompletedProcess(argv, rc, "".join(out), err.read())
+
+
 @pytest.fixture(scope="module")
-def installed() -> Iterator[subprocess.CompletedProcess[str]]:
+def installed(
+    tmp_path_factory: pytest.TempPathFactory,
+) -> Iterator[subprocess.CompletedProcess[str]]:
     _unmask_passwd_files()
     env = {**os.environ, **offline_pip_env()}
-    proc = subprocess.run(
-        [str(DEPLOY / "install.sh"), "--vcan", "--no-start"],
-        capture_output=True,
-        text=True,
-        timeout=2400,
-        env=env,
-        check=False,
-    )
+    steps = tmp_path_factory.mktemp("deploy") / "install-steps.txt"
+    proc = _run_timed([str(DEPLOY / "install.sh"), "--vcan", "--no-start"], env, 2400.0, steps)
     try:
         yield proc
     finally:

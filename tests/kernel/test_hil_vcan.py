@@ -66,6 +66,7 @@ SLOW: dict[str, dict[str, Any]] = {
         "command_timeout_ms": 3000.0,
         "max_suspend_ms": 5000.0,
         "max_tracking_error_mm": 30.0,
+        "boot_timeout_s": 900.0,
     },
     "can": {"interface": "socketcan", "channel": "vcan0", "stale_cycles": 100.0},
 }
