@@ -32,7 +32,7 @@ def wait_result(w: PlannerWorker, timeout_s: float = WAIT_S) -> PlanResult:
 
 @pytest.fixture(scope="module")
 def worker() -> Iterator[PlannerWorker]:
-    w = PlannerWorker(None, timeout_s=2.0, plan_fn="tests.service_helpers:misbehaving_plan")
+    w = PlannerWorker(None, timeout_s=WAIT_S, plan_fn="tests.service_helpers:misbehaving_plan")
     w.start()
     yield w
     w.close()
@@ -82,7 +82,18 @@ def test_planner_exception_is_an_error_result(worker: PlannerWorker) -> None:
     assert worker.restarts == restarts  # the process survived
 
 
-def test_timeout_kills_and_restarts_the_worker(worker: PlannerWorker) -> None:
+@pytest.fixture
+def impatient() -> Iterator[PlannerWorker]:
+    """A worker with a 2 s planning timeout (the module's waits as long as WAIT_S, so a
+    loaded machine's slow plan is not taken for a hang)."""
+    w = PlannerWorker(None, timeout_s=2.0, plan_fn="tests.service_helpers:misbehaving_plan")
+    w.start()
+    yield w
+    w.close()
+
+
+def test_timeout_kills_and_restarts_the_worker(impatient: PlannerWorker) -> None:
+    worker = impatient
     restarts, pid = worker.restarts, worker.pid
     assert worker.submit(6, HANG_ROLL_DEG, 0.0)
     r = wait_result(worker)
@@ -129,9 +140,9 @@ def test_the_planner_process_ends_when_the_service_is_killed(tmp_path: Path) -> 
         "w = PlannerWorker(None)\n"
         "w.start()\n"
         "end = time.monotonic() + 120\n"
-        "while w.worker_pid is None and time.monotonic() < end:\n"
+        "while not w.ready and time.monotonic() < end:\n"
         "    time.sleep(0.05)\n"
-        "print('PID', w.worker_pid, flush=True)\n"
+        "print('PID', w.pid, flush=True)\n"
         "time.sleep(600)\n"
     )
     parent = subprocess.Popen([sys.executable, "-c", script], stdout=subprocess.PIPE, text=True)

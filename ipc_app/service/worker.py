@@ -214,8 +214,6 @@ class PlannerWorker:
         self._pending_since = 0.0
         self._sent = False  # pending request handed to the current process
         self._out: queue.SimpleQueue[PlanResult] = queue.SimpleQueue()
-        #: the planner process's pid once it is ready (the last one started)
-        self.worker_pid: int | None = None
         self._wake_r, self._wake_w = os.pipe()
         os.set_blocking(self._wake_w, False)
         self._closing = threading.Event()
@@ -401,7 +399,6 @@ class PlannerWorker:
                     break
                 if kind == "ready":
                     was_ready = self._ready = True
-                    self.worker_pid = int(payload)
                     log.info("planner_ready", pid=payload)
                 elif kind == "fatal":
                     log.error("planner_worker_fatal", error=payload)
