@@ -132,7 +132,7 @@ def run_walk(
                 trace.x_mm.append((rig.rod_positions_m[legs] * units.to_mm(1.0)).tolist())
                 fm = w.figures.margin_m
                 trace.margin_m.append(fm if np.isfinite(fm) else np.nan)
-            if core.modes.mode not in (Mode.EXECUTE, Mode.HELD):
+            if core.modes.mode not in (Mode.EXECUTE, Mode.HELD, Mode.SUSPENDED):  # ridden through
                 break
         if truths and truths[-1].x_m_end == 0.0:
             truths[-1].x_m_end = rig.world_x_m[0]  # type: ignore[attr-defined]
