@@ -340,7 +340,8 @@ class HilSimulator:
         self._sample(self._k)
         self.wire.release_due(t)
         frames = 0
-        if not any(f.kind == "plc_silent" for f in self.wire.faults):
+        faults = self.wire.faults
+        if not faults or not any(f.kind == "plc_silent" for f in faults):
             # on bus-off the PLC still runs (its frames are lost), when silent it is dead
             frames = self.plc.poll(t)
         self._logic(t, silent, frames)

@@ -216,6 +216,8 @@ class FaultyWire(can.BusABC):
 
     def release_due(self, now: float | None = None) -> int:
         """Put the delayed frames whose time has come on the bus; returns how many."""
+        if not self._delayed:
+            return 0
         t = self._clock() if now is None else now
         n = 0
         while self._delayed and self._delayed[0][0] <= t + 1e-12:
