@@ -431,8 +431,7 @@ class Rig:
         # read-only views of the state, made once (the PLC reads them every scan)
         self._x_ro = self._xv[0].view()
         self._x_ro.flags.writeable = False
-        self._p_ro = self.y[_PA : _PB + N].view()
-        self._p_ro.flags.writeable = False
+        self._p_ro = self._pressure_view()
         self._settle_level()
 
     # ----------------------------------------------------------------- set-up
@@ -555,7 +554,14 @@ class Rig:
     @property
     def pressure_view(self) -> FloatArray:
         """``(p_A of all 19, p_B of all 19)`` flat (38,), a read-only view (hot path)."""
+        if self._p_ro.base is not self.y:  # a subclass extended the state
+            self._p_ro = self._pressure_view()
         return self._p_ro
+
+    def _pressure_view(self) -> FloatArray:
+        v = self.y[_PA : _PB + N].view()
+        v.flags.writeable = False
+        return v
 
     @property
     def rod_positions_m(self) -> FloatArray:
