@@ -428,6 +428,10 @@ class Rig:
         self.valve_leak = np.zeros(N)
         self._xv = np.zeros((2, N))
         self._force = np.zeros(N)
+        # read-only views of the state, made once (the PLC reads them every scan)
+        self._x_ro = self._xv[0].view()
+        self._x_ro.flags.writeable = False
+        self._p_ro = self._pressure_view()
         self._settle_level()
 
     # ----------------------------------------------------------------- set-up
@@ -545,13 +549,16 @@ class Rig:
     @property
     def x_view(self) -> FloatArray:
         """Rod positions (19,), a read-only view of the state (no copy: hot path)."""
-        v = self._xv[0].view()
-        v.flags.writeable = False
-        return v
+        return self._x_ro
 
     @property
     def pressure_view(self) -> FloatArray:
         """``(p_A of all 19, p_B of all 19)`` flat (38,), a read-only view (hot path)."""
+        if self._p_ro.base is not self.y:  # a subclass extended the state
+            self._p_ro = self._pressure_view()
+        return self._p_ro
+
+    def _pressure_view(self) -> FloatArray:
         v = self.y[_PA : _PB + N].view()
         v.flags.writeable = False
         return v

@@ -39,8 +39,10 @@ class Transducer:
             self._next = 0
         value = true_value + self._block[self._next]
         self._next += 1
-        if self.resolution > 0:
-            value = np.round(value * self._inv_res) * self.resolution
+        if self.resolution > 0:  # np.round(value * inv_res) * resolution, in place
+            value *= self._inv_res
+            np.rint(value, out=value)
+            value *= self.resolution
         return value
 
 

@@ -167,6 +167,7 @@ class HilSimulator:
         self._fault_rng = np.random.default_rng(s_fault)
         self._stroke = self.rig.params.stroke_m.copy()
         self._limit_m = plant.limit_switch_m
+        self._extended_at = self._stroke - self._limit_m
         self._index = {cid: i for i, cid in enumerate(self.rig.cylinder_ids)}
         self._check_events()
         # PLC state
@@ -192,6 +193,16 @@ class HilSimulator:
         self._sensor_fault = False
         self._limits: tuple[bytes, bytes] = (b"", b"")
         self._stalled = False
+        self._retracted = np.zeros(N_CYLINDERS, dtype=bool)
+        self._extended = np.zeros(N_CYLINDERS, dtype=bool)
+        # what the active events mean for each scan (kept by _derive_active)
+        self._sensor_faults: list[int] = []
+        self._stuck: list[tuple[int, int]] = []  # (cylinder, event)
+        self._estop = self._dead = self._ignore = False
+        self._active_version = 0
+        self._cmd_version = 0
+        self._u_key: tuple[Any, ...] = ()
+        self._u = np.zeros(N_CYLINDERS)
 
     # ----------------------------------------------------------------- set-up
 
@@ -329,7 +340,8 @@ class HilSimulator:
         self._sample(self._k)
         self.wire.release_due(t)
         frames = 0
-        if not any(f.kind == "plc_silent" for f in self.wire.faults):
+        faults = self.wire.faults
+        if not faults or not any(f.kind == "plc_silent" for f in faults):
             # on bus-off the PLC still runs (its frames are lost), when silent it is dead
             frames = self.plc.poll(t)
         self._logic(t, silent, frames)
@@ -339,6 +351,8 @@ class HilSimulator:
 
     def _switch_events(self, t: float) -> None:
         events = self.scenario.events
+        if not events:
+            return
         now_active = {
             k for k, ev in enumerate(events) if k not in self._hmi_issued and _is_active(ev, t)
         }
@@ -377,7 +391,7 @@ class HilSimulator:
                 else:
                     self._held[k] = float(self._press_reading[i, _QUANTITY_COLUMN[ev.quantity]])
         self._active = {k for k in now_active if not isinstance(events[k], HmiTargetEvent)}
-        self._stalled = any(isinstance(events[k], PlcStall) for k in self._active)
+        self._derive_active()
         for k in ended:
             self._held.pop(k, None)
         # state-like faults: recomputed from everything active
@@ -422,9 +436,20 @@ class HilSimulator:
             self._wire_faults[k] for k in sorted(self._active) if k in self._wire_faults
         )
 
-    def _sample(self, k: int) -> None:
+    def _derive_active(self) -> None:
+        """What the active events mean for every scan until the set changes."""
         events = self.scenario.events
-        faults = [k_ev for k_ev in sorted(self._active) if isinstance(events[k_ev], SensorFault)]
+        order = sorted(self._active)
+        self._stalled = any(isinstance(events[k], PlcStall) for k in order)
+        self._sensor_faults = [k for k in order if isinstance(events[k], SensorFault)]
+        self._stuck = [(self._cyl_of[k], k) for k in order if isinstance(events[k], StuckValve)]
+        self._estop = any(isinstance(events[k], EStop) for k in order)
+        self._dead = any(isinstance(events[k], PlcSilent) for k in order)
+        self._ignore = any(isinstance(events[k], IgnoreCommands) for k in order)
+        self._active_version += 1
+
+    def _sample(self, k: int) -> None:
+        faults = self._sensor_faults
         new_pos = k % self._pos_every == 0
         new_press = k % self._press_every == 0
         rig = self.rig
@@ -437,7 +462,7 @@ class HilSimulator:
             self._hand_over(faults)
         x = rig.x_view
         self._retracted = x <= self._limit_m
-        self._extended = x >= self._stroke - self._limit_m
+        self._extended = x >= self._extended_at
         key = (self._retracted.tobytes(), self._extended.tobytes())
         if key != self._limits:
             self._limits = key
@@ -445,6 +470,11 @@ class HilSimulator:
 
     def _hand_over(self, faults: list[int]) -> None:
         """Readings with the sensor faults applied, to the link."""
+        if not faults:  # the link keeps its own copy
+            self._sensor_fault = False
+            self.plc.set_positions_m(self._pos_reading)
+            self.plc.set_pressures_pa(self._press_reading)
+            return
         events = self.scenario.events
         pos = self._pos_reading.copy()
         press = self._press_reading.copy()
@@ -470,11 +500,7 @@ class HilSimulator:
         self.plc.set_pressures_pa(press)
 
     def _logic(self, t: float, silent: bool, frames: int) -> None:
-        events = self.scenario.events
-        active = [events[k] for k in sorted(self._active)]
-        estop = any(isinstance(e, EStop) for e in active)
-        dead = any(isinstance(e, PlcSilent) for e in active)
-        ignore = any(isinstance(e, IgnoreCommands) for e in active)
+        estop, dead, ignore = self._estop, self._dead, self._ignore
         plc = self.plc
         # Stale commands: spools centred at once; the fault is latched only when the
         # loss lasts longer than safety.command_timeout_ms (fresh before: drive again).
@@ -487,6 +513,7 @@ class HilSimulator:
             self._ctl = plc.control(t)
             cmd = plc.valve_commands(t).value
             self._cmd = np.where(np.isnan(cmd), 0.0, cmd)
+            self._cmd_version += 1
         self._fresh_scan = timeout
         ctl = self._ctl
         if estop:
@@ -511,15 +538,21 @@ class HilSimulator:
             and not estop
             and self._latched is Fault.NONE
         )
-        u = np.zeros(N_CYLINDERS)
-        if drives and not ignore:
-            u = self._cmd.copy()
-            u[self._extended & (u > 0)] = 0.0
-            u[self._retracted & (u < 0)] = 0.0
-        for k in sorted(self._active):
-            ev = events[k]
-            if isinstance(ev, StuckValve):
-                u[self._cyl_of[k]] = self._held[k]
+        # the commands applied change only with fresh commands, the drives, the limit
+        # switches or the events: the same array until one of them does
+        move = drives and not ignore
+        u_key = (move, self._cmd_version, self._limits, self._active_version)
+        if u_key == self._u_key:
+            u = self._u
+        else:
+            u = np.zeros(N_CYLINDERS)
+            if move:
+                u = self._cmd.copy()
+                u[self._extended & (u > 0)] = 0.0
+                u[self._retracted & (u < 0)] = 0.0
+            for i, k in self._stuck:
+                u[i] = self._held[k]
+            self._u_key, self._u = u_key, u
         self._drives = drives
         if not timeout:
             self._engaged = drives

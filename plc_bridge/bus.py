@@ -20,6 +20,9 @@ python-can bus (python-can's own interchangeable back-ends):
   own frames skipped by a sender id before they reach the link). Not interoperable with
   ``udp_multicast``.
 - ``remote``: python-can-remote (optional plug-in); ``channel`` is ``host:port``.
+
+Lockstep runs (one thread drives both nodes) use
+:func:`plc_bridge.lockstep_bus.lockstep_pair` instead of a configured bus.
 """
 
 from __future__ import annotations

@@ -181,7 +181,10 @@ class RxRecord:
 
     def check_timeout(self, now: float) -> bool:
         """Update the fresh/stale edge; True on the fresh -> stale transition."""
-        fresh = self.fresh(now)
+        last = self.last_rx  # self.fresh(now), written out: every record, every poll
+        fresh = last is not None and now - last <= (
+            self.grace_timeout_s if now < self.grace_until else self.timeout_s
+        )
         went_stale = self.was_fresh and not fresh
         if went_stale:
             self.counters["timeouts"] += 1

@@ -1,5 +1,5 @@
-"""End to end on the virtual bus: the HIL simulator (rig + PLC) and the IPC service core
-in lockstep, with the real planner worker process and a real run record.
+"""End to end on the harness's in-process bus: the HIL simulator (rig + PLC) and the IPC
+service core in lockstep, with the real planner worker process and a real run record.
 
 Each interlock and each simulator fault leads to the specified safe state within a
 stated number of control cycles (5 ms each), the valves are commanded closed from then

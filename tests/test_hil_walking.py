@@ -193,3 +193,12 @@ def test_ground_event_extent_is_checked(tmp_path: Path) -> None:
     )
     with pytest.raises(ConfigError, match="x_to_m and y_to_m must be above"):
         load_hil_scenario(path)
+
+
+def test_the_transducers_read_the_walking_rigs_own_state(project: ProjectConfig) -> None:
+    """The walking rig's state is longer than the attitude rig's: the read-only views
+    the PLC samples every scan are of the state the rig integrates."""
+    rig = WalkingRig(project)
+    rig.advance(40)
+    assert np.array_equal(rig.x_view, rig.rod_positions_m)
+    assert np.array_equal(rig.pressure_view, rig.pressures_pa.T.ravel())

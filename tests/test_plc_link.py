@@ -37,6 +37,7 @@ from plc_bridge import (
     load_catalog,
 )
 from plc_bridge.bus import CAN_ERR_BUSOFF, CAN_ERR_CRTL, CAN_ERR_RESTARTED
+from plc_bridge.lockstep_bus import lockstep_pair
 from tests.kernel import vcan_skip_reason
 from tests.plc_fakes import Clock, QueueBus, frame
 
@@ -196,6 +197,34 @@ class TestBackToBackVirtual(BackToBack):
     def buses(self, cfg: ProjectConfig) -> tuple[can.BusABC, can.BusABC]:
         ch = f"test-{uuid.uuid4().hex}"
         return can.Bus(interface="virtual", channel=ch), can.Bus(interface="virtual", channel=ch)
+
+
+class TestBackToBackLockstep(BackToBack):
+    """The same tests on the lockstep harness's deque pair."""
+
+    def buses(self, cfg: ProjectConfig) -> tuple[can.BusABC, can.BusABC]:
+        return lockstep_pair(f"test-{uuid.uuid4().hex}")
+
+
+def test_lockstep_pair_delivers_to_the_peer_only_in_order() -> None:
+    a, b = lockstep_pair("order")
+    for i in range(3):
+        a.send(can.Message(arbitration_id=0x100 + i, is_extended_id=False, data=bytes([i])))
+    assert a.recv(1.0) is None  # never its own frames, never blocks
+    got = [b.recv(0.0) for _ in range(4)]
+    assert [m.arbitration_id for m in got[:3]] == [0x100, 0x101, 0x102]  # type: ignore[union-attr]
+    assert got[3] is None and all(m.is_rx for m in got[:3])  # type: ignore[union-attr]
+    b.set_filters([{"can_id": 0x101, "can_mask": 0x7FF}])
+    for i in range(3):
+        a.send(can.Message(arbitration_id=0x100 + i, is_extended_id=False, data=bytes([i])))
+    assert b.recv(0.0).arbitration_id == 0x101  # type: ignore[union-attr]
+    b.shutdown()
+    a.send(can.Message(arbitration_id=0x100, is_extended_id=False))  # the peer is gone
+    with pytest.raises(can.CanOperationError):
+        b.recv(0.0)
+    a.shutdown()
+    with pytest.raises(can.CanOperationError):
+        a.send(can.Message(arbitration_id=0x100, is_extended_id=False))
 
 
 _NO_VCAN = vcan_skip_reason("vcan0")

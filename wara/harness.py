@@ -1,5 +1,6 @@
 """The harness of the end-to-end runs: the HIL simulator and the IPC service on one
-in-process CAN bus (python-can's ``virtual``), driven from Python.
+in-process CAN bus (python-can's ``virtual`` in real time, a
+:func:`~plc_bridge.lockstep_bus.lockstep_pair` in lockstep), driven from Python.
 
 :class:`Harness` is what ``wara demo`` (one process), the end-to-end tests, the studies
 (``wara sim delay-margin``) and ``wara bench step`` run on. A target goes to the service
@@ -45,6 +46,7 @@ from ipc_app.service.modes import Mode
 from ipc_app.service.record import RunRecorder
 from ipc_app.service.worker import PlannerWorker
 from plc_bridge.link import IpcLink
+from plc_bridge.lockstep_bus import lockstep_pair
 from wara.examples import HOLD_MEASURE_S, ExampleResult, judge_example
 
 #: SCHED_FIFO priority of the real-time harness's threads (loop, simulator and the
@@ -165,14 +167,20 @@ class Harness:
         self.mode = mode
         self.progress = progress or (lambda _s: None)
         channel = f"wara-harness-{next(_channels)}"
+        # one thread in lockstep: a deque pair; two threads in real time: python-can's
+        # thread-safe ``virtual`` bus (the same frames either way)
+        plc_bus: can.BusABC
+        ipc_bus: can.BusABC
+        if mode == "lockstep":
+            plc_bus, ipc_bus = lockstep_pair(channel)
+        else:
+            plc_bus = can.Bus(interface="virtual", channel=channel)
+            ipc_bus = can.Bus(interface="virtual", channel=channel)
         self.sim = HilSimulator(
-            sim_cfg if sim_cfg is not None else cfg,
-            can.Bus(interface="virtual", channel=channel),
-            scenario=scenario,
-            seed=seed,
+            sim_cfg if sim_cfg is not None else cfg, plc_bus, scenario=scenario, seed=seed
         )
         clock = self.sim.clock if mode == "lockstep" else time.monotonic
-        self.link = IpcLink(cfg, can.Bus(interface="virtual", channel=channel), clock=clock)
+        self.link = IpcLink(cfg, ipc_bus, clock=clock)
         self._own_worker = planner is None
         self.worker = planner if planner is not None else PlannerWorker(config_path)
         if self._own_worker:

@@ -102,6 +102,7 @@ class IpcLink(LinkSide):
             now = self._clock()
             self._send(self._ctl_codec, self._control_values(), now)
             self._next_due[self._ctl_codec.frame_id] = now + self._period[self._ctl_codec.frame_id]
+            self._wake = -math.inf
 
     def _control_values(self) -> list[float]:
         c = self._control
@@ -184,6 +185,7 @@ class IpcLink(LinkSide):
                 if now < due - 0.25 * period:
                     continue
                 self._next_due[fid] = max(due + self._period[fid], now)
+                self._wake = -math.inf
             sent += self._send(codec, [vals[i] for i in slots], now)
         return sent
 

@@ -49,8 +49,11 @@ class PlcLink(LinkSide):
     def __init__(self, cfg: ProjectConfig, bus: can.BusABC | None = None, **kwargs: Any):
         super().__init__(cfg, bus, role=self.ROLE, **kwargs)
         self._status = PlcStatus()
-        self._pos_mm = [math.nan] * N_CYLINDERS
-        self._press_mpa = [[math.nan, math.nan] for _ in range(N_CYLINDERS)]
+        # the latest readings as given (SI), and in DBC units once a frame needs them
+        self._pos_m: FloatArray = np.full(N_CYLINDERS, math.nan)
+        self._press_pa: FloatArray = np.full((N_CYLINDERS, 2), math.nan)
+        self._pos_mm: list[float] | None = None
+        self._press_mpa: list[list[float]] | None = None
         self._limits = (0, 0)
         self._hmi: HmiTarget | None = None
         self._ctl_rec = self._rx_by_name["IPC_Control"]
@@ -101,7 +104,12 @@ class PlcLink(LinkSide):
         """True when the control word or any valve frame is stale: hold spools at centre."""
         if now is None:
             now = self._clock()
-        return not (self._ctl_rec.fresh(now) and all(r.fresh(now) for r, _ in self._valve))
+        if not self._ctl_rec.fresh(now):
+            return True
+        for r, _ in self._valve:  # noqa: SIM110 - no generator: every PLC scan asks
+            if not r.fresh(now):
+                return True
+        return False
 
     def ipc_timeout(self, now: float | None = None) -> bool:
         """True when the control word or a valve frame has not been received for longer
@@ -111,7 +119,10 @@ class PlcLink(LinkSide):
         limit = self._ipc_timeout_s
         if self._ctl_rec.age_s(now) > limit:
             return True
-        return any(r.age_s(now) > limit for r, _ in self._valve)
+        for r, _ in self._valve:  # noqa: SIM110 - no generator: every PLC scan asks
+            if r.age_s(now) > limit:
+                return True
+        return False
 
     # ----------------------------------------------------------------- outputs
 
@@ -120,17 +131,17 @@ class PlcLink(LinkSide):
 
     def set_positions_m(self, x: Sequence[float] | FloatArray) -> None:
         """Rod positions [m] by ``can_index``; NaN is sent as SENSOR_FAULT."""
-        arr = np.asarray(x, dtype=float)
+        arr = np.array(x, dtype=float)
         if arr.shape != (N_CYLINDERS,):
             raise ValueError(f"positions: expected {N_CYLINDERS} values, got shape {arr.shape}")
-        self._pos_mm = (arr / units.MM).tolist()
+        self._pos_m, self._pos_mm = arr, None
 
     def set_pressures_pa(self, p: Sequence[Sequence[float]] | FloatArray) -> None:
         """Pressures [Pa], shape (19, 2): cap, rod side; NaN is sent as SENSOR_FAULT."""
-        arr = np.asarray(p, dtype=float)
+        arr = np.array(p, dtype=float)
         if arr.shape != (N_CYLINDERS, 2):
             raise ValueError(f"pressures: expected shape ({N_CYLINDERS}, 2), got {arr.shape}")
-        self._press_mpa = (arr / units.MPA).tolist()
+        self._press_pa, self._press_mpa = arr, None
 
     def set_limit_switches(self, retracted: Iterable[bool], extended: Iterable[bool]) -> None:
         self._limits = (
@@ -145,9 +156,15 @@ class PlcLink(LinkSide):
         name = spec.name
         names = self._codec_by_name[name].signal_names
         if name.startswith("PLC_RodPos_"):
-            return [self._pos_mm[i] for i in spec.slots]
+            pos = self._pos_mm
+            if pos is None:
+                pos = self._pos_mm = (self._pos_m / units.MM).tolist()
+            return [pos[i] for i in spec.slots]
         if name.startswith("PLC_Pressure_"):
-            return [v for i in spec.slots for v in self._press_mpa[i]]
+            press = self._press_mpa
+            if press is None:
+                press = self._press_mpa = (self._press_pa / units.MPA).tolist()
+            return [v for i in spec.slots for v in press[i]]
         if name == "PLC_Status":
             s = self._status
             d: dict[str, float] = {

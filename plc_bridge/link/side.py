@@ -147,6 +147,10 @@ class LinkSide:
         self._tx_counter: dict[int, int] = {m.frame_id: 0 for m in self.tx_specs}
         self._period: dict[int, float] = {}
         self._next_due: dict[int, float] = {}
+        #: No scheduled frame is due before this (-inf: look): :meth:`_send_due` skips
+        #: the scan of its messages until then. Whatever changes ``_next_due`` or
+        #: ``_period`` outside that scan sets it back to -inf.
+        self._wake = -math.inf
         self.rx_outcomes: Counter[str] = Counter()
         self.tx_counts: Counter[str] = Counter()
         self._last_fault = -math.inf
@@ -165,6 +169,7 @@ class LinkSide:
         t0 = self._clock()
         for k, fid in enumerate(sorted(self._period)):
             self._next_due[fid] = t0 + (0.0 if self._period[fid] < 0.02 else units.MS * k)
+        self._wake = -math.inf
 
     @classmethod
     def from_config(cls, cfg: ProjectConfig, **kwargs: Any) -> Any:
@@ -196,6 +201,7 @@ class LinkSide:
             self._period[spec.frame_id] = spec.cycle_in_force_s(
                 is_active(spec, active), self._loop_period_s
             )
+        self._wake = -math.inf
         # The records the link is LOST without: the peer's heartbeat and the loop-rate
         # rows that carry an active cylinder.
         self._critical_recs: tuple[RxRecord, ...] = (
@@ -240,10 +246,16 @@ class LinkSide:
         return True
 
     def _send_due(self, now: float) -> None:
+        if now < self._wake:
+            return  # every frame's own test below would skip it
+        wake = math.inf
         for spec in self._scheduled_tx:
             fid = spec.frame_id
             period = self._period[fid]
-            if now < self._next_due[fid] - 0.25 * period:
+            at = self._next_due[fid] - 0.25 * period
+            if now < at:
+                if at < wake:
+                    wake = at
                 continue
             values = self._values_for(spec, now)
             if values is not None:
@@ -254,6 +266,10 @@ class LinkSide:
                     self.tx_counts["tx_overruns"] += 1
                 nd = now + period
             self._next_due[fid] = nd
+            at = nd - 0.25 * period
+            if at < wake:
+                wake = at
+        self._wake = wake
 
     # ----------------------------------------------------------------- receive
 

@@ -6,7 +6,9 @@ scales on Dask.
   thread; the planner in its own process, started before the clock starts), as a
   campaign task runs it (no trace). ``realtime_factor_cpu`` is simulated time over this
   process's CPU time (what one core gives, whatever else the machine runs; goal >= 20);
-  ``realtime_factor_wall`` over the wall time.
+  ``realtime_factor_wall`` over the wall time. ``cpu_split_s``: where the CPU time went
+  (the simulator's PLC scans, of which the compiled plant kernel; the service core's
+  steps), each call timed with ``time.process_time``.
 - ``campaign``: a small campaign (short targets, ``runs`` runs) on an embedded
   LocalCluster of 1 and of 2 worker processes, timed from the first submit (cluster up,
   workers warmed): runs per minute, and the engine's overhead as a share of task time,
@@ -58,6 +60,10 @@ def lockstep(config_path: str | None) -> dict[str, Any]:
         warm.advance(0.1)  # the compiled plant loaded from numba's cache
         warm.close()
         h = Harness(cfg, path, mode="lockstep", planner=planner, trace=False)
+        split = {"simulator": 0.0, "plant_kernel": 0.0, "service_core": 0.0}
+        _time_calls(h.sim, "step", split, "simulator")
+        _time_calls(h.sim.rig, "advance", split, "plant_kernel")
+        _time_calls(h.core, "step", split, "service_core")
         c0, w0 = time.process_time(), time.perf_counter()
         h.wait_for(Mode.IDLE, 20.0)
         res = h.run_example(*EXAMPLE)
@@ -76,7 +82,24 @@ def lockstep(config_path: str | None) -> dict[str, Any]:
         "realtime_factor_cpu": round(sim_s / cpu, 2),
         "realtime_factor_wall": round(sim_s / wall, 2),
         "goal_realtime_factor": 20,
+        "cpu_split_s": {k: round(v, 3) for k, v in split.items()},
     }
+
+
+def _time_calls(obj: Any, name: str, acc: dict[str, float], key: str) -> None:
+    """Add the CPU time of every call of ``obj.name`` to ``acc[key]`` (an instance
+    attribute over the method: the harness and the simulator call it through ``obj``)."""
+    method = getattr(obj, name)
+    clock = time.process_time
+
+    def timed(*args: Any) -> Any:
+        t0 = clock()
+        try:
+            return method(*args)
+        finally:
+            acc[key] += clock() - t0
+
+    setattr(obj, name, timed)
 
 
 def campaign(workers: int, runs: int) -> dict[str, Any]:
