@@ -268,6 +268,7 @@ def test_a_run_file_is_written_once_and_compacted_in_order(tmp_path: Path) -> No
     assert not list((out / "runs").glob("*.tmp"))
 
 
+@pytest.mark.slow  # subprocesses or a run of many seconds: not in the fast lane
 def test_report_verdict_drivers_and_html(tmp_path: Path) -> None:
     spec = _spec(requirement={"runs": 40})
     c = load_campaign(write_spec(tmp_path, spec))

@@ -363,6 +363,7 @@ def test_a_killed_server_process_is_started_again(tmp_path: Path) -> None:
         assert asyncio.run(_asyncua_read(rig, "PackML.Status.StateCurrent")) == 4
 
 
+@pytest.mark.slow  # subprocesses or a run of many seconds: not in the fast lane
 def test_serve_with_opcua_and_no_users_file_is_one_line(tmp_path: Path) -> None:
     cfg = S.write_config(tmp_path, S.free_port())
     p = subprocess.run(

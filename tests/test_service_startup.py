@@ -152,6 +152,7 @@ def _lockstep(*events: dict[str, Any]) -> Any:
     return Harness(load_project(), mode="lockstep", scenario=scenario, planner=_NoPlanner())  # type: ignore[arg-type]
 
 
+@pytest.mark.slow  # subprocesses or a run of many seconds: not in the fast lane
 def test_boot_ends_in_a_fault_when_the_plc_never_hears_the_commands() -> None:
     """The IPC's frames held on the wire: the PLC reports the commands stale, every input
     of the IPC is fresh. start-up (STOPPED) ends in ABORTED `start-up` with that reason once

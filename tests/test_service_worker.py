@@ -126,6 +126,7 @@ def test_bad_start_extensions_refused(worker: PlannerWorker) -> None:
         worker.submit(10, 1.0, 1.0, start_upper_m=(0.0, 0.0))
 
 
+@pytest.mark.slow  # subprocesses or a run of many seconds: not in the fast lane
 def test_the_planner_process_ends_when_the_service_is_killed(tmp_path: Path) -> None:
     """A service killed with SIGKILL leaves no planner process behind: the idle worker
     sees it is orphaned within about PARENT_CHECK_S and ends."""
