@@ -29,6 +29,11 @@ Control (the choices are in docs/walking.md, "The step sequencer"):
 
 Work per cycle is bounded: one reference sample per moving group, at most 14 controller
 updates and one stability margin (a hull of at most eight points).
+
+Over 500 lines because the phases' position, force and transfer control share one
+sequencer's state (the groups, the touch-down baselines, the force references), which
+the interlocks read each cycle; the plan and its statics are in
+:mod:`ipc_app.planner.walk`.
 """
 
 from __future__ import annotations

@@ -22,6 +22,9 @@ SLSQP solves it from the previous part's deviation. When it finds no feasible po
 a second solve keeps the steering-back bound and minimizes the squared Table 4
 violations: the largest left is the binding limit, reported with how much it is
 exceeded, and the plan is refused.
+
+Just over 500 lines because the target's optimization, its refusal with the binding
+limit and the six-DOF moves that check it against strokes and pressures are one plan.
 """
 
 from __future__ import annotations
