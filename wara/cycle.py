@@ -218,14 +218,7 @@ class _Cycle:
         survey_fig = joint_figures(cfg, prev_s, fit.pose, design)
         table4 = judge(cfg, truth_fig)
         err = deviation(as_built, plan.target)
-        errors = {
-            "x_mm": units.to_mm(err.x),
-            "y_mm": units.to_mm(err.y),
-            "z_mm": units.to_mm(err.z),
-            "roll_deg": units.to_deg(err.roll),
-            "pitch_deg": units.to_deg(err.pitch),
-            "yaw_deg": units.to_deg(err.yaw),
-        }
+        errors = err.to_dict()  # mm and deg
         gap_error_mm = units.to_mm(truth_fig.max_gap_m - plan.figures.max_gap_m)
         t0 = self.enter(ring, "record")
         surveyed = _items(survey_fig.to_dict())

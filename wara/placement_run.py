@@ -116,14 +116,7 @@ def run_placement_lockstep(
     got = compose(home_pose(cfg, ring), Pose.from_matrix(r, t))
     err = deviation(got, plan.target)
     figures = joint_figures(cfg, plan.previous, got, plan.design)
-    errors = {
-        "x_mm": units.to_mm(err.x),
-        "y_mm": units.to_mm(err.y),
-        "z_mm": units.to_mm(err.z),
-        "roll_deg": units.to_deg(err.roll),
-        "pitch_deg": units.to_deg(err.pitch),
-        "yaw_deg": units.to_deg(err.yaw),
-    }
+    errors = err.to_dict()  # mm and deg
     gap_error_mm = units.to_mm(figures.max_gap_m - plan.figures.max_gap_m)
     goals = {
         "position_within_1_mm": max(abs(errors[k]) for k in ("x_mm", "y_mm", "z_mm")) <= GOAL_MM,
