@@ -58,6 +58,14 @@ class _Parser(argparse.ArgumentParser):
         self.exit(EXIT_USAGE, f"{self.prog}: error: {message}\n")
 
 
+def check_walk_steps(steps: int) -> None:
+    """``--steps`` of a walk: 1..MAX_WALK_STEPS, the control channel's limit."""
+    from ipc_app.service.ctl import MAX_WALK_STEPS
+
+    if not 1 <= steps <= MAX_WALK_STEPS:
+        raise UsageError(f"--steps must be within 1..{MAX_WALK_STEPS}, got {steps}")
+
+
 def verb_of(module: str) -> str:
     return module.removesuffix("_cmd")
 

@@ -32,7 +32,7 @@ from __future__ import annotations
 import math
 import threading
 from collections import deque
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
 from typing import Any, NamedTuple, Protocol
 
@@ -523,7 +523,7 @@ class ServiceCore:
         self.motion = MotionStats(started_s=inp.t)
         self._walk_group(inp.t)
         if self.record is not None:
-            self.record.event(inp.t, "walk", steps=plan.steps, plan=plan.to_dict()["phases"][:0])
+            self.record.event(inp.t, "walk", steps=plan.steps)
         return {"ok": True, "mode": str(self.modes.mode), "duration_s": plan.duration_s}
 
     def _walk_group(self, now: float) -> None:
@@ -535,9 +535,7 @@ class ServiceCore:
             return
         self._walk_phase = w.run.index
         group = w.active_group()
-        self.bus_load = self.link.set_active_cylinders(group, now)
-        self.reader = Reader(self.link, group)
-        self.limits = replace(self._attitude_limits, active=tuple(group))
+        self._use_group(group, group, now)
         ph = w.run.phase
         log.info("walk phase", step=ph.step, phase=ph.key, name=w.phase_name())
         if self.record is not None:
@@ -552,15 +550,26 @@ class ServiceCore:
                 margin_ahead_m=w.figures.margin_ahead_m,
             )
 
+    def _use_group(self, group: Sequence[int], watched: Sequence[int], now: float) -> None:
+        """A motion's phase group: ``group`` at the loop rate on the link, ``watched`` read
+        and checked (stroke ends) by the attitude interlocks."""
+        self.bus_load = self.link.set_active_cylinders(group, now)
+        self.reader = Reader(self.link, watched)
+        self.limits = replace(self._attitude_limits, active=tuple(watched))
+
+    def _attitude_group(self) -> None:
+        """Back to the attitude group after a walk or a placement."""
+        self.bus_load = self.link.set_active_cylinders(self.active)
+        self.reader = Reader(self.link, self.active)
+        self.limits = self._attitude_limits
+
     def _end_walk(self) -> None:
         """Back to the attitude group (an adjustment from the walk's end state, a stop)."""
         if self.walker is None:
             return
         self.walker = None
         self._walk_phase = -1
-        self.bus_load = self.link.set_active_cylinders(self.active)
-        self.reader = Reader(self.link, self.active)
-        self.limits = self._attitude_limits
+        self._attitude_group()
 
     def _walk_resume_cause(self, inp: MachineInputs) -> Cause | None:
         w, lim = self.walker, self.walk_limits
@@ -720,10 +729,7 @@ class ServiceCore:
             return
         self._place_phase = p.phase
         group = p.active_group()
-        watched = p.watched()
-        self.bus_load = self.link.set_active_cylinders(group, now)
-        self.reader = Reader(self.link, watched)
-        self.limits = replace(self._attitude_limits, active=tuple(watched))
+        self._use_group(group, p.watched(), now)
         log.info("place phase", phase=p.phase_name)
         if self.record is not None:
             self.record.event(
@@ -739,9 +745,7 @@ class ServiceCore:
         p.finish()
         self.placer = None
         self._place_phase = -1
-        self.bus_load = self.link.set_active_cylinders(self.active)
-        self.reader = Reader(self.link, self.active)
-        self.limits = self._attitude_limits
+        self._attitude_group()
         if self.record is not None:
             self.record.event(now, "place_end", phase=p.phase_name, mode=str(self.modes.mode))
 

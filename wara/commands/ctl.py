@@ -29,7 +29,7 @@ import sys
 from typing import Any
 
 from ipc_app.service.ctl import CtlError, request
-from wara.cli import EXIT_FAILED, EXIT_INFEASIBLE, EXIT_OK, UsageError
+from wara.cli import EXIT_FAILED, EXIT_INFEASIBLE, EXIT_OK, UsageError, check_walk_steps
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -90,8 +90,7 @@ def run(args: argparse.Namespace) -> int:
         fields = {"roll_deg": args.roll_deg, "pitch_deg": args.pitch_deg}
         timeout_s = args.timeout_s
     elif args.verb == "walk":
-        if not 1 <= args.steps <= 1000:
-            raise UsageError(f"--steps must be within 1..1000, got {args.steps}")
+        check_walk_steps(args.steps)
         fields = {"steps": args.steps}
         timeout_s = 30.0
     elif args.verb == "place":

@@ -20,7 +20,7 @@ from pathlib import Path
 
 from config import load_project, units
 from ipc_app.planner.walk import WalkPlan, WalkStart, plan_walk, start_state
-from wara.cli import EXIT_FAILED, EXIT_INFEASIBLE, EXIT_OK, UsageError
+from wara.cli import EXIT_FAILED, EXIT_INFEASIBLE, EXIT_OK, UsageError, check_walk_steps
 from wara.commands.plan import parse_four_mm, report
 
 
@@ -72,8 +72,7 @@ def run_walk_cmd(args: argparse.Namespace) -> int:
     """``wara walk --steps N``: the simulator and the service walk N steps."""
     if args.steps is None:
         raise UsageError("wara walk: give --steps N (the walk) or the verb plan")
-    if not 1 <= args.steps <= 1000:
-        raise UsageError(f"--steps must be within 1..1000, got {args.steps}")
+    check_walk_steps(args.steps)
     cfg = load_project(args.config)
     if cfg.frames is None or cfg.walking is None:
         raise UsageError("the project has no frames and walking sections: it cannot walk")
@@ -137,8 +136,7 @@ def render_walk(out: dict[str, object]) -> str:
 
 
 def run_plan(args: argparse.Namespace) -> int:
-    if not 1 <= args.steps <= 1000:
-        raise UsageError(f"--steps must be within 1..1000, got {args.steps}")
+    check_walk_steps(args.steps)
     if args.start_x_s_mm is not None and not math.isfinite(args.start_x_s_mm):
         raise UsageError("--start-x-s-mm must be a finite number")
     cfg = load_project(args.config)
