@@ -104,6 +104,19 @@ def test_model_values_are_si_and_follow_the_status() -> None:
     status["faults"] = [{"interlock": "twist", "text": "twist 1.6 mm > 1.5 mm"}]
     vals = dict(zip((v.path for v in model), m.values(model, status), strict=True))
     assert vals[("PackML", "Status", "StateCurrent")] == 6
+    # OPC 30050's three state machines, with their states' ids in the PackML NodeSet
+    sm = ("PackML", "BaseStateMachine")
+    assert [vals[(*sm, "CurrentState")], vals[(*sm, "CurrentState", "Id")]] == [
+        "Cleared",
+        m.StateRef(m.NS_PACKML, 71),
+    ]
+    assert vals[(*sm, "MachineState", "CurrentState")] == "Running"
+    assert vals[(*sm, "MachineState", "ExecuteState", "CurrentState")] == "Execute"
+    assert vals[(*sm, "MachineState", "ExecuteState", "CurrentState", "Id")] == m.StateRef(
+        m.NS_PACKML, 36
+    )
+    item_id = ("MachineryBuildingBlocks", "MachineryItemState", "CurrentState", "Id")
+    assert vals[item_id] == m.StateRef(m.NS_MACHINERY, 5006)  # Executing
     assert vals[("MachineryBuildingBlocks", "MachineryItemState", "CurrentState")] == "Executing"
     assert vals[("MachineryBuildingBlocks", "MachineryOperationMode", "CurrentState")] == (
         "Processing"
@@ -132,6 +145,17 @@ def test_model_values_are_si_and_follow_the_status() -> None:
         3,
         "place",
     )
+    # ABORTED: the base machine in Aborted, the machine and execute machines inactive
+    status["mode"] = "ABORTED"
+    vals = dict(zip((v.path for v in model), m.values(model, status), strict=True))
+    assert vals[(*sm, "CurrentState")] == "Aborted"
+    assert vals[(*sm, "MachineState", "CurrentState")] == ""
+    assert vals[(*sm, "MachineState", "ExecuteState", "CurrentState", "Id")] is None
+    assert vals[item_id] == m.StateRef(m.NS_MACHINERY, 5004)  # OutOfService
+    status["mode"] = "STOPPED"
+    vals = dict(zip((v.path for v in model), m.values(model, status), strict=True))
+    assert vals[(*sm, "MachineState", "CurrentState")] == "Stopped"
+    assert vals[(*sm, "MachineState", "ExecuteState", "CurrentState")] == ""
     ids = {v.path[1] for v in model if v.path[0] == "Cylinders"}
     assert ids == {*cfg.layers.lower.cylinders, *cfg.layers.upper.cylinders}
     assert all(v.unit is not None for v in model if v.kind == "Double")
@@ -205,11 +229,20 @@ def test_node_client_browses_subscribes_and_calls(tmp_path: Path) -> None:
             "item_state": "NotExecuting",
             "operation_mode": "Processing",
             "packml_state": 4,
+            "packml_unit_mode": 1,
+            "packml_base": "Cleared",
+            "packml_machine": "Running",
+            "packml_execute": "Idle",
+            "packml_execute_id": "PackML:28",  # the Idle state of the PackML NodeSet
+            "item_state_id": "Machinery:5007",  # NotExecuting
         }
-        assert out["types"] == {  # instances of the Machinery NodeSet's types
+        assert out["types"] == {  # instances of the companion NodeSets' types
             "identification": "Machinery:MachineIdentificationType",
             "item_state": "Machinery:MachineryItemState_StateMachineType",
             "operation_mode": "Machinery:MachineryOperationModeStateMachineType",
+            "packml": "PackML:PackMLBaseObjectType",
+            "packml_status": "PackML:PackMLStatusObjectType",
+            "packml_execute": "PackML:PackMLExecuteStateMachineType",
         }
         assert out["roll_unit"] == "rad"
         assert out["states"][0] == 4 and 6 in out["states"] and out["states"][-1] == 4
@@ -233,6 +266,17 @@ def test_node_client_browses_subscribes_and_calls(tmp_path: Path) -> None:
             ("op", "StartWalk"),
         ]
         assert "refused: Steps must be an integer 1..1000" in rig.service.audits[-2][2]
+        # PackMLBaseObjectType's methods: SetUnitMode sets the unit mode (PackML's 2:
+        # Maintenance); what W-ARa does not have is refused, audited
+        packml = _node(rig, tmp_path, "call-packml", "op", S.PASSWORDS["op"])
+        assert packml["ok"], packml
+        assert ("unit_mode", "MAINTENANCE") in rig.service.calls
+        assert [a for _, a, _ in rig.service.audits[-3:]] == [
+            "SetUnitMode",
+            "SetUnitMode",
+            "SetMachSpeed",
+        ]
+        assert "W-ARa has no machine speed" in rig.service.audits[-1][2]
 
 
 @pytest.mark.slow
