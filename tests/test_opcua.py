@@ -440,6 +440,10 @@ def test_bench_opcua_reports_the_loop_and_the_latency_with_its_parts() -> None:
     assert out["passed"] is True, out.get("error")
     for phase in ("without", "with"):
         assert out[phase]["measured_cycles"] > 1000
+    # --quick: one round; its ratio with/without of the loop's compute p99
+    assert len(out["rounds"]) == 1 and out["compute_p99_ratio"]["median"] == pytest.approx(
+        out["rounds"][0]["with"]["compute_p99_ms"] / out["rounds"][0]["without"]["compute_p99_ms"]
+    )
     lat = out["latency_ms"]
     # 2 cycles of 4 changes; a STARTING shorter than the 100 ms publishing interval is
     # overwritten in the client's queue of one before it is sent
