@@ -22,10 +22,20 @@ from typing import IO
 
 import structlog
 
+from ipc_app.service.worker import under_normal_scheduler
+
 log = structlog.get_logger("wara.opcua.process")
 
 RESTART_PAUSE_S = 2.0
 START_TIMEOUT_S = 60.0
+
+
+def cpus_besides(avoid: Sequence[int]) -> list[int]:
+    """This process's CPUs without ``avoid``; empty (no change) when none would be left
+    or nothing is to be avoided."""
+    if not avoid or not hasattr(os, "sched_getaffinity"):
+        return []
+    return sorted(set(os.sched_getaffinity(0)) - set(avoid))
 
 
 class OpcUaStartError(Exception):
@@ -40,7 +50,10 @@ class OpcUaProcess:
         extra_args: Sequence[str] = (),
         *,
         stderr: IO[str] | None = None,
+        avoid_cpus: Sequence[int] = (),
     ) -> None:
+        """``avoid_cpus``: the control loop's CPUs (``control.realtime.cpu_affinity``);
+        the server runs on the others (all of them when that would leave none)."""
         self.argv = [sys.executable, "-m", "ipc_app.opcua", "--socket", str(socket_path)]
         if config_path is not None:
             self.argv += ["--config", str(config_path)]
@@ -52,16 +65,25 @@ class OpcUaProcess:
         self._tail: deque[str] = deque(maxlen=5)
         self._stop = threading.Event()
         self._watch: threading.Thread | None = None
+        self.cpus = cpus_besides(avoid_cpus)
 
     def _spawn(self) -> subprocess.Popen[str]:
-        proc = subprocess.Popen(
-            self.argv,
-            stdin=subprocess.DEVNULL,
-            stdout=subprocess.PIPE,
-            stderr=subprocess.PIPE,
-            text=True,
-            env=os.environ.copy(),
+        # under the normal scheduler whatever the spawning thread's policy (a restart comes
+        # from the watch thread, which may run under SCHED_FIFO): asyncua computing at the
+        # loop's priority would keep a CPU from it
+        proc = under_normal_scheduler(
+            lambda: subprocess.Popen(
+                self.argv,
+                stdin=subprocess.DEVNULL,
+                stdout=subprocess.PIPE,
+                stderr=subprocess.PIPE,
+                text=True,
+                env=os.environ.copy(),
+            )
         )
+        if self.cpus:
+            with contextlib.suppress(OSError):  # the process may be gone already
+                os.sched_setaffinity(proc.pid, self.cpus)
         threading.Thread(target=self._pump_err, args=(proc,), daemon=True).start()
         return proc
 
