@@ -30,14 +30,6 @@ RESTART_PAUSE_S = 2.0
 START_TIMEOUT_S = 60.0
 
 
-def cpus_besides(avoid: Sequence[int]) -> list[int]:
-    """This process's CPUs without ``avoid``; empty (no change) when none would be left
-    or nothing is to be avoided."""
-    if not avoid or not hasattr(os, "sched_getaffinity"):
-        return []
-    return sorted(set(os.sched_getaffinity(0)) - set(avoid))
-
-
 class OpcUaStartError(Exception):
     """The server process did not come up (one line: its own last error line)."""
 
@@ -50,10 +42,7 @@ class OpcUaProcess:
         extra_args: Sequence[str] = (),
         *,
         stderr: IO[str] | None = None,
-        avoid_cpus: Sequence[int] = (),
     ) -> None:
-        """``avoid_cpus``: the control loop's CPUs (``control.realtime.cpu_affinity``);
-        the server runs on the others (all of them when that would leave none)."""
         self.argv = [sys.executable, "-m", "ipc_app.opcua", "--socket", str(socket_path)]
         if config_path is not None:
             self.argv += ["--config", str(config_path)]
@@ -65,7 +54,6 @@ class OpcUaProcess:
         self._tail: deque[str] = deque(maxlen=5)
         self._stop = threading.Event()
         self._watch: threading.Thread | None = None
-        self.cpus = cpus_besides(avoid_cpus)
 
     def _spawn(self) -> subprocess.Popen[str]:
         # under the normal scheduler whatever the spawning thread's policy (a restart comes
@@ -81,9 +69,6 @@ class OpcUaProcess:
                 env=os.environ.copy(),
             )
         )
-        if self.cpus:
-            with contextlib.suppress(OSError):  # the process may be gone already
-                os.sched_setaffinity(proc.pid, self.cpus)
         threading.Thread(target=self._pump_err, args=(proc,), daemon=True).start()
         return proc
 

@@ -152,23 +152,17 @@ def _phase_with(
 ) -> tuple[dict[str, Any], dict[str, Any]]:  # fmt: skip
     """One ``with`` phase: the server and the clients up, the cycles, both down; the loop's
     summary and the clients' figures (latencies, notifications, the server's feed)."""
-    from ipc_app.opcua.process import OpcUaProcess, cpus_besides
+    from ipc_app.opcua.process import OpcUaProcess
 
     server_args, client_args = args
     log_path = work / f"opcua-{k}.log"
-    loop_cpus = load_project(config_path).control.realtime.cpu_affinity
     with log_path.open("w", buffering=1) as srv_log:
-        srv = OpcUaProcess(
-            config_path, work / "ctl.sock", server_args, stderr=srv_log, avoid_cpus=loop_cpus
-        )
+        srv = OpcUaProcess(config_path, work / "ctl.sock", server_args, stderr=srv_log)
         srv.start()
         clients = subprocess.Popen(
             [sys.executable, "-m", "wara.benches.opcua_clients", *client_args],
             stdout=subprocess.PIPE, text=True, env=d2._env(),
         )  # fmt: skip
-        # the clients stand in for the SCADA's machines: off the loop's CPU as well
-        if cpus := cpus_besides(loop_cpus):
-            os.sched_setaffinity(clients.pid, cpus)
         try:
             assert clients.stdout is not None
             if clients.stdout.readline().strip() != "READY":

@@ -32,16 +32,11 @@ def _run(args: argparse.Namespace) -> int:
     from config import load_project
 
     opcua = None
-    cfg = load_project(args.config)
-    if cfg.opcua.enabled:
+    if load_project(args.config).opcua.enabled:
         from ipc_app.opcua.process import OpcUaProcess, OpcUaStartError
         from ipc_app.service.ctl import default_socket_path
 
-        opcua = OpcUaProcess(
-            args.config,
-            args.socket or default_socket_path(),
-            avoid_cpus=cfg.control.realtime.cpu_affinity,  # the loop's CPU to itself
-        )
+        opcua = OpcUaProcess(args.config, args.socket or default_socket_path())
         try:
             opcua.start()
         except OpcUaStartError as exc:
