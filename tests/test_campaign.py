@@ -316,3 +316,19 @@ def test_without_the_campaign_extra_it_names_it(
         "wara campaign: error: wara campaign needs distributed, which is not installed: "
         "install with pip install -e '.[campaign]'"
     )
+
+
+def test_engine_overhead_is_split_into_the_tail_and_the_engines_gaps(tmp_path: Path) -> None:
+    """Two workers for 10 s: one ran 4 + 5 s and got its last at 9.5 s, the other ran
+    6 s and was done at 6.2 s (no run left for it): the tail is 0.5 + 3.8 s, the engine's
+    gaps between runs the rest, 10 + 10 - 4.3 - 15 = 0.7 s, over 15 s of runs."""
+    from wara.campaign.engine import Outcome
+
+    o = Outcome(tmp_path, 3, 0, written=3, elapsed_s=10.0, task_s=15.0, workers=2)
+    o.last_done_s = {"w1": 9.5, "w2": 6.2}
+    assert o.tail_s == pytest.approx(0.5 + 3.8)
+    assert o.gap_share == pytest.approx(0.7 / 15.0)
+    # a worker that got no run at all is idle for the whole campaign: tail, not engine
+    o.workers = 3
+    assert o.tail_s == pytest.approx(0.5 + 3.8 + 10.0)
+    assert o.gap_share == pytest.approx(0.7 / 15.0)

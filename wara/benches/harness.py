@@ -12,8 +12,11 @@ scales on Dask.
 - ``campaign``: a small campaign (short targets, ``runs`` runs) on an embedded
   LocalCluster of 1 and of 2 worker processes, timed from the first submit (cluster up,
   workers warmed): runs per minute, and the engine's overhead as a share of task time,
-  ``1 - sum(task wall time) / (workers x elapsed)`` (goal < 5 %: the rest is scheduling,
-  transfer and the client writing the Parquet files).
+  ``(workers x elapsed - sum(task wall time)) / sum(task wall time)``, split into
+  ``tail_share`` (a worker idle after its last run because none is left for it: the
+  campaign's granularity) and
+  ``engine_gap_share`` (the rest: scheduling, transfer and the client writing the Parquet
+  files), each over the task time (goal < 5 %).
 
 ``--quick``: two runs per campaign instead of six. The machine is shared: compare
 ratios, and say how loaded it was (``load_average``).
@@ -120,7 +123,11 @@ def campaign(workers: int, runs: int) -> dict[str, Any]:
         "elapsed_s": round(o.elapsed_s, 2),
         "runs_per_minute": round(60.0 * o.written / o.elapsed_s, 2) if o.elapsed_s else None,
         "mean_task_s": round(o.task_s / max(1, o.written), 2),
-        "engine_overhead_share": round(1.0 - o.task_s / busy, 4) if busy else None,
+        "engine_overhead_share": round((busy - o.task_s) / o.task_s, 4) if o.task_s else None,
+        # of it, the tail (a worker idle after its last run: none left for it) and the
+        # rest, the engine's own gaps between runs, both as shares of task time
+        "tail_share": round(o.tail_s / o.task_s, 4) if o.task_s else None,
+        "engine_gap_share": round(g, 4) if (g := o.gap_share) is not None else None,
     }
 
 

@@ -321,6 +321,24 @@ class Outcome:
     elapsed_s: float = 0.0
     task_s: float = 0.0
     workers: int = 0
+    #: per worker (its address): when (seconds from the first submit) the client got its
+    #: last run
+    last_done_s: dict[str, float] = field(default_factory=dict)
+
+    @property
+    def tail_s(self) -> float:
+        """Worker-seconds idle after each worker's last run until the campaign's end
+        (no run left for it: the campaign's granularity, not the engine)."""
+        idle = sum(self.elapsed_s - t for t in self.last_done_s.values())
+        return idle + self.elapsed_s * max(0, self.workers - len(self.last_done_s))
+
+    @property
+    def gap_share(self) -> float | None:
+        """The engine's own overhead as a share of task time: the workers' time that is
+        neither a run nor the tail (scheduling, transfer, the client writing Parquet)."""
+        if not self.task_s:
+            return None
+        return (self.workers * self.elapsed_s - self.tail_s - self.task_s) / self.task_s
 
     @property
     def complete(self) -> bool:
@@ -449,6 +467,7 @@ def run_campaign(
             if write_row(out, row):
                 outcome.written += 1
                 outcome.task_s += float(row["wall_s"])
+                outcome.last_done_s[str(row.get("worker"))] = time.monotonic() - t0
                 failed = not row["passed"]
                 outcome.failures += int(failed)
                 bar.update(failed)
