@@ -73,7 +73,7 @@ def service_handlers(
         unit_mode=lambda u: _reply(core().request_unit_mode(u)),
         jog=lambda c, d: _reply(core().request_jog(c, d, wait_s=wait_s)),
         audit=lambda u, a, r: core().audit(u, a, r),
-        walk=lambda n: _reply(core().request_walk(n, wait_s=wait_s)),
+        walk=lambda n, d, u: _reply(core().request_walk(n, wait_s=wait_s, direction=d, unloaded=u)),
         place=lambda r, d: _reply(core().request_place(r, sheet_deviation(*d), wait_s=wait_s)),
     )
 

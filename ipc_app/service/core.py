@@ -50,7 +50,7 @@ from ipc_app.model.kinematics import fit_layer
 from ipc_app.model.placement import Pose
 from ipc_app.planner.placement import PlacementPlan, plan_from_deviation
 from ipc_app.planner.plan import plan as plan_attitude
-from ipc_app.planner.walk import WalkPlan, WalkStart, plan_walk
+from ipc_app.planner.walk import DIRECTIONS, WalkPlan, WalkStart, plan_walk
 from ipc_app.service.ctl import MAX_WALK_STEPS
 from ipc_app.service.interlocks import (
     Cause,
@@ -418,7 +418,9 @@ class ServiceCore:
 
     # ------------------------------------------------------------------ the walk
 
-    def plan_walk_here(self, steps: int) -> WalkPlan | dict[str, Any]:
+    def plan_walk_here(
+        self, steps: int, direction: str = "forward", unloaded: bool = False
+    ) -> WalkPlan | dict[str, Any]:
         """Plan ``steps`` steps from the last measured state (the caller's thread, not
         the loop's); a dict when the service cannot walk now (why)."""
         if self.cfg.walking is None or self.cfg.frames is None:
@@ -441,18 +443,32 @@ class ServiceCore:
             main_extensions_m=tuple((x[lo] - half[lo]).tolist()),
             upper_extensions_m=tuple((x[up] - half[up]).tolist()),
         )
-        return plan_walk(cfg, steps, start)
+        try:
+            return plan_walk(cfg, steps, start, direction=direction, unloaded=unloaded)
+        except ValueError as exc:  # unloaded without a workpiece body
+            return {"ok": False, "code": "bad_request", "error": f"walk refused: {exc}"}
 
-    def request_walk(self, steps: int, wait_s: float = 0.0, hmi_seq: int = 0) -> dict[str, Any]:
-        """Walk ``steps`` steps: planned here from the measured state and refused (with
-        the phase, instant and limit) before anything moves if a constraint breaks; then
-        the loop runs the step sequencer (EXECUTE) until the last phase (COMPLETE).
+    def request_walk(
+        self,
+        steps: int,
+        wait_s: float = 0.0,
+        hmi_seq: int = 0,
+        direction: str = "forward",
+        unloaded: bool = False,
+    ) -> dict[str, Any]:
+        """Walk ``steps`` steps ``direction`` (``forward``, ``back``), ``unloaded``: the
+        statics without the workpiece. Planned here from the measured state and refused
+        (with the phase, instant and limit) before anything moves if a constraint breaks;
+        then the loop runs the step sequencer (EXECUTE) until the last phase (COMPLETE).
         ``hmi_seq``: the HMI's TargetSeq of a WALK request (answered ACCEPTED, REJECTED,
         COMPLETED); 0 for a local request."""
         if not 1 <= steps <= MAX_WALK_STEPS:
             why = f"steps 1..{MAX_WALK_STEPS}, got {steps}"
             return self._walk_refused({"ok": False, "code": "bad_request", "error": why}, hmi_seq)
-        plan = self.plan_walk_here(steps)
+        if direction not in DIRECTIONS:
+            why = f"direction must be one of {', '.join(DIRECTIONS)}, got {direction!r}"
+            return self._walk_refused({"ok": False, "code": "bad_request", "error": why}, hmi_seq)
+        plan = self.plan_walk_here(steps, direction, unloaded)
         if isinstance(plan, dict):
             return self._walk_refused(plan, hmi_seq)
         if not plan.feasible:
@@ -508,7 +524,10 @@ class ServiceCore:
             if hmi_seq:
                 self._hmi_refused(inp.t, hmi_seq, err)
             return {"ok": False, "code": "refused", "error": err}
-        out = self.modes.walk(f"{plan.steps} step(s) of {plan.step_length_m:.3f} m")
+        load = ", unloaded" if plan.unloaded else ""
+        out = self.modes.walk(
+            f"{plan.steps} step(s) {plan.direction} of {plan.step_length_m:.3f} m{load}"
+        )
         if not out.accepted:
             if hmi_seq:
                 self._hmi_refused(inp.t, hmi_seq, out.message)
@@ -523,7 +542,9 @@ class ServiceCore:
         self.motion = MotionStats(started_s=inp.t)
         self._walk_group(inp.t)
         if self.record is not None:
-            self.record.event(inp.t, "walk", steps=plan.steps)
+            self.record.event(
+                inp.t, "walk", steps=plan.steps, direction=plan.direction, unloaded=plan.unloaded
+            )
         return {"ok": True, "mode": str(self.modes.mode), "duration_s": plan.duration_s}
 
     def _walk_group(self, now: float) -> None:
@@ -593,6 +614,8 @@ class ServiceCore:
         fig = w.figures
         return {
             "steps": w.plan.steps,
+            "direction": w.plan.direction,
+            "unloaded": w.plan.unloaded,
             "step": fig.step,
             "phase": fig.phase,
             "phase_name": w.phase_name(),

@@ -171,7 +171,8 @@ class CtlHandlers:
     jog: Callable[[str, float], Reply] | None = None
     #: an entry of another front end's audit trail (user, action, result)
     audit: Callable[[str, str, str], Reply] | None = None
-    walk: Callable[[int], Reply] | None = None
+    #: N steps; the direction (forward, back: checked by the service); unloaded
+    walk: Callable[[int, str, bool], Reply] | None = None
     #: place ring N's part; the previous part's deviation (y mm, z mm, roll, pitch, yaw deg)
     place: Callable[[int, tuple[float, ...]], Reply] | None = None
 
@@ -262,7 +263,15 @@ def parse(line: bytes) -> Request | Reply:
                 "bad_request",
                 f"'steps' must be an integer 1..{MAX_WALK_STEPS}, got {_brief(steps)}",
             )
-        return Request(cmd, (steps,))
+        unloaded = req.get("unloaded", False)
+        if not isinstance(unloaded, bool):
+            why = f"'unloaded' must be true or false, got {_brief(unloaded)}"
+            return _error("bad_request", why)
+        try:  # the directions themselves are the walk planner's (the service checks)
+            direction = _name({"direction": req.get("direction", "forward")}, "direction")
+        except ValueError as exc:
+            return _error("bad_request", str(exc))
+        return Request(cmd, (steps, direction, unloaded))
     if cmd == "place":
         ring = req.get("ring")
         if isinstance(ring, bool) or not isinstance(ring, int) or not 1 <= ring <= 99_999:

@@ -68,6 +68,16 @@ def register(sub: argparse._SubParsersAction) -> None:
     jog.add_argument("--distance-mm", type=float, required=True, help="rod travel, mm (+ out)")
     walk = verbs.add_parser("walk", parents=[common], help="walk N steps (planned first)")
     walk.add_argument("--steps", type=int, required=True, help="number of steps (1..1000)")
+    walk.add_argument(
+        "--direction",
+        default="forward",
+        help="forward (x increasing, the default) or back (the gait mirrored)",
+    )
+    walk.add_argument(
+        "--unloaded",
+        action="store_true",
+        help="the statics without the workpiece (walking back from a fixed ring)",
+    )
     place = verbs.add_parser(
         "place", parents=[common], help="place ring N's part at its planned target pose"
     )
@@ -90,8 +100,14 @@ def run(args: argparse.Namespace) -> int:
         fields = {"roll_deg": args.roll_deg, "pitch_deg": args.pitch_deg}
         timeout_s = args.timeout_s
     elif args.verb == "walk":
+        from ipc_app.planner.walk import DIRECTIONS
+
         check_walk_steps(args.steps)
-        fields = {"steps": args.steps}
+        if args.direction not in DIRECTIONS:
+            raise UsageError(
+                f"--direction must be one of {', '.join(DIRECTIONS)}, got {args.direction!r}"
+            )
+        fields = {"steps": args.steps, "direction": args.direction, "unloaded": args.unloaded}
         timeout_s = 30.0
     elif args.verb == "place":
         from wara.commands.place import parse_deviation
