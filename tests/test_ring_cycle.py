@@ -22,9 +22,10 @@ from ipc_app.planner.placement import home_pose, plan_from_deviation
 from ipc_app.planner.survey import fit_survey
 from ipc_app.service.core import ServiceCore
 from ipc_app.service.ctl import CtlHandlers, Request, dispatch, parse
+from ipc_app.service.cycle import PHASES
 from ipc_app.service.modes import Mode
 from ipc_app.service.record import RunRecorder
-from wara.cycle import PHASES, run_cycle, simulated_survey
+from wara.cycle import run_cycle, simulated_survey
 from wara.harness import Harness
 
 

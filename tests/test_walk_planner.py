@@ -282,9 +282,7 @@ def test_an_unloaded_walk_plans_without_the_workpiece(project: ProjectConfig) ->
     assert empty.min_margin[0] > loaded.min_margin[0]  # the part's COG is off-centre
     bodies = tuple(b for b in project.layers.upper.bodies if b.name != "workpiece")
     up = project.layers.upper.model_copy(update={"bodies": bodies})
-    cfg = project.model_copy(
-        update={"layers": project.layers.model_copy(update={"upper": up})}
-    )
+    cfg = project.model_copy(update={"layers": project.layers.model_copy(update={"upper": up})})
     with pytest.raises(ValueError, match="no body named 'workpiece': it cannot walk unloaded"):
         plan_walk(cfg, 1, unloaded=True)
 

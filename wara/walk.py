@@ -20,7 +20,6 @@ from config import load_project, units
 from config.hil_scenario import HilScenario, PlantSettings
 from config.schema import ProjectConfig
 from ipc_app.control.walk import LIFT, LOWER, TRANSFER, TRAVEL, WalkSequencer
-from ipc_app.model.support import unloaded_upper_bodies
 from ipc_app.planner.walk import DIRECTIONS
 from ipc_app.service.modes import Mode
 from ipc_app.service.record import RunRecorder
@@ -62,15 +61,6 @@ def walk_scenario(base: HilScenario | None = None) -> HilScenario:
     return sc.model_copy(update={"plant": plant})
 
 
-def unloaded_machine(cfg: ProjectConfig) -> ProjectConfig:
-    """``cfg``'s machine without the workpiece on its upper platform (the simulated
-    machine of an unloaded walk: the part left fixed in the ring)."""
-    up = cfg.layers.upper
-    bodies = unloaded_upper_bodies(cfg)
-    layers = cfg.layers.model_copy(update={"upper": up.model_copy(update={"bodies": bodies})})
-    return cfg.model_copy(update={"layers": layers})
-
-
 def run_walk(
     config_path: str | None,
     steps: int,
@@ -82,12 +72,12 @@ def run_walk(
     progress: Callable[[str], None] | None = None,
     on_cycle: Callable[[Harness], None] | None = None,
     directions: tuple[str, ...] = ("forward",),
-    unloaded: bool = False,
     cfg: ProjectConfig | None = None,
 ) -> dict[str, Any]:
     """Walk ``steps`` steps in each of ``directions`` in turn (``("forward", "back")``:
-    there and back); the JSON-ready result (``passed``, ``refused``...). ``unloaded``:
-    the simulated machine carries no workpiece and the service plans without it.
+    there and back); the JSON-ready result (``passed``, ``refused``...). The simulated
+    machine carries its part, so the walks are loaded (an unloaded walk's statics are
+    the service's; the simulator without the part diverges, docs/walking.md).
 
     ``on_cycle``: called after each sample with the harness (tests: stop, resume).
     ``cfg``: the project as loaded from ``config_path`` (tests: a changed one)."""
@@ -96,11 +86,7 @@ def run_walk(
     if not directions or any(d not in DIRECTIONS for d in directions):
         raise ValueError(f"directions must be of {', '.join(DIRECTIONS)}, got {directions!r}")
     say = progress or (lambda _s: None)
-    sim_cfg = unloaded_machine(cfg) if unloaded else None
-    h = Harness(
-        cfg, config_path, mode=mode, scenario=walk_scenario(scenario), record=record,
-        sim_cfg=sim_cfg,
-    )  # fmt: skip
+    h = Harness(cfg, config_path, mode=mode, scenario=walk_scenario(scenario), record=record)
     trace = WalkTrace()
     truths: list[_StepTruth] = []
     walkers: list[WalkSequencer] = []
@@ -117,7 +103,7 @@ def run_walk(
                 break
             res = h.core.request_walk(
                 steps, wait_s=5.0 if mode == "realtime" else 0.0,
-                direction=direction, unloaded=unloaded,
+                direction=direction,
             )  # fmt: skip
             if not res.get("ok"):
                 out["refused"] = res.get("refusal") or res.get("error")
@@ -259,9 +245,9 @@ def _finish(
         "min_stability_margin_m": MIN_MARGIN_M,
         "step_duration_s": STEP_S,
     }
-    w = walkers[-1] if walkers else None
     if plot_dir is not None and trace.t:
-        out["plots"] = [str(plot_walk(trace, w.leg_ids if w else (), plot_dir))]
+        leg_ids = walkers[-1].leg_ids if walkers else ()
+        out["plots"] = [str(plot_walk(trace, leg_ids, plot_dir))]
     return out
 
 

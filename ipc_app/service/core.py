@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import math
 import threading
+import time
 from collections import deque
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
@@ -50,8 +51,10 @@ from ipc_app.model.kinematics import fit_layer
 from ipc_app.model.placement import Pose
 from ipc_app.planner.placement import PlacementPlan, plan_from_deviation
 from ipc_app.planner.plan import plan as plan_attitude
+from ipc_app.planner.survey import SurveyPoint
 from ipc_app.planner.walk import DIRECTIONS, WalkPlan, WalkStart, plan_walk
 from ipc_app.service.ctl import MAX_WALK_STEPS
+from ipc_app.service.cycle import RingCycle, RingRecords
 from ipc_app.service.interlocks import (
     Cause,
     Interlock,
@@ -225,6 +228,8 @@ class ServiceCore:
         self._place_phase = -1
         #: the ring cycle's present ring and phase, as its driver reports them (status)
         self.cycle: dict[str, Any] | None = None
+        #: the ring cycle asked of the service (``request_cycle``), the last one
+        self.ring_cycle: RingCycle | None = None
 
     @staticmethod
     def record_columns(cfg: ProjectConfig) -> list[str]:
@@ -772,6 +777,119 @@ class ServiceCore:
         if self.record is not None:
             self.record.event(now, "place_end", phase=p.phase_name, mode=str(self.modes.mode))
 
+    # ------------------------------------------------------------------ the ring cycle
+
+    @property
+    def now_s(self) -> float:
+        """Machine time of the last cycle, s."""
+        return self._now
+
+    @property
+    def requests_pending(self) -> int:
+        """Requests waiting for the loop to take them."""
+        return len(self._calls)
+
+    def request_cycle(
+        self,
+        ring: int,
+        previous: Pose,
+        records: RingRecords,
+        *,
+        walk_steps: int | None = None,
+        walk_back_unloaded: bool = True,
+        drive: bool = True,
+        say: Callable[[str], None] | None = None,
+    ) -> dict[str, Any]:
+        """Run ring ``ring``'s cycle (:class:`~ipc_app.service.cycle.RingCycle`):
+        ``previous`` the part before as built (its own ring's T), ``records`` where the
+        ring's acceptance record goes, ``walk_steps`` default ``cycle.walk_steps``.
+        ``drive``: a thread of the service ticks it (``wara ctl cycle``); False: the
+        caller does (the HIL driver between its simulated periods)."""
+        if self.cfg.placement is None or self.cfg.cycle is None:
+            msg = "the project has no placement and cycle sections: it cannot run a cycle"
+            return {"ok": False, "code": "bad_request", "error": msg}
+        if not 2 <= ring <= 99_999:
+            return {"ok": False, "code": "bad_request", "error": f"ring 2..99999, got {ring}"}
+        steps = self.cfg.cycle.walk_steps if walk_steps is None else walk_steps
+        if not 0 <= steps <= MAX_WALK_STEPS:
+            why = f"walk_steps 0..{MAX_WALK_STEPS}, got {steps}"
+            return {"ok": False, "code": "bad_request", "error": why}
+        if self.ring_cycle is not None and self.ring_cycle.active:
+            rc = self.ring_cycle
+            why = f"cycle refused: ring {rc.ring}'s cycle is in {rc.phase}"
+            return {"ok": False, "code": "refused", "error": why}
+        if self.modes.mode not in (Mode.IDLE, Mode.COMPLETE):
+            why = f"cycle refused: the service is {self.modes.mode} (IDLE or COMPLETE needed)"
+            return {"ok": False, "code": "refused", "error": why}
+        cyc = RingCycle(
+            self, ring, previous, records, walk_steps=steps,
+            walk_back_unloaded=walk_back_unloaded, say=say or (lambda _s: None),
+        )  # fmt: skip
+        self.ring_cycle = cyc
+        if self.record is not None:
+            self.record.event(
+                self._now, "cycle", ring=ring, previous=previous.to_dict(), walk_steps=steps,
+                walk_back_unloaded=walk_back_unloaded,
+            )  # fmt: skip
+        cyc.start()
+        if drive:
+            threading.Thread(
+                target=self._drive_cycle, args=(cyc,), name="wara-cycle", daemon=True
+            ).start()
+        return {"ok": True, "ring": ring, "phase": cyc.phase}
+
+    def _drive_cycle(self, cyc: RingCycle) -> None:
+        """The service's cycle thread: ticks the cycle until it ends (never the loop)."""
+        while cyc.active:
+            try:
+                cyc.tick()
+            except Exception as exc:  # a bug: the cycle ends, the machine stops
+                log.exception("cycle_failed", ring=cyc.ring, phase=cyc.phase)
+                cyc._fail(f"internal: {type(exc).__name__}: {exc}")
+                return
+            time.sleep(self.CYCLE_TICK_S)
+
+    #: how often the service's cycle thread looks at the cycle, s
+    CYCLE_TICK_S = 0.05
+
+    def confirm_fixed(self, user: str) -> dict[str, Any]:
+        """The operator confirms the part is fixed (``wara ctl confirm-fixed``)."""
+        cyc = self.ring_cycle
+        if cyc is None:
+            return {"ok": False, "code": "refused", "error": "confirm-fixed refused: no cycle"}
+        return cyc.confirm_fixed(user)
+
+    def submit_survey(
+        self, points: list[SurveyPoint] | None = None, pose: Pose | None = None
+    ) -> dict[str, Any]:
+        """The ring's as-built pose for the cycle's ``survey`` (``wara ctl survey``)."""
+        cyc = self.ring_cycle
+        if cyc is None:
+            return {"ok": False, "code": "refused", "error": "survey refused: no cycle"}
+        return cyc.submit_survey(points, pose)
+
+    def stop(self, reason: str) -> dict[str, Any]:
+        """A controlled stop (``wara ctl stop``); a running ring cycle ends with it."""
+        out = self.modes.stop(reason).to_dict()
+        cyc = self.ring_cycle
+        if cyc is not None and cyc.active:
+            cyc.stop(reason)
+        return out
+
+    def end_cycle(self, cyc: RingCycle, error: str | None) -> None:
+        """The ring cycle ended (``error`` None: done): the run record and the log; a
+        failed cycle leaves the machine stopped (valves closed)."""
+        if error is not None and self.modes.mode in (
+            Mode.STARTING, Mode.EXECUTE, Mode.COMPLETE, Mode.HELD, Mode.SUSPENDED,
+        ):  # fmt: skip
+            self.modes.stop(f"ring {cyc.ring}'s cycle ended in {cyc.phase}: {error}")
+        log.info("cycle end", ring=cyc.ring, phase=cyc.phase, error=error)
+        if self.record is not None:
+            self.record.event(
+                self._now, "cycle_end", ring=cyc.ring, phase=cyc.phase, error=error,
+                phase_times_s=cyc.phase_times_s, table4=cyc.table4,
+            )  # fmt: skip
+
     def note_cycle(self, ring: int, phase: str, **figures: Any) -> None:
         """The ring cycle's driver enters ``phase`` of ring ``ring``: in the status
         (``cycle``), the run record (a ``cycle_phase`` event with ``figures``) and the log."""
@@ -867,7 +985,9 @@ class ServiceCore:
         place = self.place_status()
         if place is not None:
             snap["place"] = place
-        if self.cycle is not None:
+        if self.ring_cycle is not None:
+            snap["cycle"] = self.ring_cycle.status()
+        elif self.cycle is not None:
             snap["cycle"] = dict(self.cycle)
         return snap
 

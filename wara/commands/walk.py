@@ -37,7 +37,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.add_argument("--plot", default=None, metavar="DIR", help="write DIR/walk.png")
-    _direction_options(p)
+    _direction_options(p, unloaded=False)
     p.add_argument(
         "--and-back",
         action="store_true",
@@ -75,14 +75,16 @@ def register(sub: argparse._SubParsersAction) -> None:
     plan.set_defaults(func=run_plan)
 
 
-def _direction_options(p: argparse.ArgumentParser) -> None:
-    """``--direction`` and ``--unloaded`` (``wara walk``, ``wara walk plan``, ``wara ctl walk``)."""
+def _direction_options(p: argparse.ArgumentParser, unloaded: bool = True) -> None:
+    """``--direction`` and (the plan's) ``--unloaded``."""
     p.add_argument(
         "--direction",
         choices=DIRECTIONS,
         default="forward",
         help="forward (x increasing, the default) or back (the gait mirrored)",
     )
+    if not unloaded:  # the simulator carries its part (docs/walking.md)
+        return
     p.add_argument(
         "--unloaded",
         action="store_true",
@@ -125,7 +127,6 @@ def run_walk_cmd(args: argparse.Namespace) -> int:
             plot_dir=Path(args.plot) if args.plot else None,
             progress=say,
             directions=directions,
-            unloaded=args.unloaded,
         )
     finally:
         logs.stop()
