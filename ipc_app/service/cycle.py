@@ -161,7 +161,11 @@ class RingCycle:
         if not self.active:
             return
         try:
-            self._tick()
+            for _ in PHASES:  # on through the phases that end at once (bounded)
+                before = self.phase
+                self._tick()
+                if self.phase == before or not self.active:
+                    break
         except CycleError as exc:
             self._fail(str(exc), refused=getattr(exc, "refused", False))
 
@@ -276,7 +280,8 @@ class RingCycle:
             try:
                 fit = fit_survey(self.cfg, self.ring, points)
             except SurveyError as exc:
-                return {"ok": False, "code": "bad_request", "error": f"survey: {exc}"}
+                msg = str(exc) if str(exc).startswith("survey") else f"survey: {exc}"
+                return {"ok": False, "code": "bad_request", "error": msg}
             if not fit.accepted:
                 why = "; ".join(fit.reasons)
                 return {"ok": False, "code": "refused", "error": f"survey refused: {why}"}
