@@ -219,3 +219,27 @@ def test_a_cycle_is_refused_where_it_cannot_run() -> None:
         assert "no cycle" in core.submit_survey(pose=Pose())["error"]
     finally:
         bus.shutdown()
+
+
+def test_wara_ctl_cycle_bad_input_exits_2_before_anything_is_sent(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from wara.cli import main
+
+    monkeypatch.setenv("WARA_CTL_SOCKET", str(tmp_path / "none.sock"))  # no service there
+    bad = tmp_path / "bad.csv"
+    bad.write_text("point,face_y_m,face_z_m,x_m,y_m,z_m\nP1,4,0.3,abc,4,-6\n", encoding="utf-8")
+    for argv, text in [
+        (["ctl", "cycle", "--ring", "1"], "--ring must be within 2..99999, got 1"),
+        (["ctl", "cycle", "--ring", "3", "--walk-steps", "-1"], "--walk-steps must be within"),
+        (["ctl", "cycle", "--ring", "3", "--previous-deviation", "1,2"], "five finite numbers"),
+        (
+            ["ctl", "cycle", "--ring", "3", "--from-store", "--db", str(tmp_path / "x.sqlite")],
+            "no acceptance store",
+        ),
+        (["ctl", "survey", str(bad)], "line 2: x_m: 'abc' is not a number"),
+        (["ctl", "survey", str(tmp_path / "missing.csv")], "missing.csv"),
+        (["ctl", "walk", "--steps", "1", "--direction", "up"], "--direction must be one of"),
+    ]:
+        assert main(argv) == 2, argv
+        assert text in capsys.readouterr().err, argv

@@ -19,6 +19,7 @@ closed (:attr:`RingCycle.error`, :attr:`RingCycle.stopped_in_phase`).
 
 from __future__ import annotations
 
+import threading
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any, Protocol
@@ -108,6 +109,9 @@ class RingCycle:
     _issued_at: float | None = None
     _before: Any = None
     _started: bool = False
+    #: the cycle thread's ticks and the operator's requests take turns
+    _lock: threading.RLock = field(default_factory=threading.RLock)
+    _stop_reason: str | None = None
 
     @property
     def cfg(self) -> ProjectConfig:
@@ -152,13 +156,26 @@ class RingCycle:
         self._enter("walk", steps=self.walk_steps)
 
     def stop(self, reason: str) -> None:
-        """An operator's stop (the machine already stopped by the caller)."""
-        if self.active:
-            self._fail(f"stopped: {reason}")
+        """An operator's stop (the machine already stopped by the caller). It never
+        waits for a tick that is planning: the cycle ends at once or at its next tick."""
+        self._stop_reason = reason
+        if self._lock.acquire(blocking=False):
+            try:
+                if self.active:
+                    self._fail(f"stopped: {reason}")
+            finally:
+                self._lock.release()
 
     def tick(self) -> None:
         """Advance the cycle as far as it goes now (outside the loop)."""
+        with self._lock:
+            self._tick_locked()
+
+    def _tick_locked(self) -> None:
         if not self.active:
+            return
+        if self._stop_reason is not None:
+            self._fail(f"stopped: {self._stop_reason}")
             return
         try:
             for _ in PHASES:  # on through the phases that end at once (bounded)
@@ -248,6 +265,10 @@ class RingCycle:
     def confirm_fixed(self, user: str) -> dict[str, Any]:
         """The operator confirms the part is fixed: the hold ends with a controlled stop
         (``release``), then the cycle waits for the survey."""
+        with self._lock:
+            return self._confirm_fixed(user)
+
+    def _confirm_fixed(self, user: str) -> dict[str, Any]:
         if self.phase != "fixing" or not self.active:
             return {
                 "ok": False,
@@ -268,6 +289,10 @@ class RingCycle:
         """The as-built pose: ``points`` fitted as ``wara survey import`` fits a file, or
         ``pose`` (the acceptance store's, in the ring's own T). A refused fit leaves the
         cycle waiting in ``survey`` (another survey may follow)."""
+        with self._lock:
+            return self._submit_survey(points, pose)
+
+    def _submit_survey(self, points: list[SurveyPoint] | None, pose: Pose | None) -> dict[str, Any]:
         if self.phase != "survey" or not self.active:
             return {
                 "ok": False,
