@@ -19,7 +19,7 @@ from ipc_app.service.core import ServiceCore
 from ipc_app.service.ctl import CtlHandlers, Request, dispatch, parse
 from ipc_app.service.cycle import PHASES, RECORD_KEYS, RingCycle, previous_from_deviation
 from ipc_app.service.modes import Mode
-from ipc_app.service.record import RunRecorder
+from tests.test_ring_cycle import _place_harness
 from wara.cycle import simulated_survey
 from wara.harness import Harness
 
@@ -33,16 +33,6 @@ class _Records:
     def write(self, ring: int, values: dict[str, float | None], attached: dict[str, Any]) -> str:
         self.written.append((ring, values, attached))
         return "memory"
-
-
-def _harness(tmp_path: Path) -> tuple[Harness, RunRecorder]:
-    cfg = load_project(None)
-    rec = RunRecorder(tmp_path / "run", ServiceCore.record_columns(cfg))
-    rec.start()
-    h = Harness(cfg, None, mode="lockstep", record=rec)
-    h.start()
-    assert h.wait_for(Mode.IDLE, 20.0), h.fault_note()
-    return h, rec
 
 
 def _run_until(h: Harness, cyc: RingCycle, phase: str, limit_s: float = 60.0) -> None:
@@ -66,7 +56,7 @@ def test_the_cycle_waits_for_the_operator_and_the_survey(tmp_path: Path) -> None
     refused and the cycle keeps waiting); the record goes to the sink with the plan and
     the as-built pose; a confirmation out of its phase is refused."""
     cfg = load_project(None)
-    h, rec = _harness(tmp_path)
+    h, rec = _place_harness(tmp_path)
     records = _Records()
     try:
         previous = previous_from_deviation(cfg, 3, sheet_deviation(2, -2, 0, 0, 0))
@@ -128,7 +118,7 @@ def test_a_stop_in_fixing_ends_the_cycle_holding_safely(tmp_path: Path) -> None:
     """``wara ctl stop`` while the part waits for its bolts: the valves close, the
     cycle ends in ``fixing`` (named), nothing is recorded, a confirmation is refused."""
     cfg = load_project(None)
-    h, rec = _harness(tmp_path)
+    h, rec = _place_harness(tmp_path)
     records = _Records()
     try:
         previous = previous_from_deviation(cfg, 2, Pose())
