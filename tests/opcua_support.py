@@ -30,6 +30,7 @@ class FakeService:
     HELD, STOPPED), recording every command and audit entry it receives."""
 
     mode: str = "IDLE"
+    unit_mode: str = "PRODUCTION"
     target: list[float] | None = None
     calls: list[tuple[Any, ...]] = field(default_factory=list)
     audits: list[tuple[str, str, str]] = field(default_factory=list)
@@ -39,7 +40,7 @@ class FakeService:
         with self.lock:
             return {
                 "mode": self.mode,
-                "unit_mode": "PRODUCTION",
+                "unit_mode": self.unit_mode,
                 "since_s": 1.0,
                 "valves_enabled": self.mode == "EXECUTE",
                 "faults": [],
@@ -78,6 +79,12 @@ class FakeService:
             self.mode = "EXECUTE"
             return {"mode": "EXECUTE"}
 
+    def set_unit_mode(self, unit_mode: str) -> dict[str, Any]:
+        with self.lock:
+            self.calls.append(("unit_mode", unit_mode))
+            self.unit_mode = unit_mode
+            return {"mode": self.mode, "unit_mode": unit_mode}
+
     def audit(self, user: str, action: str, result: str) -> dict[str, Any]:
         with self.lock:
             self.audits.append((user, action, result))
@@ -93,6 +100,7 @@ class FakeService:
             hold=lambda: self._set("hold", "HELD", ("EXECUTE",)),
             unhold=lambda: self._set("unhold", "EXECUTE", ("HELD",)),
             clear=lambda: self._set("clear", "STOPPED", ("ABORTED",)),
+            unit_mode=self.set_unit_mode,
             audit=self.audit,
         )
 

@@ -104,6 +104,19 @@ def test_model_values_are_si_and_follow_the_status() -> None:
     status["faults"] = [{"interlock": "twist", "text": "twist 1.6 mm > 1.5 mm"}]
     vals = dict(zip((v.path for v in model), m.values(model, status), strict=True))
     assert vals[("PackML", "Status", "StateCurrent")] == 6
+    # OPC 30050's three state machines, with their states' ids in the PackML NodeSet
+    sm = ("PackML", "BaseStateMachine")
+    assert [vals[(*sm, "CurrentState")], vals[(*sm, "CurrentState", "Id")]] == [
+        "Cleared",
+        m.StateRef(m.NS_PACKML, 71),
+    ]
+    assert vals[(*sm, "MachineState", "CurrentState")] == "Running"
+    assert vals[(*sm, "MachineState", "ExecuteState", "CurrentState")] == "Execute"
+    assert vals[(*sm, "MachineState", "ExecuteState", "CurrentState", "Id")] == m.StateRef(
+        m.NS_PACKML, 36
+    )
+    item_id = ("MachineryBuildingBlocks", "MachineryItemState", "CurrentState", "Id")
+    assert vals[item_id] == m.StateRef(m.NS_MACHINERY, 5006)  # Executing
     assert vals[("MachineryBuildingBlocks", "MachineryItemState", "CurrentState")] == "Executing"
     assert vals[("MachineryBuildingBlocks", "MachineryOperationMode", "CurrentState")] == (
         "Processing"
@@ -132,6 +145,17 @@ def test_model_values_are_si_and_follow_the_status() -> None:
         3,
         "place",
     )
+    # ABORTED: the base machine in Aborted, the machine and execute machines inactive
+    status["mode"] = "ABORTED"
+    vals = dict(zip((v.path for v in model), m.values(model, status), strict=True))
+    assert vals[(*sm, "CurrentState")] == "Aborted"
+    assert vals[(*sm, "MachineState", "CurrentState")] == ""
+    assert vals[(*sm, "MachineState", "ExecuteState", "CurrentState", "Id")] is None
+    assert vals[item_id] == m.StateRef(m.NS_MACHINERY, 5004)  # OutOfService
+    status["mode"] = "STOPPED"
+    vals = dict(zip((v.path for v in model), m.values(model, status), strict=True))
+    assert vals[(*sm, "MachineState", "CurrentState")] == "Stopped"
+    assert vals[(*sm, "MachineState", "ExecuteState", "CurrentState")] == ""
     ids = {v.path[1] for v in model if v.path[0] == "Cylinders"}
     assert ids == {*cfg.layers.lower.cylinders, *cfg.layers.upper.cylinders}
     assert all(v.unit is not None for v in model if v.kind == "Double")
@@ -205,11 +229,20 @@ def test_node_client_browses_subscribes_and_calls(tmp_path: Path) -> None:
             "item_state": "NotExecuting",
             "operation_mode": "Processing",
             "packml_state": 4,
+            "packml_unit_mode": 1,
+            "packml_base": "Cleared",
+            "packml_machine": "Running",
+            "packml_execute": "Idle",
+            "packml_execute_id": "PackML:28",  # the Idle state of the PackML NodeSet
+            "item_state_id": "Machinery:5007",  # NotExecuting
         }
-        assert out["types"] == {  # instances of the Machinery NodeSet's types
+        assert out["types"] == {  # instances of the companion NodeSets' types
             "identification": "Machinery:MachineIdentificationType",
             "item_state": "Machinery:MachineryItemState_StateMachineType",
             "operation_mode": "Machinery:MachineryOperationModeStateMachineType",
+            "packml": "PackML:PackMLBaseObjectType",
+            "packml_status": "PackML:PackMLStatusObjectType",
+            "packml_execute": "PackML:PackMLExecuteStateMachineType",
         }
         assert out["roll_unit"] == "rad"
         assert out["states"][0] == 4 and 6 in out["states"] and out["states"][-1] == 4
@@ -233,6 +266,17 @@ def test_node_client_browses_subscribes_and_calls(tmp_path: Path) -> None:
             ("op", "StartWalk"),
         ]
         assert "refused: Steps must be an integer 1..1000" in rig.service.audits[-2][2]
+        # PackMLBaseObjectType's methods: SetUnitMode sets the unit mode (PackML's 2:
+        # Maintenance); what W-ARa does not have is refused, audited
+        packml = _node(rig, tmp_path, "call-packml", "op", S.PASSWORDS["op"])
+        assert packml["ok"], packml
+        assert ("unit_mode", "MAINTENANCE") in rig.service.calls
+        assert [a for _, a, _ in rig.service.audits[-3:]] == [
+            "SetUnitMode",
+            "SetUnitMode",
+            "SetMachSpeed",
+        ]
+        assert "W-ARa has no machine speed" in rig.service.audits[-1][2]
 
 
 @pytest.mark.slow
@@ -396,6 +440,10 @@ def test_bench_opcua_reports_the_loop_and_the_latency_with_its_parts() -> None:
     assert out["passed"] is True, out.get("error")
     for phase in ("without", "with"):
         assert out[phase]["measured_cycles"] > 1000
+    # --quick: one round; its ratio with/without of the loop's compute p99
+    assert len(out["rounds"]) == 1 and out["compute_p99_ratio"]["median"] == pytest.approx(
+        out["rounds"][0]["with"]["compute_p99_ms"] / out["rounds"][0]["without"]["compute_p99_ms"]
+    )
     lat = out["latency_ms"]
     # 2 cycles of 4 changes; a STARTING shorter than the 100 ms publishing interval is
     # overwritten in the client's queue of one before it is sent
@@ -473,3 +521,36 @@ def test_demo_with_opcua_serves_the_demo_to_a_client_with_the_printed_credential
         reader.join(10.0)
     assert 6 in seen, seen  # Execute, while the demo's first example runs
     assert demo.returncode == 0, "".join(lines[-20:])
+
+
+# ---------------------------------------------------------------------- the process
+
+
+def test_server_process_starts_under_the_normal_scheduler() -> None:
+    """The server process (and a restart of it) starts under the normal scheduler even
+    when spawned from a SCHED_FIFO thread of the service."""
+    from ipc_app.opcua.process import OpcUaProcess
+
+    proc = OpcUaProcess(None, "/nonexistent.sock")
+    proc.argv = [sys.executable, "-c", "import time; time.sleep(30)"]
+    spawned: list[subprocess.Popen[str]] = []
+    fifo: list[bool] = []
+
+    def spawn_as_fifo() -> None:
+        # as a restart from a SCHED_FIFO thread of the service would
+        with contextlib.suppress(OSError, AttributeError):
+            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(1))
+            fifo.append(True)
+        spawned.append(proc._spawn())
+
+    t = threading.Thread(target=spawn_as_fifo)
+    t.start()
+    t.join()
+    child = spawned[0]
+    try:
+        if not fifo:
+            pytest.skip("SCHED_FIFO refused here: nothing to inherit")
+        assert os.sched_getscheduler(child.pid) == os.SCHED_OTHER
+    finally:
+        child.kill()
+        child.wait()

@@ -10,7 +10,7 @@ import pytest
 from structlog.testing import capture_logs
 
 from config.schema import Realtime
-from ipc_app.service.loop import FixedRateLoop, RealtimeReport, apply_realtime
+from ipc_app.service.loop import FixedRateLoop, RealtimeReport, SlackGate, apply_realtime
 
 
 class FakeTime:
@@ -263,3 +263,115 @@ def test_wara_bench_loop_prints_one_json_object(capsys: pytest.CaptureFixture[st
     out = json.loads(capsys.readouterr().out)  # logs went to stderr
     assert out["cycles"] > 0 and out["period_ms"] == 5.0
     assert {"jitter_p99_ms", "compute_p99_ms", "overruns", "realtime"} <= set(out)
+
+
+# ---------------------------------------------------------------- the slack gate
+
+
+class _RecordingGate(SlackGate):
+    def __init__(self, events: list[str]) -> None:
+        super().__init__()
+        self.events = events
+
+    def cycle_done(self) -> None:
+        self.events.append("done")
+        super().cycle_done()
+
+
+def test_slack_gate_opens_after_each_step_and_only_while_the_loop_runs() -> None:
+    ft = FakeTime()
+    events: list[str] = []
+    gate = _RecordingGate(events)
+    calls: list[int] = []
+    holder: list[FixedRateLoop] = []
+
+    def step(k: int, _t: float) -> None:
+        assert gate.active and gate.in_step  # set before the first step; during each
+        events.append(f"step {k}")
+        calls.append(k)
+        ft.t += 0.3
+        if len(calls) >= 3:
+            holder[0].stop()
+
+    loop = FixedRateLoop(
+        step, 1.0, clock=ft.clock, sleep=ft.sleep, freeze_heap=False, slack_gate=gate
+    )
+    holder.append(loop)
+    assert not gate.active
+    loop.run()
+    assert events == ["step 0", "done", "step 1", "done", "step 2", "done"]
+    assert not gate.active and not gate.in_step
+    assert gate.wait(10.0) is False  # a stopped loop: a status no longer waits for it
+
+
+def _waiter(gate: SlackGate, timeout_s: float, out: list[bool]) -> threading.Thread:
+    t = threading.Thread(target=lambda: out.append(gate.wait(timeout_s)), daemon=True)
+    t.start()
+    return t
+
+
+def _until_waiting(gate: SlackGate) -> None:
+    for _ in range(2000):
+        if gate._waiting:
+            return
+        threading.Event().wait(0.001)
+    raise AssertionError("the waiter never waited")
+
+
+def test_slack_gate_holds_a_waiter_until_the_step_has_ended() -> None:
+    gate = SlackGate()
+    gate.active = True
+    assert gate.wait(30.0) is True  # between steps: at once
+    gate.step_started()
+    out: list[bool] = []
+    t = _waiter(gate, 30.0, out)
+    _until_waiting(gate)
+    t.join(0.05)
+    assert t.is_alive() and out == []  # no cycle ended yet: still waiting
+    gate.cycle_done()
+    t.join(5.0)
+    assert out == [True]
+    assert gate._waiting == 0
+
+
+def test_slack_gate_gives_up_after_its_timeout() -> None:
+    gate = SlackGate()
+    gate.active = True
+    gate.step_started()  # a step that does not end (a stalled loop): the caller goes on
+    out: list[bool] = []
+    _waiter(gate, 0.05, out).join(5.0)
+    assert out == [False]
+
+
+def test_service_status_is_built_in_the_loops_slack() -> None:
+    """The control channel's status (what the OPC UA server asks 20 times a second)
+    waits for the end of a loop step before it builds the snapshot."""
+    from ipc_app.service.app import service_handlers
+
+    built: list[str] = []
+
+    class Core:
+        period_s = 10.0  # the wait's bound is 2 periods: longer than this test
+
+        def snapshot(self) -> dict[str, object]:
+            built.append("snapshot")
+            return {"mode": "IDLE"}
+
+    class Ctl:
+        def health(self) -> dict[str, object]:
+            return {}
+
+    gate = SlackGate()
+    gate.active = True
+    gate.step_started()
+    handlers = service_handlers(Core, Ctl, slack=gate)  # type: ignore[arg-type]
+    out: list[dict[str, object]] = []
+    t = threading.Thread(target=lambda: out.append(handlers.status()), daemon=True)
+    t.start()
+    _until_waiting(gate)
+    assert built == []  # not during the step
+    gate.cycle_done()
+    t.join(5.0)
+    assert built == ["snapshot"] and out[0]["mode"] == "IDLE"
+    handlers.status()  # between steps: built at once
+    assert built == ["snapshot", "snapshot"]

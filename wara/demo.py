@@ -50,7 +50,7 @@ def run_demo(
         if opcua:  # the OPC UA server for the demo's duration, up before the simulator
             from wara.demo_opcua import serve_opcua
 
-            stack.enter_context(serve_opcua(demo.core, config_path, say))
+            stack.enter_context(serve_opcua(demo.core, config_path, say, demo.slack_gate))
         demo.start()
         say("starting: waiting for the PLC")
         if not demo.wait_for(Mode.IDLE, 20.0):

@@ -19,6 +19,7 @@ from pathlib import Path
 
 from ipc_app.service.core import ServiceCore
 from ipc_app.service.ctl import CtlServer
+from ipc_app.service.loop import SlackGate
 
 DEMO_USER = "operator"
 
@@ -29,7 +30,10 @@ def demo_dir() -> Path:
 
 @contextlib.contextmanager
 def serve_opcua(
-    core: ServiceCore, config_path: str | None, say: Callable[[str], None]
+    core: ServiceCore,
+    config_path: str | None,
+    say: Callable[[str], None],
+    slack: SlackGate | None = None,
 ) -> Iterator[str]:
     from ipc_app.opcua import pki
     from ipc_app.opcua.process import OpcUaProcess
@@ -45,7 +49,7 @@ def serve_opcua(
     with os.fdopen(fd, "w") as f:
         f.write(password + "\n")
     pki.create_server_cert(pki_dir)
-    ctl = CtlServer(service_handlers(lambda: core, lambda: ctl), root / "ctl.sock")
+    ctl = CtlServer(service_handlers(lambda: core, lambda: ctl, slack=slack), root / "ctl.sock")
     ctl.bind()
     ctl.start()
     proc = OpcUaProcess(

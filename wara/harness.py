@@ -40,6 +40,7 @@ from ipc_app.service.loop import (
     FixedRateLoop,
     OsApi,
     RealtimeReport,
+    SlackGate,
     freeze_startup_heap,
 )
 from ipc_app.service.modes import Mode
@@ -194,6 +195,8 @@ class Harness:
         self._os_api = os_api
         self.threads_realtime = RealtimeReport()
         self.loop: FixedRateLoop | None = None
+        #: a control channel on this core builds its statuses in the loop's slack
+        self.slack_gate = SlackGate()
         self._sim_thread: threading.Thread | None = None
         self._stop = threading.Event()
 
@@ -227,6 +230,7 @@ class Harness:
             realtime=self._realtime(),
             os_api=self._os_api,
             freeze_heap=False,
+            slack_gate=self.slack_gate,
         )
 
         self.loop.start()

@@ -41,11 +41,10 @@ TYPED: dict[tuple[str, ...], tuple[str, str, int]] = {
         NS_MACHINERY,
         1008,  # MachineryOperationModeStateMachineType
     ),
+    # OPC 30050: its Status (PackMLStatusObjectType), its BaseStateMachine with the
+    # MachineState and ExecuteState sub-machines, Admin, and the type's methods
+    ("PackML",): (NS_PACKML, NS_PACKML, 6),  # PackMLBaseObjectType
 }
-# PackML's objects are not PackMLBaseObjectType instances: that type brings methods
-# (SetUnitMode, RemoteCommand, SetParameter, ...) and a state machine of its own that
-# the server would carry without serving them; its objects keep the type's browse names
-# (Status, UnitModeCurrent) in the PackML namespace, with the state in Status.
 #: The other objects under these roots: folders with a browse name in this namespace.
 COMPANION_ROOTS = {"MachineryBuildingBlocks": NS_MACHINERY, "PackML": NS_PACKML}
 
@@ -80,10 +79,59 @@ class Var:
     """One variable: its path of browse names (``ns`` of each), type, unit, getter."""
 
     path: tuple[str, ...]
-    kind: str  #: "Double", "Boolean", "String", "LocalizedText", "Int32", "UInt32"
+    #: "Double", "Boolean", "String", "LocalizedText", "Int32", "UInt32", or "NodeId" (a
+    #: state machine's ``CurrentState/Id``: :class:`StateRef` or None)
+    kind: str
     read: Callable[[Status], Any]
     unit: Unit | None = None
     ns: str = NS_WARA
+
+
+@dataclass(frozen=True)
+class StateRef:
+    """A state object of a companion type (a ``CurrentState/Id`` value): its namespace
+    and numeric id, from the NodeSet."""
+
+    ns: str
+    id: int
+
+
+#: OPC 40001-1's states (MachineryItemState_StateMachineType,
+#: MachineryOperationModeStateMachineType): name -> numeric id in the Machinery NodeSet.
+MACHINERY_STATE_IDS = {
+    "OutOfService": 5004,
+    "NotAvailable": 5005,
+    "Executing": 5006,
+    "NotExecuting": 5007,
+    "None": 5024,
+    "Maintenance": 5025,
+    "Processing": 5026,
+    "Setup": 5027,
+}
+#: OPC 30050's state machines by the service's mode: PackMLBaseStateMachineType
+#: (Aborted, or Cleared with MachineState inside), PackMLMachineStateMachineType
+#: (Stopped, or Running with ExecuteState inside) and PackMLExecuteStateMachineType;
+#: (name, numeric id in the PackML NodeSet), None where that machine is not active.
+PACKML_BASE: dict[str, tuple[str, int]] = {"ABORTED": ("Aborted", 62)}
+PACKML_BASE_ELSE = ("Cleared", 71)
+PACKML_MACHINE: dict[str, tuple[str, int] | None] = {"ABORTED": None, "STOPPED": ("Stopped", 53)}
+PACKML_MACHINE_ELSE = ("Running", 75)
+PACKML_EXECUTE: dict[str, tuple[str, int]] = {
+    "IDLE": ("Idle", 28),
+    "STARTING": ("Starting", 29),
+    "SUSPENDED": ("Suspended", 31),
+    "HELD": ("Held", 34),
+    "EXECUTE": ("Execute", 36),
+    "COMPLETE": ("Complete", 38),
+}
+
+
+def packml_states(mode_name: str) -> tuple[tuple[str, int] | None, ...]:
+    """The (base, machine, execute) states of OPC 30050 for one of the service's modes."""
+    base = PACKML_BASE.get(mode_name, PACKML_BASE_ELSE)
+    machine = PACKML_MACHINE.get(mode_name, PACKML_MACHINE_ELSE)
+    execute = PACKML_EXECUTE.get(mode_name) if machine == PACKML_MACHINE_ELSE else None
+    return base, machine, execute
 
 
 #: MachineryItemState (OPC 40001-1 MachineryItemState_StateMachineType) of each mode.
@@ -174,68 +222,77 @@ def _step_phase(s: Status) -> tuple[Any, Any]:
     return None, None
 
 
+def _machinery_state(path: tuple[str, ...], name: Callable[[Status], str]) -> list[Var]:
+    """A Machinery state machine's ``CurrentState`` and its ``Id``."""
+    return [
+        Var((*path, "CurrentState"), "LocalizedText", name, ns=NS_MACHINERY),
+        Var(
+            (*path, "CurrentState", "Id"),
+            "NodeId",
+            lambda s: StateRef(NS_MACHINERY, MACHINERY_STATE_IDS[name(s)]),
+            ns=NS_MACHINERY,
+        ),
+    ]
+
+
+def _packml_state(path: tuple[str, ...], level: int) -> list[Var]:
+    """One of PackML's three state machines (``level`` 0 base, 1 machine, 2 execute):
+    ``CurrentState`` (empty where that machine is not active) and its ``Id``."""
+
+    def state(s: Status) -> tuple[str, int] | None:
+        return packml_states(mode(s))[level]
+
+    return [
+        Var((*path, "CurrentState"), "LocalizedText", lambda s: (state(s) or ("", 0))[0]),
+        Var(
+            (*path, "CurrentState", "Id"),
+            "NodeId",
+            lambda s: StateRef(NS_PACKML, st[1]) if (st := state(s)) else None,
+        ),
+    ]
+
+
 def variables(cfg: ProjectConfig) -> list[Var]:
     """Every variable of the model for this project (the attitude cylinders by id)."""
+    blocks = ("MachineryBuildingBlocks",)
+    base = ("PackML", "BaseStateMachine")
     out: list[Var] = [
         # OPC 40001-1 Machinery building blocks
-        Var(
-            ("MachineryBuildingBlocks", "MachineryItemState", "CurrentState"),
-            "LocalizedText",
-            lambda s: ITEM_STATE.get(mode(s), "NotAvailable"),
-            ns=NS_MACHINERY,
+        *_machinery_state(
+            (*blocks, "MachineryItemState"), lambda s: ITEM_STATE.get(mode(s), "NotAvailable")
         ),
-        Var(
-            ("MachineryBuildingBlocks", "MachineryOperationMode", "CurrentState"),
-            "LocalizedText",
+        *_machinery_state(
+            (*blocks, "MachineryOperationMode"),
             lambda s: OPERATION_MODE.get(str(s.get("unit_mode")), "None"),
-            ns=NS_MACHINERY,
         ),
-        # OPC 30050 PackML: the state machine and its status
-        Var(
-            ("PackML", "Status", "StateCurrent"),
-            "Int32",
-            lambda s: PACKML_STATES.get(mode(s), 0),
-            ns=NS_PACKML,
-        ),
-        Var(("PackML", "Status", "StateCurrentName"), "String", mode, ns=NS_PACKML),
+        # OPC 30050 PackML: the state machines (the ones of PackMLBaseObjectType)
+        *_packml_state(base, 0),
+        *_packml_state((*base, "MachineState"), 1),
+        *_packml_state((*base, "MachineState", "ExecuteState"), 2),
         Var(
             ("PackML", "Status", "UnitModeCurrent"),
             "Int32",
             lambda s: UNIT_MODE_CODES.get(str(s.get("unit_mode")), 0),
             ns=NS_PACKML,
         ),
+        # beside the type's variables, in this namespace: the PackML state number
+        # (ISA-TR88 / the PLC's control word), names, since when, and the step and phase
+        # of a ring cycle or a walk (only when the service reports one)
+        Var(("PackML", "Status", "StateCurrent"), "Int32", lambda s: PACKML_STATES.get(mode(s), 0)),
+        Var(("PackML", "Status", "StateCurrentName"), "String", mode),
         Var(
             ("PackML", "Status", "UnitModeCurrentName"),
             "String",
             lambda s: str(s.get("unit_mode") or ""),
-            ns=NS_PACKML,
         ),
-        Var(
-            ("PackML", "Status", "StateSince"),
-            "Double",
-            lambda s: _num(s.get("since_s")),
-            SECOND,
-            ns=NS_PACKML,
-        ),
-        # the ring cycle's or the walk's step and phase: only when the service reports one
+        Var(("PackML", "Status", "StateSince"), "Double", lambda s: _num(s.get("since_s")), SECOND),
         Var(
             ("PackML", "Status", "CycleStep"),
             "Int32",
             lambda s: int(v) if isinstance(v := _step_phase(s)[0], int) else -1,
-            ns=NS_PACKML,
         ),
-        Var(
-            ("PackML", "Status", "CyclePhase"),
-            "String",
-            lambda s: str(_step_phase(s)[1] or ""),
-            ns=NS_PACKML,
-        ),
-        Var(
-            ("PackML", "Status", "Message"),
-            "String",
-            lambda s: str(s.get("message") or ""),
-            ns=NS_PACKML,
-        ),
+        Var(("PackML", "Status", "CyclePhase"), "String", lambda s: str(_step_phase(s)[1] or "")),
+        Var(("PackML", "Status", "Message"), "String", lambda s: str(s.get("message") or "")),
         # the workpiece's attitude
         Var(
             ("Attitude", "TargetRoll"),

@@ -22,6 +22,8 @@ from typing import IO
 
 import structlog
 
+from ipc_app.service.worker import under_normal_scheduler
+
 log = structlog.get_logger("wara.opcua.process")
 
 RESTART_PAUSE_S = 2.0
@@ -54,13 +56,18 @@ class OpcUaProcess:
         self._watch: threading.Thread | None = None
 
     def _spawn(self) -> subprocess.Popen[str]:
-        proc = subprocess.Popen(
-            self.argv,
-            stdin=subprocess.DEVNULL,
-            stdout=subprocess.PIPE,
-            stderr=subprocess.PIPE,
-            text=True,
-            env=os.environ.copy(),
+        # under the normal scheduler whatever the spawning thread's policy (a restart comes
+        # from the watch thread, which may run under SCHED_FIFO): asyncua computing at the
+        # loop's priority would keep a CPU from it
+        proc = under_normal_scheduler(
+            lambda: subprocess.Popen(
+                self.argv,
+                stdin=subprocess.DEVNULL,
+                stdout=subprocess.PIPE,
+                stderr=subprocess.PIPE,
+                text=True,
+                env=os.environ.copy(),
+            )
         )
         threading.Thread(target=self._pump_err, args=(proc,), daemon=True).start()
         return proc

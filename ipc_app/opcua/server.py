@@ -63,9 +63,25 @@ VARIANT = {
     "LocalizedText": ua.VariantType.LocalizedText,
     "Int32": ua.VariantType.Int32,
     "UInt32": ua.VariantType.UInt32,
+    "NodeId": ua.VariantType.NodeId,
 }
-INITIAL = {"Double": math.nan, "Boolean": False, "String": "", "Int32": 0, "UInt32": 0}
+INITIAL = {
+    "Double": math.nan,
+    "Boolean": False,
+    "String": "",
+    "Int32": 0,
+    "UInt32": 0,
+    "NodeId": ua.NodeId(),
+}
 MACHINE = "W-ARa"
+#: PackMLBaseObjectType's methods that W-ARa does not serve (refused, audited).
+PACKML_UNSUPPORTED = {
+    "SetMachSpeed": "machine speed",
+    "SetProduct": "product",
+    "SetParameter": "parameters",
+    "RemoteCommand": "remote command interface",
+    "SetInterlock": "material interlocks",
+}
 #: The largest message a client may send (the model's largest read is a few KiB).
 MAX_MESSAGE_BYTES = 4 * 1024 * 1024
 #: A session unused for longer is closed by the server (a client that vanished).
@@ -232,6 +248,7 @@ class OpcUaServer:
         self.model = m.variables(cfg)
         self.nodes: list[Any] = []
         self.last: list[Any] = []
+        self._ns: dict[str, int] = {}
         self.reachable: Any = None
         self.updates = 0
         self.server: Server | None = None
@@ -278,6 +295,7 @@ class OpcUaServer:
             await srv.import_xml(str(path))
         ns = {uri: await srv.get_namespace_index(uri) for uri in m.COMPANIONS}
         ns[m.NS_WARA] = w = await srv.register_namespace(m.NS_WARA)
+        self._ns = ns
         machines = await srv.nodes.objects.get_child(
             ua.QualifiedName("Machines", ns[m.NS_MACHINERY])
         )
@@ -341,6 +359,7 @@ class OpcUaServer:
             False,
         )
         await self._methods(machine, w)
+        await self._packml(srv, w)
 
     async def _instance(
         self, srv: Server, parent: Any, key: tuple[str, ...], ns: dict[str, int], w: int
@@ -350,6 +369,8 @@ class OpcUaServer:
         a folder, or a plain object, with its browse name in its specification's
         namespace."""
         nid = _nid(".".join((MACHINE, *key)), w)
+        if nid in srv.iserver.aspace:  # a child of a typed instance (PackML's Status, ...)
+            return srv.get_node(nid)
         typed = m.TYPED.get(key)
         if typed is not None:
             bname_ns, type_ns, type_id = typed
@@ -412,6 +433,50 @@ class OpcUaServer:
             await machine.add_method(
                 _nid(f"{MACHINE}.{name}", w), ua.QualifiedName(name, w), fn, args, out
             )
+
+    async def _packml(self, srv: Server, w: int) -> None:
+        """PackMLBaseObjectType's own values and methods: ``SetUnitMode`` sets the unit
+        mode as ``wara ctl unit-mode`` does (PackML's numbers, :data:`UNIT_MODES`); the
+        others are refused with ``BadNotSupported``: W-ARa has no machine speed, product,
+        parameter, remote-command or material-interlock interface."""
+
+        def node(path: str) -> Any:
+            return srv.get_node(_nid(f"{MACHINE}.PackML.{path}", w))
+
+        for path, val, vt in (
+            ("TagID", MACHINE, ua.VariantType.String),
+            ("Status.MachSpeed", 0.0, ua.VariantType.Float),
+            ("Status.CurMachSpeed", 0.0, ua.VariantType.Float),
+            ("Status.EquipmentBlocked", False, ua.VariantType.Boolean),
+            ("Status.EquipmentStarved", False, ua.VariantType.Boolean),
+        ):
+            await node(path).write_value(ua.Variant(val, vt))
+        names = {code: name for name, code in m.UNIT_MODE_CODES.items()}
+
+        async def set_unit_mode(parent: Any, requested: Any) -> Any:
+            n = requested.Value if isinstance(requested, ua.Variant) else requested
+            if isinstance(n, bool) or n not in names:
+                return await self._refused(
+                    "SetUnitMode",
+                    f"RequestedMode must be one of {sorted(names)} ({', '.join(names.values())})",
+                    ua.StatusCodes.BadInvalidArgument,
+                )
+            return await self._command(
+                f"SetUnitMode({n} {names[n]})", "unit_mode", {"unit_mode": names[n]}
+            )
+
+        srv.link_method(node("SetUnitMode"), set_unit_mode)
+        for name, what in PACKML_UNSUPPORTED.items():
+
+            def refuse(name: str, what: str) -> Callable[..., Awaitable[Any]]:
+                async def call(parent: Any, *_args: Any) -> Any:
+                    return await self._refused(
+                        name, f"W-ARa has no {what}", ua.StatusCodes.BadNotSupported
+                    )
+
+                return call
+
+            srv.link_method(node(name), refuse(name, what))
 
     def _simple(self, name: str, cmd: str) -> Callable[[Any], Awaitable[Any]]:
         async def call(parent: Any) -> Any:
@@ -502,7 +567,7 @@ class OpcUaServer:
             ):
                 continue
             self.last[i] = val
-            v = ua.LocalizedText(val) if var.kind == "LocalizedText" else val
+            v = self._variant_value(var.kind, val)
             dv = ua.DataValue(
                 ua.Variant(v, VARIANT[var.kind]), SourceTimestamp=stamp, ServerTimestamp=stamp
             )
@@ -511,6 +576,13 @@ class OpcUaServer:
             if written % WRITES_PER_YIELD == 0:
                 await asyncio.sleep(0)
         self.updates += 1
+
+    def _variant_value(self, kind: str, val: Any) -> Any:
+        if kind == "LocalizedText":
+            return ua.LocalizedText(val)
+        if kind == "NodeId":
+            return _nid(val.id, self._ns[val.ns]) if val is not None else ua.NodeId()
+        return val
 
     async def feed(self) -> None:
         period = self.opc.update_period_ms / 1000.0

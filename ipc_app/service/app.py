@@ -37,7 +37,7 @@ from ipc_app.service.ctl import CtlError, CtlHandlers, CtlServer
 from ipc_app.service.cycle import RingRecords, previous_from_deviation
 from ipc_app.service.interlocks import Cause, Interlock
 from ipc_app.service.logs import configure_logging
-from ipc_app.service.loop import SWITCH_INTERVAL_S, FixedRateLoop
+from ipc_app.service.loop import SWITCH_INTERVAL_S, FixedRateLoop, SlackGate
 from ipc_app.service.record import RunRecorder, new_run_dir
 from ipc_app.service.sdnotify import SystemdNotifier
 from ipc_app.service.worker import PlannerWorker
@@ -48,6 +48,8 @@ log = structlog.get_logger("wara.service")
 
 #: How long ``wara ctl adjust`` waits for the planner's verdict.
 ADJUST_WAIT_S = 15.0
+#: A status waits at most this many loop periods for the end of a cycle (SlackGate).
+SLACK_WAIT_PERIODS = 2
 
 
 class StartupError(Exception):
@@ -59,15 +61,25 @@ def service_handlers(
     core: Callable[[], ServiceCore],
     ctl: Callable[[], CtlServer],
     wait_s: float = ADJUST_WAIT_S,
+    slack: SlackGate | None = None,
     records: RingRecords | None = None,
 ) -> CtlHandlers:
     """The control channel's commands on the service core (``core`` and ``ctl`` are asked
     for at each request: the socket is bound before the core is built). ``adjust`` and
     ``reset`` wait up to ``wait_s`` for their outcome; the status carries ``ctl``, the
-    channel's own health."""
+    channel's own health. With ``slack`` (the loop's gate) a status is built right after
+    a loop cycle's step, in the loop's slack, not during its compute. ``records``: where
+    ``cycle`` writes the rings' acceptance records (None: a cycle is refused)."""
+
+    def status() -> dict[str, Any]:
+        c = core()
+        if slack is not None:
+            slack.wait(SLACK_WAIT_PERIODS * c.period_s)
+        return c.snapshot() | {"ctl": ctl().health()}
+
     return CtlHandlers(
         adjust=lambda r, p: _reply(core().request_adjust(r, p, wait_s=wait_s)),
-        status=lambda: core().snapshot() | {"ctl": ctl().health()},
+        status=status,
         stop=lambda: _reply(core().stop("operator stop (wara ctl)")),
         reset=lambda: _reply(core().request_reset(wait_s=wait_s)),
         clear=lambda: _reply(core().request_clear(wait_s=wait_s)),
@@ -207,7 +219,11 @@ def run_service(
     logging_handle = configure_logging(log_level)
     stop = stop_event or threading.Event()
     root = Path(record_root) if record_root else default_record_root()
-    ctl = CtlServer(service_handlers(lambda: core, lambda: ctl, records=ring_records), socket_path)
+    slack = SlackGate()
+    ctl = CtlServer(
+        service_handlers(lambda: core, lambda: ctl, slack=slack, records=ring_records),
+        socket_path,
+    )
     # The bus and the socket first: a start that fails there writes nothing.
     with contextlib.ExitStack() as undo:
         undo.callback(logging_handle.stop)
@@ -255,7 +271,11 @@ def run_service(
         )
 
     loop = FixedRateLoop(
-        step, cfg.control.period_s, realtime=cfg.control.realtime, on_stats=on_stats
+        step,
+        cfg.control.period_s,
+        realtime=cfg.control.realtime,
+        on_stats=on_stats,
+        slack_gate=slack,
     )
     watch = CtlWatch(ctl, core.modes.fault)
     if threading.current_thread() is threading.main_thread():

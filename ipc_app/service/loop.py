@@ -231,6 +231,60 @@ class _Counters:
 SWITCH_INTERVAL_S = 0.0005
 
 
+class SlackGate:
+    """Lets another thread of the loop's process do its work in the loop's slack.
+
+    The loop's compute holds the GIL; a thread that builds a status at the same moment
+    takes it from the loop in ``SWITCH_INTERVAL_S`` slices and so lengthens that cycle
+    (the OPC UA server asks for a status 20 times a second). A thread that calls
+    :meth:`wait` while a step runs is woken by the loop right after that step has ended
+    (:meth:`cycle_done`), with the rest of the period before the next deadline; between
+    steps it goes on at once.
+
+    The loop's side is bounded: two attribute writes per cycle, and a notify only while a
+    thread waits. :meth:`wait` returns at once while no loop runs (:attr:`active`), and
+    after ``timeout_s`` in any case, so a late or stopped loop never blocks the caller
+    for long.
+    """
+
+    def __init__(self) -> None:
+        self._cv = threading.Condition()
+        self._waiting = 0
+        self._cycles = 0
+        #: set by the loop while it runs
+        self.active = False
+        #: set by the loop from the start of a step until :meth:`cycle_done`
+        self.in_step = False
+
+    def step_started(self) -> None:
+        """The loop thread: a step begins."""
+        self.in_step = True
+
+    def cycle_done(self) -> None:
+        """The loop thread: the step and its bookkeeping have ended (wakes the threads
+        waiting, if any)."""
+        self.in_step = False
+        self._cycles += 1
+        if self._waiting:
+            with self._cv:
+                self._cv.notify_all()
+
+    def wait(self, timeout_s: float) -> bool:
+        """Return once no step runs: at once between steps, else when the running one
+        has ended. False when it did not end within ``timeout_s`` (or no loop runs)."""
+        start = self._cycles
+        if not self.active:
+            return False
+        if not self.in_step:
+            return True
+        with self._cv:
+            self._waiting += 1
+            try:
+                return self._cv.wait_for(lambda: self._cycles != start, timeout_s)
+            finally:
+                self._waiting -= 1
+
+
 class FixedRateLoop:
     """Run ``step(cycle_index, t_now)`` every ``period_s`` on absolute deadlines.
 
@@ -256,6 +310,7 @@ class FixedRateLoop:
         gc_mode: GcMode = "freeze",
         freeze_heap: bool = True,
         name: str = "wara-loop",
+        slack_gate: SlackGate | None = None,
     ) -> None:
         if not (period_s > 0 and math.isfinite(period_s)):
             raise ValueError(f"period_s must be a positive number of seconds, got {period_s}")
@@ -274,6 +329,7 @@ class FixedRateLoop:
         self._gc_mode: GcMode = gc_mode
         self._freeze_heap = freeze_heap
         self._name = name
+        self._slack_gate = slack_gate
         self._jitter = _Ring(ring_size)
         self._period_dev = _Ring(ring_size)
         self._compute = _Ring(ring_size)
@@ -319,12 +375,17 @@ class FixedRateLoop:
             gc_mode=self._gc_mode,
             gc_frozen=gc.get_freeze_count(),
         )
+        gate = self._slack_gate
+        if gate is not None:
+            gate.active = True
         try:
             self._run()
         except BaseException as exc:  # the service decides; the loop only reports
             self.error = exc
             log.exception("loop_step_failed", error=repr(exc))
         finally:
+            if gate is not None:
+                gate.active = False
             self._stall.close()
             if self._gc_mode == "slack" and gc_was_enabled:
                 gc.enable()
@@ -338,6 +399,7 @@ class FixedRateLoop:
         next_stats = deadline + self._stats_every_s
         c = self._c
         stall = self._stall
+        gate = self._slack_gate
         while not stop.is_set():
             now = clock()
             if now < deadline:
@@ -351,6 +413,8 @@ class FixedRateLoop:
                 self._period_dev.add(abs(wake - prev_wake - period))
             prev_wake = wake
             stall.arm()
+            if gate is not None:
+                gate.step_started()
             self._step(index, wake)
             end = clock()
             self._compute.add(end - wake)
@@ -369,6 +433,8 @@ class FixedRateLoop:
                 next_stats = end + self._stats_every_s
                 if self._on_stats is not None:
                     self._on_stats(self.stats())
+            if gate is not None:
+                gate.cycle_done()
 
     def _overrun(self, now: float, took_s: float, missed: int) -> None:
         c = self._c

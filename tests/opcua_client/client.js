@@ -92,6 +92,20 @@ async function main() {
     out.refused = await call("StartWalk", [{ dataType: DataType.UInt32, value: 0 }]);
     out.walk = await call("StartWalk", [{ dataType: DataType.UInt32, value: 3 }]);
     out.ok = out.walk.status === "Good" && out.refused.status === "BadInvalidArgument";
+  } else if (scenario === "call-packml") {
+    // PackMLBaseObjectType's own methods on the PackML object
+    const packml = id("PackML");
+    const callOn = async (name, args) => {
+      const r = await session.call({ objectId: packml, methodId: id(`PackML.${name}`), inputArguments: args });
+      return { status: r.statusCode.name, output: (r.outputArguments || []).map((v) => v.value) };
+    };
+    out.unit_mode = await callOn("SetUnitMode", [{ dataType: DataType.Int32, value: 2 }]);
+    out.bad_unit_mode = await callOn("SetUnitMode", [{ dataType: DataType.Int32, value: 9 }]);
+    out.speed = await callOn("SetMachSpeed", [{ dataType: DataType.Float, value: 1.0 }]);
+    out.ok =
+      out.unit_mode.status === "Good" &&
+      out.bad_unit_mode.status === "BadInvalidArgument" &&
+      out.speed.status === "BadNotSupported";
   } else if (scenario === "full") {
     // browse by path, as a SCADA integrator would
     const machine = `/${nsMach}:Machines/${ns}:W-ARa`;
@@ -100,7 +114,13 @@ async function main() {
       identification: `${machine}/${nsDi}:Identification/${nsDi}:Manufacturer`,
       item_state: `${blocks}/${nsMach}:MachineryItemState/CurrentState`,
       operation_mode: `${blocks}/${nsMach}:MachineryOperationMode/CurrentState`,
-      packml_state: `${machine}/${nsPack}:PackML/${nsPack}:Status/${nsPack}:StateCurrent`,
+      packml_state: `${machine}/${nsPack}:PackML/${nsPack}:Status/${ns}:StateCurrent`,
+      packml_unit_mode: `${machine}/${nsPack}:PackML/${nsPack}:Status/${nsPack}:UnitModeCurrent`,
+      packml_base: `${machine}/${nsPack}:PackML/${nsPack}:BaseStateMachine/CurrentState`,
+      packml_machine: `${machine}/${nsPack}:PackML/${nsPack}:BaseStateMachine/${nsPack}:MachineState/CurrentState`,
+      packml_execute: `${machine}/${nsPack}:PackML/${nsPack}:BaseStateMachine/${nsPack}:MachineState/${nsPack}:ExecuteState/CurrentState`,
+      packml_execute_id: `${machine}/${nsPack}:PackML/${nsPack}:BaseStateMachine/${nsPack}:MachineState/${nsPack}:ExecuteState/CurrentState/Id`,
+      item_state_id: `${blocks}/${nsMach}:MachineryItemState/CurrentState/Id`,
     };
     out.browse = {};
     for (const [k, p] of Object.entries(paths)) {
@@ -108,13 +128,19 @@ async function main() {
       if (r.statusCode !== StatusCodes.Good) throw new Error(`browse ${k}: ${r.statusCode.name}`);
       const dv = await session.read({ nodeId: r.targets[0].targetId, attributeId: AttributeIds.Value });
       const v = dv.value.value;
-      out.browse[k] = v && v.text !== undefined ? v.text : v;
+      // a NodeId as "<namespace URI's last part>:<id>", e.g. "PackML:28"
+      const nsName = (i) => (i === nsPack ? "PackML" : i === nsMach ? "Machinery" : String(i));
+      out.browse[k] =
+        v && v.text !== undefined ? v.text : v && v.namespace !== undefined ? `${nsName(v.namespace)}:${v.value}` : v;
     }
     // the companion types of the objects, as a SCADA's type-based import finds them
     const typed = {
       identification: `${machine}/${nsDi}:Identification`,
       item_state: `${blocks}/${nsMach}:MachineryItemState`,
       operation_mode: `${blocks}/${nsMach}:MachineryOperationMode`,
+      packml: `${machine}/${nsPack}:PackML`,
+      packml_status: `${machine}/${nsPack}:PackML/${nsPack}:Status`,
+      packml_execute: `${machine}/${nsPack}:PackML/${nsPack}:BaseStateMachine/${nsPack}:MachineState/${nsPack}:ExecuteState`,
     };
     out.types = {};
     for (const [k, p] of Object.entries(typed)) {
@@ -128,7 +154,8 @@ async function main() {
         resultMask: 0x3f,
       });
       const ref = b.references[0];
-      out.types[k] = `${ref.nodeId.namespace === nsMach ? "Machinery" : ref.nodeId.namespace}:${ref.browseName.name}`;
+      const tns = ref.nodeId.namespace;
+      out.types[k] = `${tns === nsMach ? "Machinery" : tns === nsPack ? "PackML" : tns}:${ref.browseName.name}`;
     }
     const eu = await session.read({ nodeId: id("Attitude.MeasuredRoll.EngineeringUnits"), attributeId: AttributeIds.Value });
     out.roll_unit = eu.value.value.displayName.text;

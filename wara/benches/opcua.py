@@ -5,12 +5,15 @@ multicast in a private network namespace, the loop thread on a CPU of its own). 
 run of the pair: phase ``without`` (no OPC UA server at all) and phase ``with`` (the OPC
 UA server process on the service's control socket and 10 clients, asyncua, one process,
 each subscribed at 10 Hz to the attitude, the PackML state and every cylinder position);
-each phase runs the same adjustment cycles (adjust, COMPLETE, stop to IDLE). Per phase the
-loop's compute p99 and overruns (the service's own reports, as the two-process demo
-judges them); for the ``with`` phase the latency from each PackML state change in the
-loop to its notification at a client (p50/p99/max; goal p99 < 200 ms).
+each phase runs the same adjustment cycles (adjust, COMPLETE, stop to IDLE). The phases
+alternate over ``ROUNDS`` rounds in the order without-with, with-without, ... (so a drift
+of the machine's load weighs on both alike). Per phase the loop's compute p99 and
+overruns (the service's own reports, as the two-process demo judges them); per round the
+ratio with/without of the compute p99, and its median over the rounds; for the ``with``
+phases the latency from each PackML state change in the loop to its notification at a
+client (p50/p99/max; goal p99 < 200 ms).
 
-``--quick``: 2 cycles per phase instead of 6. Progress on stderr.
+``--quick``: one round of 2 cycles per phase instead of 3 rounds of 6. Progress on stderr.
 """
 
 from __future__ import annotations
@@ -34,6 +37,7 @@ from wara import demo_two_process as d2
 from wara.demo import stderr_progress
 
 CLIENTS = 10
+ROUNDS = 3
 LATENCY_GOAL_S = 0.2
 TARGETS = ((1.0, 0.5), (-1.0, 0.5))
 USER, PASSWORD = "bench", "bench-password"
@@ -47,7 +51,12 @@ def run(args: argparse.Namespace) -> dict[str, Any] | None:
     require("asyncua", "wara bench opcua")
     if getattr(args, "inside_netns", None):
         try:
-            result = inside(Path(args.inside_netns), args.config, 2 if args.quick else 6)
+            result = inside(
+                Path(args.inside_netns),
+                args.config,
+                2 if args.quick else 6,
+                1 if args.quick else ROUNDS,
+            )
         except (d2.TwoProcessError, OSError, ValueError) as exc:  # e.g. a fault latched
             result = {"bench": "opcua", "passed": False, "error": str(exc),
                       "load_average": list(os.getloadavg())}  # fmt: skip
@@ -137,62 +146,114 @@ def _p99(xs: list[float]) -> float:
     return xs[min(len(xs) - 1, int(0.99 * len(xs)))]
 
 
-def inside(work: Path, config_path: str, cycles: int) -> dict[str, Any]:
+def _phase_with(
+    svc: Any, watch: Any, work: Path, config_path: str, args: tuple[list[str], list[str]],
+    cycles: int, say: Any, k: int,
+) -> tuple[dict[str, Any], dict[str, Any]]:  # fmt: skip
+    """One ``with`` phase: the server and the clients up, the cycles, both down; the loop's
+    summary and the clients' figures (latencies, notifications, the server's feed)."""
     from ipc_app.opcua.process import OpcUaProcess
 
+    server_args, client_args = args
+    log_path = work / f"opcua-{k}.log"
+    with log_path.open("w", buffering=1) as srv_log:
+        srv = OpcUaProcess(config_path, work / "ctl.sock", server_args, stderr=srv_log)
+        srv.start()
+        clients = subprocess.Popen(
+            [sys.executable, "-m", "wara.benches.opcua_clients", *client_args],
+            stdout=subprocess.PIPE, text=True, env=d2._env(),
+        )  # fmt: skip
+        try:
+            assert clients.stdout is not None
+            if clients.stdout.readline().strip() != "READY":
+                raise d2.TwoProcessError("the OPC UA clients did not connect")
+            say(f"{CLIENTS} OPC UA clients subscribed")
+            summary = _measure(svc, watch, cycles, say)
+            clients.terminate()
+            out, _ = clients.communicate(timeout=60)
+            got = json.loads(out.strip().splitlines()[-1])
+        finally:
+            if clients.poll() is None:
+                clients.kill()
+            srv.stop()
+    got["server_feed"] = _feed_reports(log_path)
+    return summary, got
+
+
+def _measure(svc: Any, watch: Any, cycles: int, say: Any) -> dict[str, Any]:
+    # baseline: the first loop report of this phase
+    _next_report(svc, watch)
+    _next_report(svc, watch)
+    watch.baseline, watch.reports = watch.reports[-1], []
+    t0 = time.monotonic()
+    _cycles(svc, watch, cycles, say)
+    _next_report(svc, watch)
+    return {"wall_s": time.monotonic() - t0}
+
+
+def inside(work: Path, config_path: str, cycles: int, rounds: int = ROUNDS) -> dict[str, Any]:
     say = stderr_progress
-    server_args, client_args = _prepare(work)
+    prepared = _prepare(work)
     cfg_period = load_project(config_path).control.period_s
     codes: dict[str, int] = {}
-    phases: dict[str, Any] = {}
+    per_round: list[dict[str, Any]] = []
     lat: list[float] = []
     to_server: list[float] = []
-    notes: dict[str, Any] = {}
+    notifications = 0
+    feed: list[dict[str, Any]] = []
+    n_clients = 0
     with d2.service_and_simulator(work, config_path, say, codes) as (svc, _sim, placement):
-        for phase in ("without", "with"):
-            watch = d2._LoopWatch()
-            srv = clients = None
-            if phase == "with":
-                srv_log = (work / "opcua.log").open("w", buffering=1)
-                srv = OpcUaProcess(config_path, work / "ctl.sock", server_args, stderr=srv_log)
-                srv.start()
-                clients = subprocess.Popen(
-                    [sys.executable, "-m", "wara.benches.opcua_clients", *client_args],
-                    stdout=subprocess.PIPE, text=True, env=d2._env(),
-                )  # fmt: skip
-                assert clients.stdout is not None
-                if clients.stdout.readline().strip() != "READY":
-                    raise d2.TwoProcessError("the OPC UA clients did not connect")
-                say(f"{CLIENTS} OPC UA clients subscribed")
-            # baseline: the first loop report of this phase
-            _next_report(svc, watch)
-            _next_report(svc, watch)
-            watch.baseline, watch.reports = watch.reports[-1], []
-            t0 = time.monotonic()
-            _cycles(svc, watch, cycles, say)
-            _next_report(svc, watch)
-            phases[phase] = watch.summary(cfg_period) | {"wall_s": time.monotonic() - t0}
-            if clients is not None and srv is not None:
-                clients.terminate()
-                out, _ = clients.communicate(timeout=60)
-                got = json.loads(out.strip().splitlines()[-1])
-                lat = sorted(got["latencies_s"])
-                to_server = sorted(got["to_server_s"])
-                notes = {"notifications": got["notifications"], "clients": got["clients"]}
-                srv.stop()
-                srv_log.close()
-                notes["server_feed"] = _feed_reports(work / "opcua.log")
+        for r in range(rounds):
+            order = ("without", "with") if r % 2 == 0 else ("with", "without")
+            phases: dict[str, Any] = {}
+            for phase in order:
+                say(f"round {r + 1}/{rounds}: {phase} OPC UA")
+                watch = d2._LoopWatch()
+                if phase == "with":
+                    timing, got = _phase_with(
+                        svc, watch, work, config_path, prepared, cycles, say, r
+                    )
+                    lat += got["latencies_s"]
+                    to_server += got["to_server_s"]
+                    notifications += got["notifications"]
+                    n_clients = got["clients"]
+                    feed += got["server_feed"]
+                else:
+                    timing = _measure(svc, watch, cycles, say)
+                phases[phase] = watch.summary(cfg_period) | timing
+            wo, w = phases["without"].get("compute_p99_ms"), phases["with"].get("compute_p99_ms")
+            phases["compute_p99_ratio"] = w / wo if w and wo else None
+            per_round.append(phases)
+    lat.sort()
+    to_server.sort()
     p99 = _p99(lat) if lat else None
-    w, wo = phases.get("with", {}), phases.get("without", {})
+
+    def median_of(phase: str, key: str) -> float | None:
+        vals = [x[phase][key] for x in per_round if x[phase].get(key) is not None]
+        return statistics.median(vals) if vals else None
+
+    ratios = [x["compute_p99_ratio"] for x in per_round if x["compute_p99_ratio"] is not None]
     return {
         "bench": "opcua",
         "form": "two-process (private netns), OPC UA server a third process",
         "placement": placement,
         "cycles_per_phase": cycles,
-        "without": wo,
-        "with": w,
-        "compute_p99_ms": {"without": wo.get("compute_p99_ms"), "with": w.get("compute_p99_ms")},
-        "overruns": {"without": wo.get("overruns"), "with": w.get("overruns")},
+        "rounds": per_round,
+        # the last round's phases (as before), and the medians over the rounds
+        "without": per_round[-1]["without"],
+        "with": per_round[-1]["with"],
+        "compute_p99_ms": {
+            "without": median_of("without", "compute_p99_ms"),
+            "with": median_of("with", "compute_p99_ms"),
+        },
+        "compute_p99_ratio": {
+            "per_round": ratios,
+            "median": statistics.median(ratios) if ratios else None,
+        },
+        "overruns": {
+            "without": sum(x["without"].get("overruns") or 0 for x in per_round),
+            "with": sum(x["with"].get("overruns") or 0 for x in per_round),
+        },
         "latency_ms": {
             "samples": len(lat),
             "p50": units.to_ms(statistics.median(lat)) if lat else None,
@@ -203,7 +264,9 @@ def inside(work: Path, config_path: str, cycles: int) -> dict[str, Any]:
             "to_server_p50": units.to_ms(statistics.median(to_server)) if to_server else None,
             "to_server_p99": units.to_ms(_p99(to_server)) if to_server else None,
         },
-        **notes,
+        "notifications": notifications,
+        "clients": n_clients,
+        "server_feed": feed,
         "exit_codes": codes,
         "load_average": list(os.getloadavg()),
         "latency_goal_met": p99 is not None and p99 < LATENCY_GOAL_S,
