@@ -540,6 +540,9 @@ def test_the_service_handlers_answer_refusals_as_refused(short_tmp: Path) -> Non
         def snapshot(self) -> dict[str, Any]:
             return self.modes.snapshot()
 
+        def stop(self, reason: str) -> dict[str, Any]:
+            return self.modes.stop(reason).to_dict()
+
     core: Any = Core()
     with (
         capture_logs(),

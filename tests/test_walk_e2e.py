@@ -236,6 +236,24 @@ def test_attitude_adjustment_from_the_walks_end_state(tmp_path: Path) -> None:
     assert abs(roll - 1.0) <= 0.01 and abs(pitch - 0.5) <= 0.01
 
 
+def test_a_step_forward_then_back_ends_where_it_started(tmp_path: Path) -> None:
+    """A step forward, then one back (the gait mirrored): each meets the step's goals
+    and the machine ends within 5 mm of its start in world x (simulator truth)."""
+    out, evs = walk(tmp_path, project(tmp_path), directions=("forward", "back"))
+    assert out["passed"], (out["fault_reasons"], out["steps"])
+    assert [r["direction"] for r in out["steps"]] == ["forward", "back"]
+    assert out["steps"][1]["distance_m"] == pytest.approx(-0.2, abs=0.005)
+    assert abs(out["distance_m"]) <= 0.005
+    walks = [e for e in evs if e["kind"] == "walk"]
+    assert [(e["direction"], e["unloaded"]) for e in walks] == [
+        ("forward", False),
+        ("back", False),
+    ]
+    back_t = walks[1]["t_s"]
+    names = [e["name"] for e in evs if e["kind"] == "walk_phase" and e["t_s"] >= back_t]
+    assert names[0] == "lower S" and names[4] == "move M back" and names[-1] == "move S back"
+
+
 def _hmi_walk(tmp_path: Path, walk_steps: int) -> tuple[Harness, list[dict[str, Any]], Any]:
     """The HMI asks for a walk through the PLC (PLC_HmiTarget, TargetRequest WALK) at 0.5 s;
     run until the walk executes (or 3 s)."""

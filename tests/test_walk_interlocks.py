@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import pytest
 
@@ -118,14 +119,46 @@ def test_resume_check_heights_and_forces(lim: WalkLimits) -> None:
 
 def test_ctl_walk_request_is_checked() -> None:
     req = parse(b'{"cmd": "walk", "steps": 3}')
-    assert getattr(req, "args", None) == (3,)
+    assert getattr(req, "args", None) == (3, "forward", False)
+    req = parse(b'{"cmd": "walk", "steps": 2, "direction": "back", "unloaded": true}')
+    assert getattr(req, "args", None) == (2, "back", True)
     for bad in (
         b'{"cmd": "walk"}',
         b'{"cmd": "walk", "steps": 0}',
         b'{"cmd": "walk", "steps": true}',
+        b'{"cmd": "walk", "steps": 1, "unloaded": "yes"}',
+        b'{"cmd": "walk", "steps": 1, "direction": 3}',
     ):
         out = parse(bad)
         assert isinstance(out, dict) and out["code"] == "bad_request"
+
+
+def test_a_walk_in_no_known_direction_is_refused_by_the_service() -> None:
+    """The control channel passes the direction on; the service refuses one the walk
+    planner does not know, before planning, with the known ones named."""
+    import can
+
+    from ipc_app.service.core import ServiceCore
+    from plc_bridge.link import IpcLink
+
+    cfg = load_project(None)
+
+    class NoPlanner:
+        def submit(self, *a: Any, **k: Any) -> bool:
+            return False
+
+        def poll(self) -> None:
+            return None
+
+    bus = can.Bus(interface="virtual", channel="walk-direction-test")
+    core = ServiceCore(cfg, IpcLink(cfg, bus, clock=lambda: 0.0), NoPlanner())
+    out = core.request_walk(1, direction="sideways")
+    bus.shutdown()
+    assert out == {
+        "ok": False,
+        "code": "bad_request",
+        "error": "direction must be one of forward, back, got 'sideways'",
+    }
 
 
 def test_every_walk_phase_keeps_the_bus_within_its_budget() -> None:

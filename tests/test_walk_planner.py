@@ -16,7 +16,7 @@ from config import ProjectConfig, default_project_path
 from ipc_app.model import rod_forces
 from ipc_app.model.kinematics import Vec
 from ipc_app.model.support import WalkingMachine, stability_margin, support_forces
-from ipc_app.planner.walk import PHASES, Move, WalkStart, plan_walk
+from ipc_app.planner.walk import ORDER, PHASES, Move, WalkStart, plan_walk
 from wara.cli import main
 
 
@@ -225,3 +225,75 @@ def test_cli_walk_plan_bad_arguments(capsys: pytest.CaptureFixture[str], tmp_pat
     path.write_text(yaml.safe_dump(data))
     assert main(["walk", "plan", "--steps", "1", "--config", str(path)]) == 2
     assert "has no frames and walking sections" in capsys.readouterr().err
+
+
+def test_a_backward_step_is_the_forward_step_mirrored(project: ProjectConfig) -> None:
+    """Back: the forward phases in reverse order from the same start state (S lifted at
+    the rear end of its travel), the travel pair moving the other way, each phase
+    standing the same frame; the same configurations, so the same least margin."""
+    fwd, back = plan_walk(project, 2), plan_walk(project, 2, direction="back")
+    assert back.feasible and back.direction == "back"
+    assert [p.key for p in back.phases] == list(ORDER["back"]) * 2
+    assert back.to_dict()["distance_m"] == pytest.approx(-4.0)
+    by_key = {p.key: p for p in back.phases if p.step == 1}
+    # M moves back relative to standing S (x_S to the front end), then S moves back
+    assert (by_key["6"].x_s_m[0], by_key["6"].x_s_m[-1]) == pytest.approx((-1.0, 1.0))
+    assert (by_key["1"].x_s_m[0], by_key["1"].x_s_m[-1]) == pytest.approx((1.0, -1.0))
+    assert by_key["6"].name == "move M back" and by_key["1"].name == "move S back"
+    assert by_key["6"].standing == fwd.phases[5].standing  # S stands while M moves
+    # the step ends in the start state: M standing, S lifted, x_S at the rear end
+    assert back.phases[-1].standing == fwd.phases[-1].standing
+    assert back.min_margin[0] == pytest.approx(fwd.min_margin[0], abs=1e-9)
+    assert back.duration_s == pytest.approx(fwd.duration_s, rel=1e-3)
+    for ph in back.phases:  # every sample's forces still hold the weight
+        w = WalkingMachine(project)
+        total = ph.leg_forces_n.sum(axis=1)
+        assert total == pytest.approx(np.full(len(total), w.mass_kg * -float(w.g_base.z)))
+
+
+def test_a_backward_plan_is_checked_along_it(project: ProjectConfig) -> None:
+    """The constraints of the forward plan along the backward one: a margin limit of
+    0.9 m refuses at the first instant S stands alone (its phase 5), and the feet's
+    friction refuses moving M back (phase 6)."""
+    plan = plan_walk(_walking(project, min_stability_margin_m=0.9), 1, direction="back")
+    ref = plan.refusal
+    assert ref is not None
+    assert (ref.constraint, ref.step, ref.phase) == ("stability_margin", 1, "5")
+    assert ref.t_s == pytest.approx(next(p for p in plan.phases if p.key == "5").t_start_s)
+    slip = plan_walk(_walking(project, foot_friction_coefficient=0.001), 1, direction="back")
+    assert slip.refusal is not None
+    assert (slip.refusal.constraint, slip.refusal.phase) == ("slip", "6")
+    assert "(move M back)" in slip.refusal.message
+    with pytest.raises(ValueError, match="direction must be one of forward, back"):
+        plan_walk(project, 1, direction="sideways")
+
+
+def test_an_unloaded_walk_plans_without_the_workpiece(project: ProjectConfig) -> None:
+    """Unloaded: the upper layer's ``workpiece`` body (36.35 t) left out of the statics,
+    so the legs carry the 35 t robot; a project without such a body cannot say what
+    unloaded leaves and is refused."""
+    loaded = plan_walk(project, 1, direction="back")
+    empty = plan_walk(project, 1, direction="back", unloaded=True)
+    assert empty.feasible and empty.to_dict()["unloaded"] is True
+    g = -float(WalkingMachine(project).g_base.z)
+    part = next(b.mass_kg for b in project.layers.upper.bodies if b.name == "workpiece")
+    drop = loaded.phases[0].leg_forces_n[0].sum() - empty.phases[0].leg_forces_n[0].sum()
+    assert drop == pytest.approx(part * g, rel=1e-9)
+    assert empty.min_margin[0] > loaded.min_margin[0]  # the part's COG is off-centre
+    bodies = tuple(b for b in project.layers.upper.bodies if b.name != "workpiece")
+    up = project.layers.upper.model_copy(update={"bodies": bodies})
+    cfg = project.model_copy(update={"layers": project.layers.model_copy(update={"upper": up})})
+    with pytest.raises(ValueError, match="no body named 'workpiece': it cannot walk unloaded"):
+        plan_walk(cfg, 1, unloaded=True)
+
+
+def test_cli_walk_plan_back(capsys: pytest.CaptureFixture[str]) -> None:
+    args = ["walk", "plan", "--steps", "1", "--direction", "back", "--unloaded", "--json"]
+    assert main(args) == 0
+    d = json.loads(capsys.readouterr().out)
+    assert (d["direction"], d["unloaded"], d["distance_m"]) == ("back", True, -2.0)
+    assert [p["phase"] for p in d["phases"]] == list(ORDER["back"])
+    with pytest.raises(SystemExit) as exc:
+        main(["walk", "plan", "--steps", "1", "--direction", "up"])
+    assert exc.value.code == 2
+    assert "invalid choice: 'up'" in capsys.readouterr().err

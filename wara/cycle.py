@@ -1,9 +1,10 @@
 """The ring cycle: ``wara cycle`` (placement.md section 4; docs/placement.md).
 
 The HIL simulator and the IPC service on one in-process bus (:class:`~wara.harness.Harness`);
-per ring, the phases of the cycle, each asked of the service as ``wara ctl`` asks
-for it and each shown in the service's status (``cycle``), run record (``cycle_phase``
-events) and log:
+per ring, the service's ring cycle (:class:`~ipc_app.service.cycle.RingCycle`, the
+request ``wara ctl cycle`` makes), ticked here between the simulated periods, with the
+operator's part played here (the fixing confirmed, the survey simulated). Each phase
+shows in the service's status (``cycle``), run record (``cycle_phase`` events) and log:
 
 1. ``walk``: ``cycle.walk_steps`` steps to the ring (0: the machine stands at it);
 2. ``place``: the target planned from the previous part's as-built pose (the survey of
@@ -20,7 +21,8 @@ events) and log:
 6. ``record``: the ring's acceptance record (the surveyed Table 4 items) and, attached,
    the plan, the cycle's figures and the surveyed pose (where the next ring's plan and
    ``wara place plan --from-store`` find it);
-7. ``walk_back``: the same steps back, unloaded.
+7. ``walk_back``: the same steps back (loaded here: the simulator has no bolted part,
+   so its part stays on the platform).
 
 A stop at any point (``wara ctl stop``; a latched fault) leaves the service holding
 safely (valves closed) and ends the cycle with the phase it was in.
@@ -28,7 +30,6 @@ safely (valves closed) and ends the cycle with the phase it was in.
 
 from __future__ import annotations
 
-import datetime as dt
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -36,29 +37,27 @@ from typing import Any
 
 import numpy as np
 
-from acceptance.store import AcceptanceStore, RingMeasurement
 from config import load_project, units
 from config.schema import ProjectConfig
 from hil_sim.placement import pose_from_home
 from ipc_app.model.placement import (
     Pose,
     compose,
-    design_pose,
     deviation,
     joint_figures,
     to_ring_frame,
     tunnel_frame,
 )
-from ipc_app.planner.placement import PlacementPlan, home_pose, judge, plan_target
-from ipc_app.planner.survey import SurveyError, SurveyPoint, fit_survey
+from ipc_app.planner.placement import home_pose, judge
+from ipc_app.planner.survey import SurveyPoint
+from ipc_app.service.cycle import previous_from_deviation
 from ipc_app.service.modes import Mode
 from ipc_app.service.record import RunRecorder
 from wara.harness import Harness
 from wara.placement_run import GOAL_DEG, GOAL_MM
+from wara.ring_records import StoreRecords
 from wara.walk import walk_scenario
 
-#: The phases of one ring, in order.
-PHASES: tuple[str, ...] = ("walk", "place", "fixing", "release", "survey", "record", "walk_back")
 #: The Table 4 items in the cycle's per-ring figures: (key of the result, acceptance key).
 ITEMS: tuple[tuple[str, str], ...] = (
     ("vertical_misalignment_mm", "vertical_misalignment_mm"),
@@ -118,134 +117,94 @@ class _Cycle:
         self,
         cfg: ProjectConfig,
         h: Harness,
-        store: AcceptanceStore,
+        db_path: Path,
         rng: np.random.Generator,
         say: Callable[[str], None],
         on_cycle: Callable[[Harness, str], None] | None,
     ) -> None:
-        self.cfg, self.h, self.store, self.rng, self.say = cfg, h, store, rng, say
+        self.cfg, self.h, self.db_path, self.rng, self.say = cfg, h, db_path, rng, say
         self.on_cycle = on_cycle
         self.phase = ""
         self.dt = h.period if h.mode == "lockstep" else 0.05
-
-    def enter(self, ring: int, phase: str, **figures: Any) -> float:
-        self.phase = phase
-        self.h.core.note_cycle(ring, phase, **figures)
-        self.say(f"ring {ring}: {phase}")
-        return self.h.sim.t_s
 
     def advance(self, seconds: float) -> None:
         self.h.advance(seconds)
         if self.on_cycle is not None:
             self.on_cycle(self.h, self.phase)
 
-    def until_complete(self, what: str) -> None:
-        """Advance while the motion runs; it must end in COMPLETE."""
-        core = self.h.core
-        waited = 0.0
-        while core.modes.mode in (Mode.STARTING, Mode.EXECUTE, Mode.SUSPENDED):
-            if waited > MOTION_LIMIT_S:
-                raise RuntimeError(f"{what} did not end within {MOTION_LIMIT_S:.0f} s")
-            self.advance(self.dt)
-            waited += self.dt
-        if core.modes.mode != Mode.COMPLETE:
-            raise RuntimeError(f"{what} ended in {core.modes.mode}: {self.h.fault_note()}")
-
-    def hold_for(self, seconds: float) -> None:
-        """Advance ``seconds`` with the pose held (COMPLETE); a stop ends it."""
-        t_end = self.h.sim.t_s + seconds
-        while self.h.sim.t_s < t_end - 1e-9:
-            self.advance(min(self.dt, t_end - self.h.sim.t_s))
-            if self.h.core.modes.mode != Mode.COMPLETE:
-                raise RuntimeError(
-                    f"the hold ended in {self.h.core.modes.mode}: {self.h.fault_note()}"
-                )
-
-    def walk(self, ring: int, steps: int) -> None:
-        res = self.h.core.request_walk(steps, wait_s=5.0 if self.h.mode == "realtime" else 0.0)
-        if not res.get("ok"):
-            raise RuntimeError(f"walk refused: {res.get('error')}")
-        self.advance(self.dt)  # the loop takes the request
-        self.until_complete(f"ring {ring}'s walk")
-
     def truth(self, ring: int) -> Pose:
         r, t = pose_from_home(self.cfg, self.h.sim.rig)
         return compose(home_pose(self.cfg, ring), Pose.from_matrix(r, t))
 
     def ring(self, ring: int, previous: Pose, previous_truth: Pose) -> dict[str, Any]:
-        """One ring's cycle; ``previous`` / ``previous_truth``: the part before, as
-        surveyed and as built, in its own ring's T."""
-        cfg = self.cfg
+        """One ring's cycle, asked of the service as ``wara ctl cycle`` asks for it
+        (:class:`~ipc_app.service.cycle.RingCycle`), ticked here between the simulated
+        periods; the operator's part is played here: the fixing confirmed after
+        ``cycle.fixing_confirm_after_s``, the survey simulated from the truth.
+        ``previous`` / ``previous_truth``: the part before, as surveyed and as built,
+        in its own ring's T."""
+        cfg, core = self.cfg, self.h.core
         assert cfg.cycle is not None
-        steps = cfg.cycle.walk_steps
-        times: dict[str, float] = {}
-        t0 = self.enter(ring, "walk", steps=steps)
-        if steps > 0:
-            self.walk(ring, steps)
-        times["walk"] = self.h.sim.t_s - t0
-        t0 = self.enter(ring, "place")
-        plan: PlacementPlan = plan_target(cfg, to_ring_frame(cfg, previous, ring - 1, ring), ring)
-        if not plan.feasible:
-            raise CycleRefused(f"ring {ring}: " + "; ".join(plan.reasons))
-        res = self.h.core.request_place_plan(plan)
+        records = StoreRecords(
+            self.db_path, operator="wara cycle",
+            remarks="simulated survey (HIL truth plus survey noise)",
+        )  # fmt: skip
+        # the simulator carries its part back (no bolted part): the walk back is loaded
+        res = core.request_cycle(
+            ring, previous, records, drive=False, walk_back_unloaded=False, say=self.say
+        )
         if not res.get("ok"):
-            if res.get("code") == "infeasible":
-                raise CycleRefused(f"ring {ring}: {res.get('error')}")
-            raise RuntimeError(f"place refused: {res.get('error')}")
-        self.advance(self.dt)  # the loop takes the request
-        self.until_complete(f"ring {ring}'s placement")
-        times["place"] = self.h.sim.t_s - t0
-        t0 = self.enter(ring, "fixing", confirm_after_s=cfg.cycle.fixing_confirm_after_s)
-        self.hold_for(cfg.cycle.fixing_confirm_after_s)
-        as_built = self.truth(ring)  # what the bolts fix
-        times["fixing"] = self.h.sim.t_s - t0
-        t0 = self.enter(ring, "release")
-        self.h.core.modes.stop(f"ring {ring} released: the part is fixed")
-        self.advance(self.dt)
-        times["release"] = self.h.sim.t_s - t0
-        t0 = self.enter(ring, "survey", points=cfg.cycle.survey_points)
-        try:
-            fit = fit_survey(cfg, ring, simulated_survey(cfg, ring, as_built, self.rng))
-        except SurveyError as exc:
-            raise RuntimeError(f"ring {ring}: survey: {exc}") from None
-        if not fit.accepted:
-            raise RuntimeError(f"ring {ring}: survey refused: {'; '.join(fit.reasons)}")
-        times["survey"] = self.h.sim.t_s - t0
+            raise RuntimeError(f"cycle refused: {res.get('error')}")
+        cyc = core.ring_cycle
+        assert cyc is not None
+        as_built: Pose | None = None
+        fixing_since: float | None = None
+        waited = 0.0
+        while cyc.active:
+            self.phase = cyc.phase
+            cyc.tick()
+            if not cyc.active:
+                break
+            if cyc.phase == "fixing":
+                fixing_since = self.h.sim.t_s if fixing_since is None else fixing_since
+                if self.h.sim.t_s - fixing_since >= cfg.cycle.fixing_confirm_after_s - 1e-9:
+                    as_built = self.truth(ring)  # what the bolts fix
+                    core.confirm_fixed("wara cycle (automatic confirmation)")
+                    continue
+            elif cyc.phase == "survey":
+                assert as_built is not None
+                pts = simulated_survey(cfg, ring, as_built, self.rng)
+                out = core.submit_survey(points=pts)
+                if not out.get("ok"):
+                    raise RuntimeError(f"ring {ring}: {out.get('error')}")
+                continue
+            if waited > MOTION_LIMIT_S:
+                raise RuntimeError(f"ring {ring}'s {cyc.phase} did not end in time")
+            self.advance(self.dt)
+            waited += self.dt
+        self.phase = cyc.stopped_in_phase or cyc.phase
+        if cyc.error is not None:
+            if cyc.refused:
+                raise CycleRefused(cyc.error)
+            raise RuntimeError(cyc.error)
+        assert cyc.plan is not None and cyc.surveyed is not None and as_built is not None
+        plan, fit = cyc.plan, cyc.fit
+        times = dict(cyc.phase_times_s)
         design = plan.design
         prev_t = to_ring_frame(cfg, previous_truth, ring - 1, ring)
         prev_s = to_ring_frame(cfg, previous, ring - 1, ring)
         truth_fig = joint_figures(cfg, prev_t, as_built, design)
-        survey_fig = joint_figures(cfg, prev_s, fit.pose, design)
+        survey_fig = joint_figures(cfg, prev_s, cyc.surveyed, design)
         table4 = judge(cfg, truth_fig)
         err = deviation(as_built, plan.target)
         errors = err.to_dict()  # mm and deg
         gap_error_mm = units.to_mm(truth_fig.max_gap_m - plan.figures.max_gap_m)
-        t0 = self.enter(ring, "record")
-        surveyed = _items(survey_fig.to_dict())
-        self.store.add(
-            RingMeasurement(
-                ring,
-                dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
-                {key: survey_fig.to_dict()[key] for _, key in ITEMS},
-                operator="wara cycle",
-                remarks="simulated survey (HIL truth plus survey noise)",
-            ),
-            source="cycle",
-        )
-        times["record"] = self.h.sim.t_s - t0
-        t0 = self.enter(ring, "walk_back", steps=steps)
-        if steps > 0:
-            raise RuntimeError(
-                "walk back refused: the walk planner plans forward steps only "
-                "(cycle.walk_steps 0: the machine stands at the ring)"
-            )
-        times["walk_back"] = self.h.sim.t_s - t0
         machine_s = sum(v for k, v in times.items() if k != "fixing")
         truth_dev = deviation(as_built, design)
         row: dict[str, Any] = {
             "ring": ring,
             **_items(truth_fig.to_dict()),
-            "surveyed": surveyed,
+            "surveyed": _items(survey_fig.to_dict()),
             "target_deviation": plan.to_dict()["target_deviation"],
             "as_built_deviation": {
                 "y_mm": units.to_mm(truth_dev.y),
@@ -253,7 +212,7 @@ class _Cycle:
             },
             "error_from_target": errors,
             "gap_error_mm": gap_error_mm,
-            "survey_rms_residual_mm": units.to_mm(fit.rms_residual_m),
+            "survey_rms_residual_mm": units.to_mm(fit.rms_residual_m) if fit else None,
             "table4_truth": table4,
             "cycle_time_s": machine_s,
             "fixing_hold_s": times["fixing"],
@@ -272,13 +231,7 @@ class _Cycle:
         }
         row["goals"] = goals
         row["passed"] = all(goals.values())
-        self.store.attach_plan(
-            ring,
-            {"kind": "ring_cycle", "plan": plan.to_dict(), "cycle": {
-                k: v for k, v in row.items() if k not in ("surveyed",)}},
-            final_attitude={"as_built_pose": fit.pose.to_dict()},
-        )  # fmt: skip
-        self._surveyed, self._truth = fit.pose, as_built
+        self._surveyed, self._truth = cyc.surveyed, as_built
         return row
 
 
@@ -311,7 +264,7 @@ def run_cycle(
             f"the first ring of a cycle is 2 or later (a part before it), got {first_ring}"
         )
     dev = previous_deviation or Pose()
-    previous = _moved(design_pose(cfg, first_ring - 1), dev)
+    previous = previous_from_deviation(cfg, first_ring, dev)
     out: dict[str, Any] = {"passed": False, "refused": None, "error": None, "rings": []}
     # the walking rig (feet on the invert) only when the cycle walks
     scenario = walk_scenario() if cfg.cycle.walk_steps > 0 else None
@@ -323,13 +276,12 @@ def run_cycle(
         if not h.wait_for(Mode.IDLE, 20.0):
             out["error"] = f"service did not come up: {h.fault_note()}"
             return out
-        with AcceptanceStore.open(db_path, create=True) as store:
-            cyc = _Cycle(cfg, h, store, rng, say, on_cycle)
-            truth_prev = previous
-            for ring in range(first_ring, first_ring + rings):
-                row = cyc.ring(ring, previous, truth_prev)
-                out["rings"].append(row)
-                previous, truth_prev = cyc._surveyed, cyc._truth
+        cyc = _Cycle(cfg, h, db_path, rng, say, on_cycle)
+        truth_prev = previous
+        for ring in range(first_ring, first_ring + rings):
+            row = cyc.ring(ring, previous, truth_prev)
+            out["rings"].append(row)
+            previous, truth_prev = cyc._surveyed, cyc._truth
     except CycleRefused as exc:
         out["refused"] = str(exc)
         out["error"] = str(exc)
@@ -362,12 +314,3 @@ def run_cycle(
         out["error"] is None and len(rows) == rings and all(r["passed"] for r in rows)
     )
     return out
-
-
-def _moved(design: Pose, dev: Pose) -> Pose:
-    """``design`` with a survey sheet's deviation added (positions and angles)."""
-    pos = design.position + dev.position
-    return Pose(
-        float(pos[0]), float(pos[1]), float(pos[2]),
-        design.roll + dev.roll, design.pitch + dev.pitch, design.yaw + dev.yaw,
-    )  # fmt: skip

@@ -18,7 +18,9 @@ import numpy as np
 
 from config import load_project, units
 from config.hil_scenario import HilScenario, PlantSettings
+from config.schema import ProjectConfig
 from ipc_app.control.walk import LIFT, LOWER, TRANSFER, TRAVEL, WalkSequencer
+from ipc_app.planner.walk import DIRECTIONS
 from ipc_app.service.modes import Mode
 from ipc_app.service.record import RunRecorder
 from wara.harness import Harness
@@ -69,76 +71,111 @@ def run_walk(
     record: RunRecorder | None = None,
     progress: Callable[[str], None] | None = None,
     on_cycle: Callable[[Harness], None] | None = None,
+    directions: tuple[str, ...] = ("forward",),
+    cfg: ProjectConfig | None = None,
 ) -> dict[str, Any]:
-    """Walk ``steps`` steps; the JSON-ready result (``passed``, ``refused``...).
+    """Walk ``steps`` steps in each of ``directions`` in turn (``("forward", "back")``:
+    there and back); the JSON-ready result (``passed``, ``refused``...). The simulated
+    machine carries its part, so the walks are loaded (an unloaded walk's statics are
+    the service's; the simulator without the part diverges, docs/walking.md).
 
-    ``on_cycle``: called after each sample with the harness (tests: stop, resume)."""
-    cfg = load_project(config_path)
+    ``on_cycle``: called after each sample with the harness (tests: stop, resume).
+    ``cfg``: the project as loaded from ``config_path`` (tests: a changed one)."""
+    if cfg is None:
+        cfg = load_project(config_path)
+    if not directions or any(d not in DIRECTIONS for d in directions):
+        raise ValueError(f"directions must be of {', '.join(DIRECTIONS)}, got {directions!r}")
     say = progress or (lambda _s: None)
     h = Harness(cfg, config_path, mode=mode, scenario=walk_scenario(scenario), record=record)
     trace = WalkTrace()
     truths: list[_StepTruth] = []
+    walkers: list[WalkSequencer] = []
     out: dict[str, Any] = {"passed": False, "refused": None, "error": None}
     try:
         h.start()
         if not h.wait_for(Mode.IDLE, 20.0):
             out["error"] = f"service did not come up: {h.fault_note()}"
-            return _finish(out, h, truths, trace, steps, plot_dir)
-        res = h.core.request_walk(steps, wait_s=5.0 if mode == "realtime" else 0.0)
-        if not res.get("ok"):
-            out["refused"] = res.get("refusal") or res.get("error")
-            out["error"] = res.get("error")
-            return _finish(out, h, truths, trace, steps, plot_dir)
+            return _finish(out, h, truths, trace, steps, plot_dir, walkers, directions)
         rig = h.sim.rig
-        dt = h.period if mode == "lockstep" else 0.05
-        limit_s = steps * STEP_S * 1.5
-        waited = 0.0
-        att0: tuple[float, float] | None = None
-        last_phase = -1
-        seen = h.core.walker
-        while waited < limit_s:
-            h.advance(dt)
-            waited += dt
-            core = h.core
-            w = core.walker
-            if on_cycle is not None:
-                on_cycle(h)
-            if w is not None:
-                seen = w
-            if w is None or w.run is None:
-                if core.modes.mode != Mode.EXECUTE:
-                    break
-                continue
-            k = w.run.index
-            ph = w.run.phase
-            x_m = rig.world_x_m[0]  # type: ignore[attr-defined]
-            if k != last_phase:
-                if last_phase < 0 or ph.step != w.plan.phases[last_phase].step:
-                    if truths:
-                        truths[-1].x_m_end = x_m
-                    truths.append(_StepTruth(x_m))
-                    say(f"step {ph.step}")
-                last_phase = k
-                att0 = rig.workpiece_attitude_rad() if ph.key in TRANSFER else None
-            if att0 is not None and ph.key in TRANSFER:
-                r, pch = rig.workpiece_attitude_rad()
-                change = units.to_deg(max(abs(r - att0[0]), abs(pch - att0[1])))
-                truths[-1].attitude_change_deg = max(truths[-1].attitude_change_deg, change)
-            if (mode == "lockstep" and h._k % 10 == 0) or mode == "realtime":
-                trace.t.append(h.sim.t_s)
-                trace.phase.append(k)
-                trace.forces_kn.append((rig.foot_forces_n / units.KN).tolist())  # type: ignore[attr-defined]
-                legs = w.legs + w.travel
-                trace.x_mm.append((rig.rod_positions_m[legs] * units.to_mm(1.0)).tolist())
-                fm = w.figures.margin_m
-                trace.margin_m.append(fm if np.isfinite(fm) else np.nan)
-            if core.modes.mode not in (Mode.EXECUTE, Mode.HELD, Mode.SUSPENDED):  # ridden through
+        out["start_x_m"] = round(float(rig.world_x_m[0]), 6)  # type: ignore[attr-defined]
+        for direction in directions:
+            if walkers and h.core.modes.mode != Mode.COMPLETE:
                 break
-        if truths and truths[-1].x_m_end == 0.0:
-            truths[-1].x_m_end = rig.world_x_m[0]  # type: ignore[attr-defined]
-        return _finish(out, h, truths, trace, steps, plot_dir, seen)
+            res = h.core.request_walk(
+                steps, wait_s=5.0 if mode == "realtime" else 0.0,
+                direction=direction,
+            )  # fmt: skip
+            if not res.get("ok"):
+                out["refused"] = res.get("refusal") or res.get("error")
+                out["error"] = res.get("error")
+                break
+            seen = _follow(h, steps, mode, say, on_cycle, trace, truths)
+            if seen is not None:
+                walkers.append(seen)
+        return _finish(out, h, truths, trace, steps, plot_dir, walkers, directions)
     finally:
         h.close()
+
+
+def _follow(
+    h: Harness,
+    steps: int,
+    mode: str,
+    say: Callable[[str], None],
+    on_cycle: Callable[[Harness], None] | None,
+    trace: WalkTrace,
+    truths: list[_StepTruth],
+) -> WalkSequencer | None:
+    """Advance while one walk runs; each step's truth into ``truths``; its sequencer."""
+    rig = h.sim.rig
+    dt = h.period if mode == "lockstep" else 0.05
+    limit_s = steps * STEP_S * 1.5
+    waited = 0.0
+    att0: tuple[float, float] | None = None
+    last_phase = -1
+    seen = h.core.walker
+    first = len(truths)
+    while waited < limit_s:
+        h.advance(dt)
+        waited += dt
+        core = h.core
+        w = core.walker
+        if on_cycle is not None:
+            on_cycle(h)
+        if w is not None:
+            seen = w
+        if w is None or w.run is None:
+            if core.modes.mode != Mode.EXECUTE:
+                break
+            continue
+        k = w.run.index
+        ph = w.run.phase
+        x_m = rig.world_x_m[0]  # type: ignore[attr-defined]
+        if k != last_phase:
+            if last_phase < 0 or ph.step != w.plan.phases[last_phase].step:
+                if len(truths) > first:
+                    truths[-1].x_m_end = x_m
+                truths.append(_StepTruth(x_m))
+                say(f"step {ph.step} {w.plan.direction}")
+            last_phase = k
+            att0 = rig.workpiece_attitude_rad() if ph.key in TRANSFER else None
+        if att0 is not None and ph.key in TRANSFER:
+            r, pch = rig.workpiece_attitude_rad()
+            change = units.to_deg(max(abs(r - att0[0]), abs(pch - att0[1])))
+            truths[-1].attitude_change_deg = max(truths[-1].attitude_change_deg, change)
+        if (mode == "lockstep" and h._k % 10 == 0) or mode == "realtime":
+            trace.t.append(h.sim.t_s)
+            trace.phase.append(k)
+            trace.forces_kn.append((rig.foot_forces_n / units.KN).tolist())  # type: ignore[attr-defined]
+            legs = w.legs + w.travel
+            trace.x_mm.append((rig.rod_positions_m[legs] * units.to_mm(1.0)).tolist())
+            fm = w.figures.margin_m
+            trace.margin_m.append(fm if np.isfinite(fm) else np.nan)
+        if w.done or core.modes.mode not in (Mode.EXECUTE, Mode.HELD, Mode.SUSPENDED):
+            break  # done, or ended otherwise (ridden through a suspension)
+    if len(truths) > first and truths[-1].x_m_end == 0.0:
+        truths[-1].x_m_end = rig.world_x_m[0]  # type: ignore[attr-defined]
+    return seen
 
 
 def _finish(
@@ -148,31 +185,37 @@ def _finish(
     trace: WalkTrace,
     steps: int,
     plot_dir: Path | None,
-    w: WalkSequencer | None = None,
+    walkers: list[WalkSequencer],
+    directions: tuple[str, ...],
 ) -> dict[str, Any]:
     core = h.core
     rig = h.sim.rig
     out["final_mode"] = str(core.modes.mode)
     out["fault_reasons"] = list(core.modes.fault_reasons)
-    step_figs = [s.to_dict() for s in w.steps] if w is not None else []
+    out["directions"] = list(directions)
     rows: list[dict[str, Any]] = []
-    for k, fig in enumerate(step_figs):
-        tr = truths[k] if k < len(truths) else None
-        row = dict(fig)
-        row["distance_m"] = round(tr.x_m_end - tr.x_m_start, 6) if tr else 0.0
-        row["max_transfer_attitude_change_deg"] = round(tr.attitude_change_deg, 6) if tr else 0.0
-        complete = fig["duration_s"] > 0
-        row["passed"] = bool(
-            complete
-            and abs(row["distance_m"] - (w.plan.step_length_m if w else 0.0)) <= STEP_LENGTH_TOL_M
-            and row["max_leg_sync_error_mm"] <= LEG_SYNC_MM
-            and row["max_travel_sync_error_mm"] <= TRAVEL_SYNC_MM
-            and row["max_transfer_attitude_change_deg"] <= ATTITUDE_CHANGE_DEG
-            and row["max_leg_force_ratio"] <= FORCE_RATIO
-            and row["min_stability_margin_m"] >= MIN_MARGIN_M
-            and row["duration_s"] <= STEP_S
-        )
-        rows.append(row)
+    for w in walkers:
+        sign = -1.0 if w.plan.direction == "back" else 1.0
+        for fig in (s.to_dict() for s in w.steps):
+            k = len(rows)
+            tr = truths[k] if k < len(truths) else None
+            row = {"direction": w.plan.direction, **fig}
+            row["distance_m"] = round(tr.x_m_end - tr.x_m_start, 6) if tr else 0.0
+            row["max_transfer_attitude_change_deg"] = (
+                round(tr.attitude_change_deg, 6) if tr else 0.0
+            )
+            complete = fig["duration_s"] > 0
+            row["passed"] = bool(
+                complete
+                and abs(row["distance_m"] - sign * w.plan.step_length_m) <= STEP_LENGTH_TOL_M
+                and row["max_leg_sync_error_mm"] <= LEG_SYNC_MM
+                and row["max_travel_sync_error_mm"] <= TRAVEL_SYNC_MM
+                and row["max_transfer_attitude_change_deg"] <= ATTITUDE_CHANGE_DEG
+                and row["max_leg_force_ratio"] <= FORCE_RATIO
+                and row["min_stability_margin_m"] >= MIN_MARGIN_M
+                and row["duration_s"] <= STEP_S
+            )
+            rows.append(row)
     x0 = truths[0].x_m_start if truths else 0.0
     x1 = truths[-1].x_m_end if truths else 0.0
     out["distance_m"] = round(x1 - x0, 6)
@@ -184,10 +227,11 @@ def _finish(
     }
     out["bus_load_percent"] = round(core.bus_load.load_percent, 2)
     out["simulator_realtime_factor"] = h.sim.realtime_factor
-    want = w.plan.steps * w.plan.step_length_m if w is not None else steps * 2.0
+    step_m = walkers[0].plan.step_length_m if walkers else 2.0
+    want = sum(-1.0 if d == "back" else 1.0 for d in directions) * steps * step_m
     out["passed"] = bool(
         out["error"] is None
-        and len(rows) == steps
+        and len(rows) == steps * len(directions)
         and all(r["passed"] for r in rows)
         and abs(out["distance_m"] - want) <= 0.005
         and out["final_mode"] == str(Mode.COMPLETE)
@@ -202,7 +246,8 @@ def _finish(
         "step_duration_s": STEP_S,
     }
     if plot_dir is not None and trace.t:
-        out["plots"] = [str(plot_walk(trace, w.leg_ids if w else (), plot_dir))]
+        leg_ids = walkers[-1].leg_ids if walkers else ()
+        out["plots"] = [str(plot_walk(trace, leg_ids, plot_dir))]
     return out
 
 

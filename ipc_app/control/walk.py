@@ -58,7 +58,7 @@ from ipc_app.model.support import (
     stability_margin,
     support_forces,
 )
-from ipc_app.planner.walk import PHASES, Move, Phase, WalkPlan
+from ipc_app.planner.walk import Move, Phase, WalkPlan
 
 FloatArray = NDArray[np.float64]
 
@@ -226,7 +226,7 @@ class WalkSequencer:
         self.td_speed = units.mm(self.walk.touchdown_speed_mm_s)
         traj = cfg.planner.trajectory
         self.leg_v, self.leg_a = traj.max_rod_speed_m_s, traj.max_rod_accel_m_s2
-        self.machine = WalkingMachine(cfg)
+        self.machine = WalkingMachine(cfg, unloaded=plan.unloaded)
         self.point_cache: dict[int, tuple[float, FloatArray]] = {}
         self.hold_ref = np.zeros(self.n)
         self.force_mode: set[int] = set()
@@ -263,7 +263,9 @@ class WalkSequencer:
         """The upper platform's attitude fixes the workpiece's COG: from its rods."""
         up = self.cfg.layers.upper
         fit = fit_layer(x[self.upper] - self.half[self.upper], up.a_m, up.b_m)
-        self.machine = WalkingMachine(self.cfg, float(fit.roll), float(fit.pitch))
+        self.machine = WalkingMachine(
+            self.cfg, float(fit.roll), float(fit.pitch), self.plan.unloaded
+        )
 
     def share(self, x_s: float, legs: tuple[int, ...]) -> FloatArray:
         """Expected forces (8,) with ``legs`` standing (minimum norm), N."""
@@ -728,4 +730,4 @@ class WalkSequencer:
                 self.pos[i].reset(float(x[i]), u[i])
 
     def phase_name(self) -> str:
-        return PHASES[self.run.phase.key] if self.run is not None else ""
+        return self.run.phase.name if self.run is not None else ""

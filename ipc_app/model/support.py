@@ -21,6 +21,22 @@ from config.schema import Body, ProjectConfig
 from ipc_app.model.kinematics import Array, S, T, Vec, rotate
 from ipc_app.model.statics import MachineStatics, MassProperties, lump
 
+#: The upper layer's body that is the arc part (the YAML's ``layers.upper.bodies``).
+WORKPIECE_BODY = "workpiece"
+
+
+def unloaded_upper_bodies(cfg: ProjectConfig) -> tuple[Body, ...]:
+    """The upper layer's bodies without the workpiece; a project without a body named
+    :data:`WORKPIECE_BODY` cannot say what walking unloaded leaves (ValueError)."""
+    bodies = cfg.layers.upper.bodies
+    rest = tuple(b for b in bodies if b.name != WORKPIECE_BODY)
+    if len(rest) == len(bodies):
+        raise ValueError(
+            f"the project's upper layer has no body named {WORKPIECE_BODY!r}: "
+            "it cannot walk unloaded"
+        )
+    return rest
+
 
 class WalkingMachine:
     """Mass, COG and leg positions of the machine as a function of ``x_S``.
@@ -28,16 +44,26 @@ class WalkingMachine:
     Frames (walking.md section 1): M's legs at ``(s_i a_M, t_i b_M)``, S's legs at
     ``(x_S + s_i a_S, t_i b_S)``, in the lower platform frame. The upper platform's
     attitude relative to the lower one is given (it does not change during a walk).
+
+    ``unloaded``: without the workpiece, the upper layer's body named
+    :data:`WORKPIECE_BODY` (the ring cycle walks back once the part is fixed to the
+    ring and the platform has lowered off it).
     """
 
     def __init__(
-        self, cfg: ProjectConfig, upper_roll: float = 0.0, upper_pitch: float = 0.0
+        self,
+        cfg: ProjectConfig,
+        upper_roll: float = 0.0,
+        upper_pitch: float = 0.0,
+        unloaded: bool = False,
     ) -> None:
         if cfg.frames is None or cfg.walking is None:
             raise ValueError("the project has no frames and walking sections: it cannot walk")
         statics = MachineStatics(cfg)
         self.g_base = statics.g_base
         mu, cu = statics.upper
+        if unloaded:
+            mu, cu = lump(unloaded_upper_bodies(cfg))
         ru = rotate(upper_roll, upper_pitch, Vec(*(np.asarray(c) for c in cu)))
         o = statics.origin_upper
         cog_u = (o[0] + float(ru.x), o[1] + float(ru.y), o[2] + float(ru.z))

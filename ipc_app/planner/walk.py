@@ -55,6 +55,22 @@ PHASES: dict[str, str] = {
     "7c": "transfer to M",
     "8": "lift S",
 }
+#: The travel phases' names in a backward step (the other phases keep theirs).
+BACK_PHASES: dict[str, str] = {"1": "move S back", "6": "move M back"}
+#: The phases of one step in their order: forward (walking.md section 2) and backward
+#: (its mirror: the forward step run in reverse, each phase's frames and checks as in
+#: the forward phase of the same key, the travel pair moving the other way).
+ORDER: dict[str, tuple[str, ...]] = {
+    "forward": ("1", "2", "3", "4", "5", "6", "7a", "7b", "7c", "8"),
+    "back": ("2", "3", "4", "5", "6", "7a", "7b", "7c", "8", "1"),
+}
+#: A walk's directions.
+DIRECTIONS: tuple[str, ...] = tuple(ORDER)
+
+
+def phase_name(key: str, direction: str = "forward") -> str:
+    """The name of phase ``key`` in a step of ``direction``."""
+    return BACK_PHASES.get(key, PHASES[key]) if direction == "back" else PHASES[key]
 
 
 @dataclass(frozen=True)
@@ -106,11 +122,13 @@ class Violation:
     limit: float
     unit: str
     detail: str
+    direction: str = "forward"
 
     @property
     def message(self) -> str:
         return (
-            f"{self.constraint}: step {self.step} phase {self.phase} ({PHASES[self.phase]}) "
+            f"{self.constraint}: step {self.step} phase {self.phase} "
+            f"({phase_name(self.phase, self.direction)}) "
             f"at t = {self.t_s:.2f} s: {self.detail}"
         )
 
@@ -119,7 +137,7 @@ class Violation:
             "constraint": self.constraint,
             "step": self.step,
             "phase": self.phase,
-            "phase_name": PHASES[self.phase],
+            "phase_name": phase_name(self.phase, self.direction),
             "t_s": round(self.t_s, 3),
             "value": self.value,
             "limit": self.limit,
@@ -144,10 +162,11 @@ class Phase:
     margin_m: Array  #: stability margin at the samples
     travel_force_n: Array  #: force the travel pair must give at the samples
     friction_capacity_n: Array  #: foot friction of the standing legs at the samples
+    direction: str = "forward"  #: of the step it is part of
 
     @property
     def name(self) -> str:
-        return PHASES[self.key]
+        return phase_name(self.key, self.direction)
 
     def summary(self, leg_ids: tuple[str, ...]) -> dict[str, Any]:
         return {
@@ -177,6 +196,16 @@ class WalkPlan:
     min_margin_limit_m: float
     phases: list[Phase] = field(default_factory=list)
     violations: list[Violation] = field(default_factory=list)
+    #: "forward" (x increasing, walking.md section 2) or "back" (its mirror)
+    direction: str = "forward"
+    #: planned without the workpiece (:class:`~ipc_app.model.support.WalkingMachine`)
+    unloaded: bool = False
+
+    @property
+    def distance_m(self) -> float:
+        """Signed: the machine's travel in world x (negative walking back)."""
+        sign = -1.0 if self.direction == "back" else 1.0
+        return sign * self.steps * self.step_length_m
 
     @property
     def feasible(self) -> bool:
@@ -206,7 +235,9 @@ class WalkPlan:
         return {
             "feasible": self.feasible,
             "steps": self.steps,
-            "distance_m": round(self.steps * self.step_length_m, 6),
+            "direction": self.direction,
+            "unloaded": self.unloaded,
+            "distance_m": round(self.distance_m, 6),
             "duration_s": round(self.duration_s, 3),
             "step_duration_s": [round(t, 3) for t in step_time],
             "min_stability_margin_m": round(margin, 4),
@@ -234,14 +265,19 @@ def start_state(cfg: ProjectConfig) -> WalkStart:
 
 
 class _Planner:
-    def __init__(self, cfg: ProjectConfig, start: WalkStart) -> None:
+    def __init__(
+        self, cfg: ProjectConfig, start: WalkStart, direction: str, unloaded: bool
+    ) -> None:
         if cfg.frames is None or cfg.walking is None:
             raise ValueError("the project has no frames and walking sections: it cannot walk")
+        if direction not in ORDER:
+            raise ValueError(f"direction must be one of {', '.join(ORDER)}, got {direction!r}")
         self.cfg = cfg
         self.walk = cfg.walking
+        self.direction = direction
         up = cfg.layers.upper
         fit = fit_layer(np.asarray(start.upper_extensions_m), up.a_m, up.b_m)
-        self.machine = WalkingMachine(cfg, float(fit.roll), float(fit.pitch))
+        self.machine = WalkingMachine(cfg, float(fit.roll), float(fit.pitch), unloaded)
         self.start = start
         subs = sorted(
             (c for c in cfg.cylinders if c.role == "sub_leg"), key=lambda c: c.position or 0
@@ -259,8 +295,9 @@ class _Planner:
         self.g = self.machine.g_base
         self.weight_n = self.machine.mass_kg * -float(self.g.z)
         self.plan = WalkPlan(
-            0, self.walk.step_length_m, self.leg_ids, self.walk.min_stability_margin_m
-        )
+            0, self.walk.step_length_m, self.leg_ids, self.walk.min_stability_margin_m,
+            direction=direction, unloaded=unloaded,
+        )  # fmt: skip
         self.t = 0.0
 
     # ----------------------------------------------------------------- statics
@@ -316,7 +353,7 @@ class _Planner:
         capacity = self.walk.foot_friction_coefficient * normal
         phase = Phase(
             step, key, self.t, duration, tuple(self.leg_ids[i] for i in support), moving,
-            start, end, t, x_s, forces, margin, travel, capacity,
+            start, end, t, x_s, forces, margin, travel, capacity, self.direction,
         )  # fmt: skip
         self.plan.phases.append(phase)
         self.check(phase, support, min_force_n)
@@ -334,9 +371,10 @@ class _Planner:
     ) -> None:
         self.plan.violations.append(
             Violation(
-                constraint, phase.step, phase.key, float(phase.t_s[k]), value, limit, unit, detail
+                constraint, phase.step, phase.key, float(phase.t_s[k]), value, limit, unit,
+                detail, self.direction,
             )
-        )
+        )  # fmt: skip
 
     def check(self, phase: Phase, support: list[int], min_force_n: float | None) -> None:
         """The constraints at every sample. ``min_force_n``: the least force of a standing
@@ -451,9 +489,9 @@ class _Planner:
         if abs(x_s) > self.x_s_limit + 1e-9:
             self.plan.violations.append(
                 Violation(
-                    "travel_stroke", 1, "1", 0.0, x_s, self.x_s_limit, "m",
+                    "travel_stroke", 1, ORDER[self.direction][0], 0.0, x_s, self.x_s_limit, "m",
                     f"measured x_S {units.to_mm(x_s):+.1f} mm beyond the travel's "
-                    f"±{units.to_mm(self.x_s_limit):.1f} mm",
+                    f"±{units.to_mm(self.x_s_limit):.1f} mm", self.direction,
                 )
             )  # fmt: skip
             return self.plan
@@ -461,9 +499,16 @@ class _Planner:
         ext[:4] = self.start.main_extensions_m
         ext[4:] = ext[:4] - walk.clearance_m  # S lifted by the clearance
         m_main, m_sub = self.machine.main.mass_kg, self.machine.sub.mass_kg
+        # Forward (walking.md section 2): S to the front, S takes the load, M to the
+        # rear end (M moves forward), M takes the load. Back: the same phases in reverse
+        # order from the same start state: S takes the load where it is, M moves back
+        # (x_S to the front end), M takes the load, S moves back (x_S to the rear end).
+        # Each phase of a key stands and moves the same frames in both directions.
+        back = self.direction == "back"
         for step in range(1, steps + 1):
-            self.travel(step, "1", x_s, front, m_sub, main)
-            x_s = front
+            if not back:
+                self.travel(step, "1", x_s, front, m_sub, main)
+                x_s = front
             f_m = self.forces(x_s, main)
             ext = self.legs_move(step, "2", x_s, sub, walk.clearance_m, ext, main, f_m)
             pre = self.preloaded(x_s, main, sub)
@@ -472,8 +517,9 @@ class _Planner:
             end = self.transfer_end(pre, f_s, main, f_m)
             self.ramp(step, "4", x_s, pre, end, every)
             ext = self.legs_move(step, "5", x_s, main, -walk.clearance_m, ext, sub, f_s)
-            self.travel(step, "6", x_s, rear, m_main, sub)
-            x_s = rear
+            x_to = front if back else rear
+            self.travel(step, "6", x_s, x_to, m_main, sub)
+            x_s = x_to
             f_s = self.forces(x_s, sub)
             ext = self.legs_move(step, "7a", x_s, main, walk.clearance_m, ext, sub, f_s)
             pre = self.preloaded(x_s, sub, main)
@@ -482,12 +528,24 @@ class _Planner:
             end = self.transfer_end(pre, f_m, sub, f_s)
             self.ramp(step, "7c", x_s, pre, end, every)
             ext = self.legs_move(step, "8", x_s, sub, -walk.clearance_m, ext, main, f_m)
+            if back:
+                self.travel(step, "1", x_s, rear, m_sub, main)
+                x_s = rear
         return self.plan
 
 
-def plan_walk(cfg: ProjectConfig, steps: int, start: WalkStart | None = None) -> WalkPlan:
-    """Plan ``steps`` steps from ``start`` (default: :func:`start_state`)."""
+def plan_walk(
+    cfg: ProjectConfig,
+    steps: int,
+    start: WalkStart | None = None,
+    *,
+    direction: str = "forward",
+    unloaded: bool = False,
+) -> WalkPlan:
+    """Plan ``steps`` steps from ``start`` (default: :func:`start_state`), ``direction``
+    one of :data:`DIRECTIONS`; ``unloaded``: the statics without the workpiece."""
     if steps < 1:
         raise ValueError(f"steps must be at least 1, got {steps}")
-    planner = _Planner(cfg, start if start is not None else start_state(cfg))
+    start = start if start is not None else start_state(cfg)
+    planner = _Planner(cfg, start, direction, unloaded)
     return planner.run(steps)

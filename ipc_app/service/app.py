@@ -30,9 +30,11 @@ import numpy as np
 import structlog
 
 from config import load_project
-from ipc_app.model.placement import sheet_deviation
+from ipc_app.model.placement import Pose, sheet_deviation
+from ipc_app.planner.survey import SurveyPoint
 from ipc_app.service.core import ServiceCore
 from ipc_app.service.ctl import CtlError, CtlHandlers, CtlServer
+from ipc_app.service.cycle import RingRecords, previous_from_deviation
 from ipc_app.service.interlocks import Cause, Interlock
 from ipc_app.service.logs import configure_logging
 from ipc_app.service.loop import SWITCH_INTERVAL_S, FixedRateLoop, SlackGate
@@ -60,12 +62,14 @@ def service_handlers(
     ctl: Callable[[], CtlServer],
     wait_s: float = ADJUST_WAIT_S,
     slack: SlackGate | None = None,
+    records: RingRecords | None = None,
 ) -> CtlHandlers:
     """The control channel's commands on the service core (``core`` and ``ctl`` are asked
     for at each request: the socket is bound before the core is built). ``adjust`` and
     ``reset`` wait up to ``wait_s`` for their outcome; the status carries ``ctl``, the
     channel's own health. With ``slack`` (the loop's gate) a status is built right after
-    a loop cycle's step, in the loop's slack, not during its compute."""
+    a loop cycle's step, in the loop's slack, not during its compute. ``records``: where
+    ``cycle`` writes the rings' acceptance records (None: a cycle is refused)."""
 
     def status() -> dict[str, Any]:
         c = core()
@@ -76,7 +80,7 @@ def service_handlers(
     return CtlHandlers(
         adjust=lambda r, p: _reply(core().request_adjust(r, p, wait_s=wait_s)),
         status=status,
-        stop=lambda: _reply(core().modes.stop("operator stop (wara ctl)").to_dict()),
+        stop=lambda: _reply(core().stop("operator stop (wara ctl)")),
         reset=lambda: _reply(core().request_reset(wait_s=wait_s)),
         clear=lambda: _reply(core().request_clear(wait_s=wait_s)),
         hold=lambda: _reply(core().request_hold(wait_s=wait_s)),
@@ -84,9 +88,50 @@ def service_handlers(
         unit_mode=lambda u: _reply(core().request_unit_mode(u)),
         jog=lambda c, d: _reply(core().request_jog(c, d, wait_s=wait_s)),
         audit=lambda u, a, r: core().audit(u, a, r),
-        walk=lambda n: _reply(core().request_walk(n, wait_s=wait_s)),
+        walk=lambda n, d, u: _reply(core().request_walk(n, wait_s=wait_s, direction=d, unloaded=u)),
         place=lambda r, d: _reply(core().request_place(r, sheet_deviation(*d), wait_s=wait_s)),
+        cycle=lambda r, prev, n, u: _reply(_cycle(core(), records, r, prev, n, u)),
+        confirm_fixed=lambda user: _reply(core().confirm_fixed(user)),
+        survey=lambda pts, pose: _reply(_survey(core(), pts, pose)),
     )
+
+
+def _cycle(
+    core: ServiceCore,
+    records: RingRecords | None,
+    ring: int,
+    prev: tuple[float, ...],
+    steps: int | None,
+    unloaded: bool,
+) -> dict[str, Any]:
+    """``wara ctl cycle``: the previous part from its deviation (5 numbers) or its
+    as-built pose (6), then :meth:`ServiceCore.request_cycle`, ticked by its thread."""
+    if records is None:
+        msg = "cycle refused: this service has no acceptance store for the ring's records"
+        return {"ok": False, "code": "refused", "error": msg}
+    if len(prev) == 6:
+        keys = ("x_mm", "y_mm", "z_mm", "roll_deg", "pitch_deg", "yaw_deg")
+        previous = Pose.from_dict(dict(zip(keys, prev, strict=True)))
+    else:
+        previous = previous_from_deviation(core.cfg, ring, sheet_deviation(*prev))
+    return core.request_cycle(
+        ring, previous, records, walk_steps=steps, walk_back_unloaded=unloaded
+    )
+
+
+def _survey(
+    core: ServiceCore, pts: tuple[Any, ...] | None, pose: tuple[float, ...] | None
+) -> dict[str, Any]:
+    """``wara ctl survey``: the points of a survey file, or the store's as-built pose."""
+    if pose is not None:
+        keys = ("x_mm", "y_mm", "z_mm", "roll_deg", "pitch_deg", "yaw_deg")
+        return core.submit_survey(pose=Pose.from_dict(dict(zip(keys, pose, strict=True))))
+    assert pts is not None
+    points = [
+        SurveyPoint(k, name, (fy, fz), (x, y, z))
+        for k, (name, fy, fz, x, y, z) in enumerate(pts, start=1)
+    ]
+    return core.submit_survey(points=points)
 
 
 def _reply(out: dict[str, Any]) -> dict[str, Any]:
@@ -161,19 +206,24 @@ def run_service(
     stop_event: threading.Event | None = None,
     record_root: str | Path | None = None,
     log_level: str = "INFO",
+    ring_records: RingRecords | None = None,
 ) -> int:
     """Run until SIGTERM/SIGINT (or ``duration_s``, or ``stop_event``); exit code.
 
     Logs are JSON lines on stderr (journald keeps them); the run record goes to
     ``record_root/<UTC time>/`` (default ``$STATE_DIRECTORY/runs`` under systemd, else
-    ``./wara-data/runs``).
+    ``./wara-data/runs``). ``ring_records``: where a ring cycle's acceptance records
+    go (``wara serve``: the acceptance store); None: ``wara ctl cycle`` is refused.
     """
     cfg = load_project(config_path)
     logging_handle = configure_logging(log_level)
     stop = stop_event or threading.Event()
     root = Path(record_root) if record_root else default_record_root()
     slack = SlackGate()
-    ctl = CtlServer(service_handlers(lambda: core, lambda: ctl, slack=slack), socket_path)
+    ctl = CtlServer(
+        service_handlers(lambda: core, lambda: ctl, slack=slack, records=ring_records),
+        socket_path,
+    )
     # The bus and the socket first: a start that fails there writes nothing.
     with contextlib.ExitStack() as undo:
         undo.callback(logging_handle.stop)

@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import math
 import threading
+import time
 from collections import deque
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
@@ -50,8 +51,10 @@ from ipc_app.model.kinematics import fit_layer
 from ipc_app.model.placement import Pose
 from ipc_app.planner.placement import PlacementPlan, plan_from_deviation
 from ipc_app.planner.plan import plan as plan_attitude
-from ipc_app.planner.walk import WalkPlan, WalkStart, plan_walk
+from ipc_app.planner.survey import SurveyPoint
+from ipc_app.planner.walk import DIRECTIONS, WalkPlan, WalkStart, plan_walk
 from ipc_app.service.ctl import MAX_WALK_STEPS
+from ipc_app.service.cycle import RingCycle, RingRecords
 from ipc_app.service.interlocks import (
     Cause,
     Interlock,
@@ -225,6 +228,8 @@ class ServiceCore:
         self._place_phase = -1
         #: the ring cycle's present ring and phase, as its driver reports them (status)
         self.cycle: dict[str, Any] | None = None
+        #: the ring cycle asked of the service (``request_cycle``), the last one
+        self.ring_cycle: RingCycle | None = None
 
     @staticmethod
     def record_columns(cfg: ProjectConfig) -> list[str]:
@@ -418,7 +423,9 @@ class ServiceCore:
 
     # ------------------------------------------------------------------ the walk
 
-    def plan_walk_here(self, steps: int) -> WalkPlan | dict[str, Any]:
+    def plan_walk_here(
+        self, steps: int, direction: str = "forward", unloaded: bool = False
+    ) -> WalkPlan | dict[str, Any]:
         """Plan ``steps`` steps from the last measured state (the caller's thread, not
         the loop's); a dict when the service cannot walk now (why)."""
         if self.cfg.walking is None or self.cfg.frames is None:
@@ -441,18 +448,32 @@ class ServiceCore:
             main_extensions_m=tuple((x[lo] - half[lo]).tolist()),
             upper_extensions_m=tuple((x[up] - half[up]).tolist()),
         )
-        return plan_walk(cfg, steps, start)
+        try:
+            return plan_walk(cfg, steps, start, direction=direction, unloaded=unloaded)
+        except ValueError as exc:  # unloaded without a workpiece body
+            return {"ok": False, "code": "bad_request", "error": f"walk refused: {exc}"}
 
-    def request_walk(self, steps: int, wait_s: float = 0.0, hmi_seq: int = 0) -> dict[str, Any]:
-        """Walk ``steps`` steps: planned here from the measured state and refused (with
-        the phase, instant and limit) before anything moves if a constraint breaks; then
-        the loop runs the step sequencer (EXECUTE) until the last phase (COMPLETE).
+    def request_walk(
+        self,
+        steps: int,
+        wait_s: float = 0.0,
+        hmi_seq: int = 0,
+        direction: str = "forward",
+        unloaded: bool = False,
+    ) -> dict[str, Any]:
+        """Walk ``steps`` steps ``direction`` (``forward``, ``back``), ``unloaded``: the
+        statics without the workpiece. Planned here from the measured state and refused
+        (with the phase, instant and limit) before anything moves if a constraint breaks;
+        then the loop runs the step sequencer (EXECUTE) until the last phase (COMPLETE).
         ``hmi_seq``: the HMI's TargetSeq of a WALK request (answered ACCEPTED, REJECTED,
         COMPLETED); 0 for a local request."""
         if not 1 <= steps <= MAX_WALK_STEPS:
             why = f"steps 1..{MAX_WALK_STEPS}, got {steps}"
             return self._walk_refused({"ok": False, "code": "bad_request", "error": why}, hmi_seq)
-        plan = self.plan_walk_here(steps)
+        if direction not in DIRECTIONS:
+            why = f"direction must be one of {', '.join(DIRECTIONS)}, got {direction!r}"
+            return self._walk_refused({"ok": False, "code": "bad_request", "error": why}, hmi_seq)
+        plan = self.plan_walk_here(steps, direction, unloaded)
         if isinstance(plan, dict):
             return self._walk_refused(plan, hmi_seq)
         if not plan.feasible:
@@ -508,7 +529,10 @@ class ServiceCore:
             if hmi_seq:
                 self._hmi_refused(inp.t, hmi_seq, err)
             return {"ok": False, "code": "refused", "error": err}
-        out = self.modes.walk(f"{plan.steps} step(s) of {plan.step_length_m:.3f} m")
+        load = ", unloaded" if plan.unloaded else ""
+        out = self.modes.walk(
+            f"{plan.steps} step(s) {plan.direction} of {plan.step_length_m:.3f} m{load}"
+        )
         if not out.accepted:
             if hmi_seq:
                 self._hmi_refused(inp.t, hmi_seq, out.message)
@@ -523,7 +547,9 @@ class ServiceCore:
         self.motion = MotionStats(started_s=inp.t)
         self._walk_group(inp.t)
         if self.record is not None:
-            self.record.event(inp.t, "walk", steps=plan.steps)
+            self.record.event(
+                inp.t, "walk", steps=plan.steps, direction=plan.direction, unloaded=plan.unloaded
+            )
         return {"ok": True, "mode": str(self.modes.mode), "duration_s": plan.duration_s}
 
     def _walk_group(self, now: float) -> None:
@@ -593,6 +619,8 @@ class ServiceCore:
         fig = w.figures
         return {
             "steps": w.plan.steps,
+            "direction": w.plan.direction,
+            "unloaded": w.plan.unloaded,
             "step": fig.step,
             "phase": fig.phase,
             "phase_name": w.phase_name(),
@@ -749,6 +777,119 @@ class ServiceCore:
         if self.record is not None:
             self.record.event(now, "place_end", phase=p.phase_name, mode=str(self.modes.mode))
 
+    # ------------------------------------------------------------------ the ring cycle
+
+    @property
+    def now_s(self) -> float:
+        """Machine time of the last cycle, s."""
+        return self._now
+
+    @property
+    def requests_pending(self) -> int:
+        """Requests waiting for the loop to take them."""
+        return len(self._calls)
+
+    def request_cycle(
+        self,
+        ring: int,
+        previous: Pose,
+        records: RingRecords,
+        *,
+        walk_steps: int | None = None,
+        walk_back_unloaded: bool = True,
+        drive: bool = True,
+        say: Callable[[str], None] | None = None,
+    ) -> dict[str, Any]:
+        """Run ring ``ring``'s cycle (:class:`~ipc_app.service.cycle.RingCycle`):
+        ``previous`` the part before as built (its own ring's T), ``records`` where the
+        ring's acceptance record goes, ``walk_steps`` default ``cycle.walk_steps``.
+        ``drive``: a thread of the service ticks it (``wara ctl cycle``); False: the
+        caller does (the HIL driver between its simulated periods)."""
+        if self.cfg.placement is None or self.cfg.cycle is None:
+            msg = "the project has no placement and cycle sections: it cannot run a cycle"
+            return {"ok": False, "code": "bad_request", "error": msg}
+        if not 2 <= ring <= 99_999:
+            return {"ok": False, "code": "bad_request", "error": f"ring 2..99999, got {ring}"}
+        steps = self.cfg.cycle.walk_steps if walk_steps is None else walk_steps
+        if not 0 <= steps <= MAX_WALK_STEPS:
+            why = f"walk_steps 0..{MAX_WALK_STEPS}, got {steps}"
+            return {"ok": False, "code": "bad_request", "error": why}
+        if self.ring_cycle is not None and self.ring_cycle.active:
+            rc = self.ring_cycle
+            why = f"cycle refused: ring {rc.ring}'s cycle is in {rc.phase}"
+            return {"ok": False, "code": "refused", "error": why}
+        if self.modes.mode not in (Mode.IDLE, Mode.COMPLETE):
+            why = f"cycle refused: the service is {self.modes.mode} (IDLE or COMPLETE needed)"
+            return {"ok": False, "code": "refused", "error": why}
+        cyc = RingCycle(
+            self, ring, previous, records, walk_steps=steps,
+            walk_back_unloaded=walk_back_unloaded, say=say or (lambda _s: None),
+        )  # fmt: skip
+        self.ring_cycle = cyc
+        if self.record is not None:
+            self.record.event(
+                self._now, "cycle", ring=ring, previous=previous.to_dict(), walk_steps=steps,
+                walk_back_unloaded=walk_back_unloaded,
+            )  # fmt: skip
+        cyc.start()
+        if drive:
+            threading.Thread(
+                target=self._drive_cycle, args=(cyc,), name="wara-cycle", daemon=True
+            ).start()
+        return {"ok": True, "ring": ring, "phase": cyc.phase}
+
+    def _drive_cycle(self, cyc: RingCycle) -> None:
+        """The service's cycle thread: ticks the cycle until it ends (never the loop)."""
+        while cyc.active:
+            try:
+                cyc.tick()
+            except Exception as exc:  # a bug: the cycle ends, the machine stops
+                log.exception("cycle_failed", ring=cyc.ring, phase=cyc.phase)
+                cyc._fail(f"internal: {type(exc).__name__}: {exc}")
+                return
+            time.sleep(self.CYCLE_TICK_S)
+
+    #: how often the service's cycle thread looks at the cycle, s
+    CYCLE_TICK_S = 0.05
+
+    def confirm_fixed(self, user: str) -> dict[str, Any]:
+        """The operator confirms the part is fixed (``wara ctl confirm-fixed``)."""
+        cyc = self.ring_cycle
+        if cyc is None:
+            return {"ok": False, "code": "refused", "error": "confirm-fixed refused: no cycle"}
+        return cyc.confirm_fixed(user)
+
+    def submit_survey(
+        self, points: list[SurveyPoint] | None = None, pose: Pose | None = None
+    ) -> dict[str, Any]:
+        """The ring's as-built pose for the cycle's ``survey`` (``wara ctl survey``)."""
+        cyc = self.ring_cycle
+        if cyc is None:
+            return {"ok": False, "code": "refused", "error": "survey refused: no cycle"}
+        return cyc.submit_survey(points, pose)
+
+    def stop(self, reason: str) -> dict[str, Any]:
+        """A controlled stop (``wara ctl stop``); a running ring cycle ends with it."""
+        out = self.modes.stop(reason).to_dict()
+        cyc = self.ring_cycle
+        if cyc is not None and cyc.active:
+            cyc.stop(reason)
+        return out
+
+    def end_cycle(self, cyc: RingCycle, error: str | None) -> None:
+        """The ring cycle ended (``error`` None: done): the run record and the log; a
+        failed cycle leaves the machine stopped (valves closed)."""
+        if error is not None and self.modes.mode in (
+            Mode.STARTING, Mode.EXECUTE, Mode.COMPLETE, Mode.HELD, Mode.SUSPENDED,
+        ):  # fmt: skip
+            self.modes.stop(f"ring {cyc.ring}'s cycle ended in {cyc.phase}: {error}")
+        log.info("cycle end", ring=cyc.ring, phase=cyc.phase, error=error)
+        if self.record is not None:
+            self.record.event(
+                self._now, "cycle_end", ring=cyc.ring, phase=cyc.phase, error=error,
+                phase_times_s=cyc.phase_times_s, table4=cyc.table4,
+            )  # fmt: skip
+
     def note_cycle(self, ring: int, phase: str, **figures: Any) -> None:
         """The ring cycle's driver enters ``phase`` of ring ``ring``: in the status
         (``cycle``), the run record (a ``cycle_phase`` event with ``figures``) and the log."""
@@ -844,7 +985,9 @@ class ServiceCore:
         place = self.place_status()
         if place is not None:
             snap["place"] = place
-        if self.cycle is not None:
+        if self.ring_cycle is not None:
+            snap["cycle"] = self.ring_cycle.status()
+        elif self.cycle is not None:
             snap["cycle"] = dict(self.cycle)
         return snap
 

@@ -108,6 +108,9 @@ COMMANDS = (
     "audit",
     "walk",
     "place",
+    "cycle",
+    "confirm_fixed",
+    "survey",
 )
 #: The longest ``result`` an ``audit`` entry may carry.
 MAX_AUDIT_CHARS = 400
@@ -171,9 +174,18 @@ class CtlHandlers:
     jog: Callable[[str, float], Reply] | None = None
     #: an entry of another front end's audit trail (user, action, result)
     audit: Callable[[str, str, str], Reply] | None = None
-    walk: Callable[[int], Reply] | None = None
+    #: N steps; the direction (forward, back: checked by the service); unloaded
+    walk: Callable[[int, str, bool], Reply] | None = None
     #: place ring N's part; the previous part's deviation (y mm, z mm, roll, pitch, yaw deg)
     place: Callable[[int, tuple[float, ...]], Reply] | None = None
+    #: ring N's cycle: the previous part's deviation (5 numbers, as ``place``) or its
+    #: as-built pose (6: x, y, z mm, roll, pitch, yaw deg), walk steps (None: the
+    #: project's), walk back unloaded
+    cycle: Callable[[int, tuple[float, ...], int | None, bool], Reply] | None = None
+    #: the operator confirms the part is fixed (their name)
+    confirm_fixed: Callable[[str], Reply] | None = None
+    #: the cycle's survey: points (name, face y, face z, x, y, z; m) or a pose (6 numbers)
+    survey: Callable[[tuple[Any, ...] | None, tuple[float, ...] | None], Reply] | None = None
 
 
 def _error(code: str, message: str) -> Reply:
@@ -262,7 +274,15 @@ def parse(line: bytes) -> Request | Reply:
                 "bad_request",
                 f"'steps' must be an integer 1..{MAX_WALK_STEPS}, got {_brief(steps)}",
             )
-        return Request(cmd, (steps,))
+        unloaded = req.get("unloaded", False)
+        if not isinstance(unloaded, bool):
+            why = f"'unloaded' must be true or false, got {_brief(unloaded)}"
+            return _error("bad_request", why)
+        try:  # the directions themselves are the walk planner's (the service checks)
+            direction = _name({"direction": req.get("direction", "forward")}, "direction")
+        except ValueError as exc:
+            return _error("bad_request", str(exc))
+        return Request(cmd, (steps, direction, unloaded))
     if cmd == "place":
         ring = req.get("ring")
         if isinstance(ring, bool) or not isinstance(ring, int) or not 1 <= ring <= 99_999:
@@ -283,6 +303,11 @@ def parse(line: bytes) -> Request | Reply:
         if max(abs(vals[0]), abs(vals[1])) > 50 or max(abs(v) for v in vals[2:]) > 10:
             return _error("bad_request", "previous_deviation: at most 50 mm and 10 deg")
         return Request(cmd, (ring, vals))
+    if cmd in ("cycle", "confirm_fixed", "survey"):
+        try:
+            return _cycle_request(cmd, req)
+        except ValueError as exc:
+            return _error("bad_request", str(exc))
     if cmd != "adjust":
         return Request(cmd)
     try:
@@ -292,6 +317,56 @@ def parse(line: bytes) -> Request | Reply:
     if abs(roll) >= 90 or abs(pitch) >= 90:
         return _error("bad_request", "roll_deg and pitch_deg must be within ±90 deg")
     return Request(cmd, (roll, pitch))
+
+
+#: The most survey points one request carries.
+MAX_SURVEY_POINTS = 200
+
+
+def _numbers(v: Any, n: int, what: str) -> tuple[float, ...]:
+    if not isinstance(v, list) or len(v) != n:
+        raise ValueError(f"{what} must be {n} numbers, got {_brief(v)}")
+    return tuple(_number({"v": x}, "v", "mm or degrees") for x in v)
+
+
+def _cycle_request(cmd: str, req: Mapping[str, Any]) -> Request:
+    """``cycle``, ``confirm_fixed`` and ``survey`` (the ring cycle's requests)."""
+    if cmd == "confirm_fixed":
+        return Request(cmd, (_name(req, "user"),))
+    if cmd == "survey":
+        points, pose = req.get("points"), req.get("pose")
+        if (points is None) == (pose is None):
+            raise ValueError("survey: give 'points' or 'pose'")
+        if pose is not None:
+            return Request(cmd, (None, _numbers(pose, 6, "'pose'")))
+        if not isinstance(points, list) or not 1 <= len(points) <= MAX_SURVEY_POINTS:
+            raise ValueError(f"'points' must be a list of 1..{MAX_SURVEY_POINTS} points")
+        out = []
+        for k, p in enumerate(points, start=1):
+            if not isinstance(p, list) or len(p) != 6:
+                raise ValueError(f"point {k}: [name, face_y_m, face_z_m, x_m, y_m, z_m]")
+            name = _name({"name": p[0]}, "name")
+            out.append((name, *_numbers(p[1:], 5, f"point {k}")))
+        return Request(cmd, (tuple(out), None))
+    ring = req.get("ring")
+    if isinstance(ring, bool) or not isinstance(ring, int) or not 2 <= ring <= 99_999:
+        raise ValueError(f"'ring' must be an integer 2..99999, got {_brief(ring)}")
+    dev, pose = req.get("previous_deviation"), req.get("previous_pose")
+    if dev is not None and pose is not None:
+        raise ValueError("give 'previous_deviation' or 'previous_pose', not both")
+    prev = _numbers(pose, 6, "'previous_pose'") if pose is not None else (
+        _numbers(dev if dev is not None else [0.0] * 5, 5, "'previous_deviation'"))  # fmt: skip
+    steps = req.get("walk_steps")
+    if steps is not None and (
+        isinstance(steps, bool) or not isinstance(steps, int) or not 0 <= steps <= MAX_WALK_STEPS
+    ):
+        raise ValueError(
+            f"'walk_steps' must be an integer 0..{MAX_WALK_STEPS}, got {_brief(steps)}"
+        )
+    unloaded = req.get("walk_back_unloaded", True)
+    if not isinstance(unloaded, bool):
+        raise ValueError(f"'walk_back_unloaded' must be true or false, got {_brief(unloaded)}")
+    return Request(cmd, (ring, prev, steps, unloaded))
 
 
 def call(handlers: CtlHandlers, req: Request) -> Reply:

@@ -68,6 +68,16 @@ def register(sub: argparse._SubParsersAction) -> None:
     jog.add_argument("--distance-mm", type=float, required=True, help="rod travel, mm (+ out)")
     walk = verbs.add_parser("walk", parents=[common], help="walk N steps (planned first)")
     walk.add_argument("--steps", type=int, required=True, help="number of steps (1..1000)")
+    walk.add_argument(
+        "--direction",
+        default="forward",
+        help="forward (x increasing, the default) or back (the gait mirrored)",
+    )
+    walk.add_argument(
+        "--unloaded",
+        action="store_true",
+        help="the statics without the workpiece (walking back from a fixed ring)",
+    )
     place = verbs.add_parser(
         "place", parents=[common], help="place ring N's part at its planned target pose"
     )
@@ -78,7 +88,121 @@ def register(sub: argparse._SubParsersAction) -> None:
         metavar="Y_MM,Z_MM,ROLL_DEG,PITCH_DEG,YAW_DEG",
         help="the previous part's deviation from its design (default none)",
     )
+    cyc = verbs.add_parser(
+        "cycle", parents=[common], help="ring N's cycle: walk, place, fixing, ... walk back"
+    )
+    cyc.add_argument("--ring", type=int, required=True, help="the ring being built (2..99999)")
+    prev = cyc.add_mutually_exclusive_group()
+    prev.add_argument(
+        "--previous-deviation",
+        default=None,
+        metavar="Y_MM,Z_MM,ROLL_DEG,PITCH_DEG,YAW_DEG",
+        help="the previous part's deviation from its design (default none)",
+    )
+    prev.add_argument(
+        "--from-store",
+        action="store_true",
+        help="the previous part's as-built pose from the acceptance store (--db)",
+    )
+    cyc.add_argument("--db", default=None, metavar="PATH", help="acceptance store to read")
+    cyc.add_argument(
+        "--walk-steps", type=int, default=None, help="steps to the ring (default cycle.walk_steps)"
+    )
+    cyc.add_argument(
+        "--walk-back-loaded",
+        action="store_true",
+        help="walk back with the part's weight in the statics (default: unloaded)",
+    )
+    fixed = verbs.add_parser(
+        "confirm-fixed", parents=[common], help="the cycle's part is fixed: release it"
+    )
+    fixed.add_argument("--user", required=True, help="who confirms (audited)")
+    survey = verbs.add_parser(
+        "survey", parents=[common], help="the cycle's survey: a total-station file or the store"
+    )
+    src = survey.add_mutually_exclusive_group(required=True)
+    src.add_argument("file", nargs="?", default=None, help="survey CSV (as wara survey import)")
+    src.add_argument(
+        "--from-store",
+        action="store_true",
+        help="the as-built pose wara survey import --db attached to the cycle's ring",
+    )
+    survey.add_argument("--db", default=None, metavar="PATH", help="acceptance store to read")
     p.set_defaults(func=run)
+
+
+def _cycle_fields(args: argparse.Namespace) -> dict[str, Any]:
+    """``wara ctl cycle``'s request: the previous part from the sheet or the store."""
+    from wara.commands.place import parse_deviation
+
+    if not 2 <= args.ring <= 99_999:
+        raise UsageError(f"--ring must be within 2..99999, got {args.ring}")
+    fields: dict[str, Any] = {"ring": args.ring, "walk_back_unloaded": not args.walk_back_loaded}
+    if args.walk_steps is not None:
+        if not 0 <= args.walk_steps <= 1000:
+            raise UsageError(f"--walk-steps must be within 0..1000, got {args.walk_steps}")
+        fields["walk_steps"] = args.walk_steps
+    keys = ("x_mm", "y_mm", "z_mm", "roll_deg", "pitch_deg", "yaw_deg")
+    if args.from_store:
+        pose = _store_pose(args.db, args.ring - 1)
+        try:
+            fields["previous_pose"] = [float(pose[k]) for k in keys]
+        except (KeyError, TypeError, ValueError) as exc:
+            raise UsageError(
+                f"ring {args.ring - 1}: the attached pose is unusable: {exc}"
+            ) from None
+    elif args.previous_deviation is not None:
+        d = parse_deviation(args.previous_deviation).to_dict()
+        fields["previous_deviation"] = [
+            d[k] for k in ("y_mm", "z_mm", "roll_deg", "pitch_deg", "yaw_deg")
+        ]
+    return fields
+
+
+def _store_pose(db: str | None, ring: int) -> dict[str, float]:
+    """The as-built pose attached to ``ring`` in the acceptance store (by ``wara survey
+    import --db`` or a cycle's record), mm and deg in the ring's own T."""
+    from pathlib import Path
+
+    from acceptance.store import AcceptanceStore, default_db_path
+
+    path = Path(db) if db else default_db_path()
+    if not path.exists():
+        raise UsageError(f"{path}: no acceptance store")
+    with AcceptanceStore.open(path, create=False) as store:
+        plan = store.latest_plan(ring)
+    att = plan.final_attitude if plan is not None else None
+    if not att or not isinstance(att.get("as_built_pose"), dict):
+        raise UsageError(f"{path}: ring {ring} has no as-built pose (wara survey import --db)")
+    return dict(att["as_built_pose"])
+
+
+def _survey_fields(args: argparse.Namespace) -> dict[str, Any]:
+    """``wara ctl survey``'s request: the file's points, or the store's pose for the
+    ring the service's cycle is at."""
+    from pathlib import Path
+
+    from ipc_app.planner.survey import SurveyError, parse_survey_text
+
+    if args.from_store:
+        status = request("status", socket_path=getattr(args, "socket", None))
+        cyc = status.get("cycle") or {}
+        if cyc.get("phase") != "survey":
+            raise UsageError("the service's cycle is not waiting for a survey")
+        pose = _store_pose(args.db, int(cyc["ring"]))
+        keys = ("x_mm", "y_mm", "z_mm", "roll_deg", "pitch_deg", "yaw_deg")
+        try:
+            return {"pose": [float(pose[k]) for k in keys]}
+        except (KeyError, TypeError, ValueError) as exc:
+            raise UsageError(f"ring {cyc['ring']}: the attached pose is unusable: {exc}") from None
+    try:
+        text = Path(args.file).read_text(encoding="utf-8")
+        points = parse_survey_text(text, args.file)
+    except OSError as exc:
+        raise UsageError(f"{args.file}: {exc.strerror or exc}") from None
+    except SurveyError as exc:
+        raise UsageError(str(exc)) from None
+    return {"points": [[p.name, *p.face, *p.measured] for p in points]}
 
 
 def run(args: argparse.Namespace) -> int:
@@ -90,8 +214,14 @@ def run(args: argparse.Namespace) -> int:
         fields = {"roll_deg": args.roll_deg, "pitch_deg": args.pitch_deg}
         timeout_s = args.timeout_s
     elif args.verb == "walk":
+        from ipc_app.planner.walk import DIRECTIONS
+
         check_walk_steps(args.steps)
-        fields = {"steps": args.steps}
+        if args.direction not in DIRECTIONS:
+            raise UsageError(
+                f"--direction must be one of {', '.join(DIRECTIONS)}, got {args.direction!r}"
+            )
+        fields = {"steps": args.steps, "direction": args.direction, "unloaded": args.unloaded}
         timeout_s = 30.0
     elif args.verb == "place":
         from wara.commands.place import parse_deviation
@@ -104,6 +234,12 @@ def run(args: argparse.Namespace) -> int:
             dev = [d.to_dict()[k] for k in ("y_mm", "z_mm", "roll_deg", "pitch_deg", "yaw_deg")]
         fields = {"ring": args.ring, "previous_deviation": dev}
         timeout_s = 30.0
+    elif args.verb == "cycle":
+        fields, timeout_s = _cycle_fields(args), 30.0
+    elif args.verb == "confirm-fixed":
+        fields = {"user": args.user}
+    elif args.verb == "survey":
+        fields, timeout_s = _survey_fields(args), 30.0
     elif args.verb == "unit-mode":
         fields = {"unit_mode": args.unit_mode}
     elif args.verb == "jog":

@@ -25,6 +25,13 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="where run records go (default: $STATE_DIRECTORY/runs or ./wara-data/runs)",
     )
     p.add_argument("--log-level", default="INFO", choices=["DEBUG", "INFO", "WARNING", "ERROR"])
+    p.add_argument(
+        "--db",
+        default=None,
+        metavar="PATH",
+        help="acceptance store of the ring cycle's records "
+        "(default $WARA_DATA_DIR/acceptance.sqlite)",
+    )
     p.set_defaults(func=_run)
 
 
@@ -41,6 +48,12 @@ def _run(args: argparse.Namespace) -> int:
             opcua.start()
         except OpcUaStartError as exc:
             raise UsageError(str(exc)) from None
+    from pathlib import Path
+
+    from acceptance.store import default_db_path
+    from wara.ring_records import StoreRecords
+
+    db = Path(args.db) if args.db else default_db_path()
     try:
         return run_service(
             args.config,
@@ -48,6 +61,7 @@ def _run(args: argparse.Namespace) -> int:
             duration_s=args.duration_s,
             record_root=args.record_dir,
             log_level=args.log_level,
+            ring_records=StoreRecords(db, operator="wara serve (ring cycle)"),
         )
     except StartupError as exc:  # bus, socket or record directory: one line, exit 2
         raise UsageError(str(exc)) from None

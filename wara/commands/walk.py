@@ -19,7 +19,7 @@ import sys
 from pathlib import Path
 
 from config import load_project, units
-from ipc_app.planner.walk import WalkPlan, WalkStart, plan_walk, start_state
+from ipc_app.planner.walk import DIRECTIONS, WalkPlan, WalkStart, plan_walk, start_state
 from wara.cli import EXIT_FAILED, EXIT_INFEASIBLE, EXIT_OK, UsageError, check_walk_steps
 from wara.commands.plan import parse_four_mm, report
 
@@ -37,6 +37,12 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.add_argument("--plot", default=None, metavar="DIR", help="write DIR/walk.png")
+    _direction_options(p, unloaded=False)
+    p.add_argument(
+        "--and-back",
+        action="store_true",
+        help="then the same steps the other way (the end where the walk started)",
+    )
     p.set_defaults(func=run_walk_cmd)
     verbs = p.add_subparsers(dest="verb", metavar="VERB")
     plan = verbs.add_parser(
@@ -65,7 +71,26 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="measured upper extensions from mid-stroke, mm (default: mid-stroke)",
     )
     plan.add_argument("--json", action="store_true", help="print one JSON object")
+    _direction_options(plan)
     plan.set_defaults(func=run_plan)
+
+
+def _direction_options(p: argparse.ArgumentParser, unloaded: bool = True) -> None:
+    """``--direction`` and (the plan's) ``--unloaded``."""
+    p.add_argument(
+        "--direction",
+        choices=DIRECTIONS,
+        default="forward",
+        help="forward (x increasing, the default) or back (the gait mirrored)",
+    )
+    if not unloaded:  # the simulator carries its part (docs/walking.md)
+        return
+    p.add_argument(
+        "--unloaded",
+        action="store_true",
+        help="without the workpiece (the upper layer's body 'workpiece'): walking back "
+        "from a fixed ring",
+    )
 
 
 def run_walk_cmd(args: argparse.Namespace) -> int:
@@ -84,6 +109,9 @@ def run_walk_cmd(args: argparse.Namespace) -> int:
         require_realtime_simulator()
     from wara.walk import run_walk
 
+    other = "back" if args.direction == "forward" else "forward"
+    directions = (args.direction, other) if args.and_back else (args.direction,)
+
     def say(msg: str) -> None:
         print(f"wara walk: {msg}", file=sys.stderr)
 
@@ -98,6 +126,7 @@ def run_walk_cmd(args: argparse.Namespace) -> int:
             mode="lockstep" if args.lockstep else "realtime",
             plot_dir=Path(args.plot) if args.plot else None,
             progress=say,
+            directions=directions,
         )
     finally:
         logs.stop()
@@ -148,14 +177,18 @@ def run_plan(args: argparse.Namespace) -> int:
         main_extensions_m=parse_four_mm(args.start_main_mm, "--start-main-mm"),
         upper_extensions_m=parse_four_mm(args.start_upper_mm, "--start-upper-mm"),
     )
-    result = plan_walk(cfg, args.steps, start)
+    try:
+        result = plan_walk(cfg, args.steps, start, direction=args.direction, unloaded=args.unloaded)
+    except ValueError as exc:  # unloaded without a workpiece body
+        raise UsageError(str(exc)) from None
     return report(result, args.json, render)
 
 
 def render(p: WalkPlan) -> str:
     d = p.to_dict()
     lines = [
-        f"{p.steps} step(s) of {p.step_length_m:.3f} m: {d['distance_m']:.3f} m "
+        f"{p.steps} step(s) {p.direction}{', unloaded' if p.unloaded else ''} of "
+        f"{p.step_length_m:.3f} m: {d['distance_m']:+.3f} m "
         f"in {d['duration_s']:.1f} s ({max(d['step_duration_s']):.1f} s per step)",
         "FEASIBLE" if p.feasible else "REFUSED",
         "",

@@ -1,0 +1,349 @@
+"""The ring cycle as a request of the service (placement.md section 4; docs/placement.md).
+
+One ring's phases, in order: ``walk`` (``walk_steps`` steps to the ring), ``place`` (the
+target planned from the previous part's as-built pose), ``fixing`` (the pose held until
+an operator confirms the part is fixed: :meth:`RingCycle.confirm_fixed`, audited),
+``release`` (a controlled stop: valves closed), ``survey`` (waits for the as-built pose:
+survey points to fit, or a pose from the acceptance store), ``record`` (the ring's Table
+4 figures from the surveyed poses, handed to the :class:`RingRecords` sink that writes
+the acceptance record), ``walk_back`` (the same steps back; unloaded unless told).
+
+:meth:`RingCycle.tick` advances it. It is called outside the fixed-rate loop: by the
+service's cycle thread (``wara ctl cycle``), or by the HIL driver between its simulated
+periods (``wara cycle``). The planning (the placement's target, the walks) runs in that
+caller, never in the loop; the loop only takes the requests, as for ``wara ctl walk`` and
+``place``. A stop (``wara ctl stop``), a latched fault, a refused request or a motion
+that does not end in COMPLETE ends the cycle in the phase it was in, with the valves
+closed (:attr:`RingCycle.error`, :attr:`RingCycle.stopped_in_phase`).
+"""
+
+from __future__ import annotations
+
+import threading
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any, Protocol
+
+from config import units
+from config.schema import ProjectConfig
+from ipc_app.model.placement import Pose, design_pose, joint_figures, to_ring_frame
+from ipc_app.planner.placement import PlacementPlan, plan_target
+from ipc_app.planner.survey import SurveyError, SurveyFit, SurveyPoint, fit_survey
+from ipc_app.service.modes import Mode
+
+if TYPE_CHECKING:
+    from ipc_app.service.core import ServiceCore
+
+#: The phases of one ring, in order.
+PHASES: tuple[str, ...] = ("walk", "place", "fixing", "release", "survey", "record", "walk_back")
+#: The Table 4 items of a ring's acceptance record (acceptance keys).
+RECORD_KEYS: tuple[str, ...] = (
+    "vertical_misalignment_mm",
+    "horizontal_misalignment_mm",
+    "max_gap_mm",
+    "centreline_deviation_x_mm",
+    "centreline_deviation_y_mm",
+    "pitch_angle_deg",
+    "tilt_angle_deg",
+    "rotation_angle_deg",
+)
+#: A requested motion not taken by the loop within this much machine time: failed, s.
+START_LIMIT_S = 5.0
+#: A motion phase not ended within this much machine time: failed, s.
+MOTION_LIMIT_S = 3600.0
+
+
+def previous_from_deviation(cfg: ProjectConfig, ring: int, dev: Pose) -> Pose:
+    """The part before ring ``ring`` (ring - 1) as built, in its own T, from its
+    deviation from its design (a survey sheet's figures, positions and angles added)."""
+    design = design_pose(cfg, ring - 1)
+    pos = design.position + dev.position
+    return Pose(
+        float(pos[0]), float(pos[1]), float(pos[2]),
+        design.roll + dev.roll, design.pitch + dev.pitch, design.yaw + dev.yaw,
+    )  # fmt: skip
+
+
+class RingRecords(Protocol):
+    """Where the cycle's acceptance records go (the acceptance store, kept outside the
+    service's package: ``wara serve`` and ``wara cycle`` hand one in)."""
+
+    def write(self, ring: int, values: dict[str, float | None], attached: dict[str, Any]) -> str:
+        """Write ring ``ring``'s record (Table 4 ``values``) with ``attached`` (the plan,
+        the cycle's figures, ``as_built_pose``); a short note of where it went."""
+        ...
+
+
+class CycleError(Exception):
+    """A phase failed: the cycle ends in it (the machine holds, valves closed)."""
+
+
+@dataclass
+class RingCycle:
+    """One ring's cycle on ``core``; see the module docstring."""
+
+    core: ServiceCore
+    ring: int
+    #: the previous part's as-built pose in its own ring's T (ring - 1)
+    previous: Pose
+    records: RingRecords
+    walk_steps: int = 0
+    walk_back_unloaded: bool = True
+    say: Callable[[str], None] = field(default=lambda _s: None)
+    phase: str = ""
+    done: bool = False
+    refused: bool = False
+    error: str | None = None
+    stopped_in_phase: str | None = None
+    phase_times_s: dict[str, float] = field(default_factory=dict)
+    plan: PlacementPlan | None = None
+    fit: SurveyFit | None = None
+    surveyed: Pose | None = None
+    record_note: str = ""
+    fixed_by: str = ""
+    #: the recorded Table 4 figures (from the surveyed poses)
+    table4: dict[str, float | None] = field(default_factory=dict)
+    #: what the phase waits for now ("" while it runs by itself)
+    waiting_for: str = ""
+    _since: float = 0.0
+    _issued_at: float | None = None
+    _before: Any = None
+    _started: bool = False
+    #: the cycle thread's ticks and the operator's requests take turns
+    _lock: threading.RLock = field(default_factory=threading.RLock)
+    _stop_reason: str | None = None
+
+    @property
+    def cfg(self) -> ProjectConfig:
+        return self.core.cfg
+
+    @property
+    def active(self) -> bool:
+        return not self.done and self.error is None
+
+    def status(self) -> dict[str, Any]:
+        out: dict[str, Any] = {
+            "ring": self.ring,
+            "phase": self.phase,
+            "since_s": round(self._since, 3),
+            "waiting_for": self.waiting_for,
+            "done": self.done,
+            "error": self.error,
+            "phase_times_s": {k: round(v, 3) for k, v in self.phase_times_s.items()},
+        }
+        if self.plan is not None:
+            out["target_deviation"] = self.plan.to_dict()["target_deviation"]
+        return out
+
+    # ----------------------------------------------------------------- phases
+
+    def _enter(self, phase: str, waiting_for: str = "", **figures: Any) -> None:
+        now = self.core.now_s
+        if self.phase:
+            self.phase_times_s[self.phase] = now - self._since
+        self.phase, self._since, self.waiting_for = phase, now, waiting_for
+        self._issued_at, self._before, self._started = None, None, False
+        self.core.note_cycle(self.ring, phase, waiting_for=waiting_for, **figures)
+        self.say(f"ring {self.ring}: {phase}")
+
+    def _fail(self, msg: str, *, refused: bool = False) -> None:
+        self.error, self.refused = msg, refused
+        self.stopped_in_phase = self.phase
+        self.phase_times_s[self.phase] = self.core.now_s - self._since
+        self.core.end_cycle(self, msg)
+
+    def start(self) -> None:
+        self._enter("walk", steps=self.walk_steps)
+
+    def stop(self, reason: str) -> None:
+        """An operator's stop (the machine already stopped by the caller). It never
+        waits for a tick that is planning: the cycle ends at once or at its next tick."""
+        self._stop_reason = reason
+        if self._lock.acquire(blocking=False):
+            try:
+                if self.active:
+                    self._fail(f"stopped: {reason}")
+            finally:
+                self._lock.release()
+
+    def tick(self) -> None:
+        """Advance the cycle as far as it goes now (outside the loop)."""
+        with self._lock:
+            self._tick_locked()
+
+    def _tick_locked(self) -> None:
+        if not self.active:
+            return
+        if self._stop_reason is not None:
+            self._fail(f"stopped: {self._stop_reason}")
+            return
+        try:
+            for _ in PHASES:  # on through the phases that end at once (bounded)
+                before = self.phase
+                self._tick()
+                if self.phase == before or not self.active:
+                    break
+        except CycleError as exc:
+            self._fail(str(exc), refused=getattr(exc, "refused", False))
+
+    def _tick(self) -> None:
+        core, mode = self.core, self.core.modes.mode
+        if mode in (Mode.ABORTED, Mode.STOPPED):
+            raise CycleError(f"the service is {mode}: {'; '.join(core.modes.fault_reasons)}")
+        ph = self.phase
+        if ph == "walk":
+            if self.walk_steps == 0 or self._motion("walk", self._walk_forward):
+                self._enter("place")
+        elif ph == "place":
+            if self._motion("place", self._place):
+                self._enter("fixing", waiting_for="operator confirmation (wara ctl confirm-fixed)")
+        elif ph == "fixing":
+            if mode != Mode.COMPLETE:
+                raise CycleError(f"the hold for fixing ended in {mode}")
+        elif ph == "survey" and self.surveyed is not None:
+            self._enter("record")
+            self._record()
+            self._enter("walk_back", steps=self.walk_steps, unloaded=self.walk_back_unloaded)
+        elif ph == "walk_back" and (
+            self.walk_steps == 0 or self._motion("walk back", self._walk_back)
+        ):
+            self.phase_times_s[ph] = core.now_s - self._since
+            self.phase, self.waiting_for, self.done = "done", "", True
+            core.end_cycle(self, None)
+
+    def _motion(self, what: str, issue: Callable[[], dict[str, Any]]) -> bool:
+        """Issue the phase's motion once; True when it ended in COMPLETE."""
+        core = self.core
+        if self._issued_at is None:
+            self._before = (core.walker, core.placer)
+            res = issue()
+            if not res.get("ok"):
+                err = CycleError(f"{what} refused: {res.get('error')}")
+                err.refused = res.get("code") == "infeasible"  # type: ignore[attr-defined]
+                raise err
+            self._issued_at = core.now_s
+            return False
+        mode = core.modes.mode
+        if not self._started:
+            if (core.walker, core.placer) != self._before and mode in (
+                Mode.EXECUTE, Mode.COMPLETE,
+            ):  # fmt: skip
+                self._started = True
+            elif core.requests_pending == 0 and core.now_s - self._issued_at > START_LIMIT_S:
+                raise CycleError(f"{what} was not taken: the service is {mode}")
+            return False
+        if mode in (Mode.EXECUTE, Mode.HELD, Mode.SUSPENDED, Mode.STARTING):
+            if core.now_s - self._issued_at > MOTION_LIMIT_S:
+                raise CycleError(f"{what} did not end within {MOTION_LIMIT_S:.0f} s")
+            return False
+        if mode != Mode.COMPLETE:
+            why = "; ".join(core.modes.fault_reasons) or "stopped"
+            raise CycleError(f"{what} ended in {mode}: {why}")
+        return True
+
+    def _walk_forward(self) -> dict[str, Any]:
+        return self.core.request_walk(self.walk_steps)
+
+    def _walk_back(self) -> dict[str, Any]:
+        return self.core.request_walk(
+            self.walk_steps, direction="back", unloaded=self.walk_back_unloaded
+        )
+
+    def _place(self) -> dict[str, Any]:
+        cfg = self.cfg
+        previous = to_ring_frame(cfg, self.previous, self.ring - 1, self.ring)
+        plan = plan_target(cfg, previous, self.ring)
+        self.plan = plan
+        if not plan.feasible:
+            err = CycleError(f"ring {self.ring}: " + "; ".join(plan.reasons))
+            err.refused = True  # type: ignore[attr-defined]
+            raise err
+        return self.core.request_place_plan(plan)
+
+    # ----------------------------------------------------------------- requests
+
+    def confirm_fixed(self, user: str) -> dict[str, Any]:
+        """The operator confirms the part is fixed: the hold ends with a controlled stop
+        (``release``), then the cycle waits for the survey."""
+        with self._lock:
+            return self._confirm_fixed(user)
+
+    def _confirm_fixed(self, user: str) -> dict[str, Any]:
+        if self.phase != "fixing" or not self.active:
+            return {
+                "ok": False,
+                "code": "refused",
+                "error": f"confirm-fixed refused: the cycle is in {self.phase or 'no phase'}, "
+                "not fixing",
+            }
+        self.fixed_by = user
+        self.core.audit(user, "confirm_fixed", f"ring {self.ring} fixed")
+        self._enter("release")
+        self.core.modes.stop(f"ring {self.ring} released: the part is fixed ({user})")
+        self._enter("survey", waiting_for="a survey (wara ctl survey FILE.csv | --from-store)")
+        return {"ok": True, "ring": self.ring, "phase": self.phase}
+
+    def submit_survey(
+        self, points: list[SurveyPoint] | None = None, pose: Pose | None = None
+    ) -> dict[str, Any]:
+        """The as-built pose: ``points`` fitted as ``wara survey import`` fits a file, or
+        ``pose`` (the acceptance store's, in the ring's own T). A refused fit leaves the
+        cycle waiting in ``survey`` (another survey may follow)."""
+        with self._lock:
+            return self._submit_survey(points, pose)
+
+    def _submit_survey(self, points: list[SurveyPoint] | None, pose: Pose | None) -> dict[str, Any]:
+        if self.phase != "survey" or not self.active:
+            return {
+                "ok": False,
+                "code": "refused",
+                "error": f"survey refused: the cycle is in {self.phase or 'no phase'}, not survey",
+            }
+        if (points is None) == (pose is None):
+            return {"ok": False, "code": "bad_request", "error": "give survey points or a pose"}
+        if points is not None:
+            try:
+                fit = fit_survey(self.cfg, self.ring, points)
+            except SurveyError as exc:
+                msg = str(exc) if str(exc).startswith("survey") else f"survey: {exc}"
+                return {"ok": False, "code": "bad_request", "error": msg}
+            if not fit.accepted:
+                why = "; ".join(fit.reasons)
+                return {"ok": False, "code": "refused", "error": f"survey refused: {why}"}
+            self.fit, self.surveyed = fit, fit.pose
+            res = units.to_mm(fit.rms_residual_m)
+            out: dict[str, Any] = {"ok": True, "ring": self.ring, "rms_residual_mm": res}
+        else:
+            assert pose is not None
+            self.surveyed = pose
+            out = {"ok": True, "ring": self.ring, "source": "store"}
+        if self.core.record is not None:
+            self.core.record.event(
+                self.core.now_s, "cycle_survey", ring=self.ring, pose=self.surveyed.to_dict(),
+                rms_residual_mm=out.get("rms_residual_mm"),
+            )  # fmt: skip
+        return out
+
+    def _record(self) -> None:
+        assert self.surveyed is not None and self.plan is not None
+        cfg = self.cfg
+        prev = to_ring_frame(cfg, self.previous, self.ring - 1, self.ring)
+        fig = joint_figures(cfg, prev, self.surveyed, self.plan.design).to_dict()
+        values: dict[str, float | None] = {k: fig[k] for k in RECORD_KEYS}
+        attached = {
+            "kind": "ring_cycle",
+            "plan": self.plan.to_dict(),
+            "cycle": {
+                "phase_times_s": dict(self.phase_times_s),
+                "fixed_by": self.fixed_by,
+                "survey_rms_residual_mm": (
+                    units.to_mm(self.fit.rms_residual_m) if self.fit is not None else None
+                ),
+            },
+            "as_built_pose": self.surveyed.to_dict(),
+        }
+        try:
+            self.record_note = self.records.write(self.ring, values, attached)
+        except Exception as exc:  # the store's problem: the cycle ends here, machine idle
+            raise CycleError(f"the ring's record was not written: {exc}") from None
+        self.table4 = values

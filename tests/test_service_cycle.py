@@ -1,0 +1,235 @@
+"""The ring cycle as a request of the service (``wara ctl cycle``): its phases in order,
+the operator's fixing confirmation and the survey it waits for, a stop in a phase, and
+bad input (docs/placement.md)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+from config import load_project
+from hil_sim.placement import pose_from_home
+from ipc_app.model.placement import Pose, compose, sheet_deviation
+from ipc_app.planner.placement import home_pose
+from ipc_app.service.core import ServiceCore
+from ipc_app.service.ctl import CtlHandlers, Request, dispatch, parse
+from ipc_app.service.cycle import PHASES, RECORD_KEYS, RingCycle, previous_from_deviation
+from ipc_app.service.modes import Mode
+from tests.test_ring_cycle import _place_harness
+from wara.cycle import simulated_survey
+from wara.harness import Harness
+
+
+class _Records:
+    """A RingRecords sink that keeps what it was given."""
+
+    def __init__(self) -> None:
+        self.written: list[tuple[int, dict[str, float | None], dict[str, Any]]] = []
+
+    def write(self, ring: int, values: dict[str, float | None], attached: dict[str, Any]) -> str:
+        self.written.append((ring, values, attached))
+        return "memory"
+
+
+def _run_until(h: Harness, cyc: RingCycle, phase: str, limit_s: float = 60.0) -> None:
+    """Tick the cycle between simulated periods until it is in ``phase`` (or ends)."""
+    t_end = h.sim.t_s + limit_s
+    while cyc.active and cyc.phase != phase and h.sim.t_s < t_end:
+        cyc.tick()
+        if cyc.active and cyc.phase != phase:
+            h.advance(h.period)
+    assert cyc.phase == phase, (cyc.phase, cyc.error)
+
+
+def _events(tmp_path: Path) -> list[dict[str, Any]]:
+    return [json.loads(line) for line in (tmp_path / "run" / "events.jsonl").open()]
+
+
+@pytest.mark.slow
+def test_the_cycle_waits_for_the_operator_and_the_survey(tmp_path: Path) -> None:
+    """The phases in order; ``fixing`` holds the pose until the operator confirms
+    (audited, with their name), ``survey`` until a survey is submitted (a bad one is
+    refused and the cycle keeps waiting); the record goes to the sink with the plan and
+    the as-built pose; a confirmation out of its phase is refused."""
+    cfg = load_project(None)
+    h, rec = _place_harness(tmp_path)
+    records = _Records()
+    try:
+        previous = previous_from_deviation(cfg, 3, sheet_deviation(2, -2, 0, 0, 0))
+        out = h.core.request_cycle(3, previous, records, drive=False)
+        assert out == {"ok": True, "ring": 3, "phase": "walk"}
+        again = h.core.request_cycle(3, previous, records, drive=False)
+        assert again["ok"] is False and "ring 3's cycle is in walk" in again["error"]
+        cyc = h.core.ring_cycle
+        assert cyc is not None
+        assert h.core.submit_survey(pose=Pose())["code"] == "refused"  # not in survey yet
+        _run_until(h, cyc, "fixing")
+        assert h.core.modes.mode == Mode.COMPLETE and h.core.modes.valves_enabled
+        h.advance(2.0)  # no confirmation: the pose stays held
+        cyc.tick()
+        status = h.core.snapshot()["cycle"]
+        assert (status["phase"], status["waiting_for"]) == (
+            "fixing",
+            "operator confirmation (wara ctl confirm-fixed)",
+        )
+        r, t = pose_from_home(cfg, h.sim.rig)
+        as_built = compose(home_pose(cfg, 3), Pose.from_matrix(r, t))
+        assert h.core.confirm_fixed("operator A")["ok"] is True
+        assert h.core.confirm_fixed("operator A")["code"] == "refused"  # once
+        h.advance(h.period)
+        assert cyc.phase == "survey" and h.core.modes.mode == Mode.IDLE
+        assert not h.core.modes.valves_enabled  # released: a controlled stop
+        pts = simulated_survey(cfg, 3, as_built, np.random.default_rng(0))
+        few = h.core.submit_survey(points=pts[:3])
+        assert few["ok"] is False and few["code"] == "bad_request"
+        assert few["error"].startswith("survey: the points lie on one line")
+        assert cyc.phase == "survey"
+        far = [p.__class__(p.line, p.name, p.face, (p.measured[0] + 5.0, *p.measured[1:]))
+               for p in pts]  # fmt: skip
+        assert h.core.submit_survey(points=far)["code"] == "refused"  # another ring's face
+        good = h.core.submit_survey(points=pts)
+        assert good["ok"] and good["rms_residual_mm"] < 3.0
+        cyc.tick()
+        assert cyc.done and cyc.error is None and cyc.phase == "done"
+    finally:
+        h.close()
+        rec.stop()
+    assert set(cyc.phase_times_s) == set(PHASES)
+    ((ring, values, attached),) = records.written
+    assert ring == 3 and set(values) == set(RECORD_KEYS)
+    assert attached["kind"] == "ring_cycle" and attached["plan"]["ring"] == 3
+    assert attached["cycle"]["fixed_by"] == "operator A"
+    assert Pose.from_dict(attached["as_built_pose"]) == cyc.surveyed
+    evs = _events(tmp_path)
+    phases = [e["phase"] for e in evs if e["kind"] == "cycle_phase"]
+    assert phases == list(PHASES)
+    (audit,) = [e for e in evs if e["kind"] == "audit"]
+    assert (audit["user"], audit["action"]) == ("operator A", "confirm_fixed")
+    (end,) = [e for e in evs if e["kind"] == "cycle_end"]
+    assert end["error"] is None and end["phase"] == "done"
+
+
+@pytest.mark.slow
+def test_a_stop_in_fixing_ends_the_cycle_holding_safely(tmp_path: Path) -> None:
+    """``wara ctl stop`` while the part waits for its bolts: the valves close, the
+    cycle ends in ``fixing`` (named), nothing is recorded, a confirmation is refused."""
+    cfg = load_project(None)
+    h, rec = _place_harness(tmp_path)
+    records = _Records()
+    try:
+        previous = previous_from_deviation(cfg, 2, Pose())
+        assert h.core.request_cycle(2, previous, records, drive=False)["ok"]
+        cyc = h.core.ring_cycle
+        assert cyc is not None
+        _run_until(h, cyc, "fixing")
+        h.core.stop("operator stop (test)")
+        h.advance(0.2)
+        assert h.core.modes.mode == Mode.IDLE and not h.core.modes.valves_enabled
+        assert not cyc.active and cyc.stopped_in_phase == "fixing"
+        assert cyc.error == "stopped: operator stop (test)"
+        assert h.core.confirm_fixed("operator A")["code"] == "refused"
+        assert h.core.snapshot()["cycle"]["error"] == cyc.error
+    finally:
+        h.close()
+        rec.stop()
+    assert records.written == []
+    (end,) = [e for e in _events(tmp_path) if e["kind"] == "cycle_end"]
+    assert end["phase"] == "fixing" and end["error"].startswith("stopped")
+
+
+def test_cycle_requests_are_checked() -> None:
+    ok = parse(b'{"cmd": "cycle", "ring": 5, "previous_deviation": [6, -6, 0, 0, 0.03]}')
+    assert ok == Request("cycle", (5, (6.0, -6.0, 0.0, 0.0, 0.03), None, True))
+    req = parse(
+        b'{"cmd": "cycle", "ring": 5, "previous_pose": [1000, 2, -6250, 0, 0, 0],'
+        b' "walk_steps": 2, "walk_back_unloaded": false}'
+    )
+    assert req == Request("cycle", (5, (1000.0, 2.0, -6250.0, 0.0, 0.0, 0.0), 2, False))
+    assert parse(b'{"cmd": "confirm_fixed", "user": "ann"}') == Request("confirm_fixed", ("ann",))
+    pt = b'["P1", 4.0, 0.3, 7.98, 4.0, -5.97]'
+    assert parse(b'{"cmd": "survey", "points": [' + pt + b"]}") == Request(
+        "survey", ((("P1", 4.0, 0.3, 7.98, 4.0, -5.97),), None)
+    )
+    for bad, why in [
+        (b'{"cmd": "cycle", "ring": 1}', "'ring' must be an integer 2..99999"),
+        (b'{"cmd": "cycle", "ring": 3, "previous_deviation": [1, 2]}', "must be 5 numbers"),
+        (
+            b'{"cmd": "cycle", "ring": 3, "previous_deviation": [0,0,0,0,0],'
+            b' "previous_pose": [0,0,0,0,0,0]}',
+            "not both",
+        ),
+        (b'{"cmd": "cycle", "ring": 3, "walk_steps": -1}', "'walk_steps' must be an integer"),
+        (b'{"cmd": "cycle", "ring": 3, "walk_back_unloaded": 1}', "true or false"),
+        (b'{"cmd": "confirm_fixed"}', "'user' must be a name"),
+        (b'{"cmd": "survey"}', "give 'points' or 'pose'"),
+        (b'{"cmd": "survey", "points": []}', "a list of 1..200 points"),
+        (b'{"cmd": "survey", "points": [["P1", 1, 2]]}', "point 1: [name, face_y_m"),
+        (b'{"cmd": "survey", "points": [["P1", 1, 2, 3, "x", 5]]}', "finite number"),
+        (b'{"cmd": "survey", "pose": [0, 0]}', "'pose' must be 6 numbers"),
+    ]:
+        out = parse(bad)
+        assert isinstance(out, dict) and out["code"] == "bad_request", bad
+        assert why in out["error"], out["error"]
+    handlers = CtlHandlers(adjust=lambda r, p: {}, status=dict, stop=dict, reset=dict)
+    out = dispatch(handlers, b'{"cmd": "confirm_fixed", "user": "ann"}')
+    assert out["code"] == "bad_request" and "not supported" in out["error"]
+
+
+def test_a_cycle_is_refused_where_it_cannot_run() -> None:
+    """Without an acceptance store for the records, or in a mode other than IDLE and
+    COMPLETE, the request is refused before anything moves; the operator's requests
+    without a cycle too."""
+    import can
+
+    from ipc_app.service.app import service_handlers
+    from plc_bridge.link import IpcLink
+
+    class NoPlanner:
+        def submit(self, *a: Any, **k: Any) -> bool:
+            return False
+
+        def poll(self) -> None:
+            return None
+
+    cfg = load_project(None)
+    bus = can.Bus(interface="virtual", channel="service-cycle-refusals")
+    try:
+        core = ServiceCore(cfg, IpcLink(cfg, bus, clock=lambda: 0.0), NoPlanner())
+        handlers = service_handlers(lambda: core, lambda: None)  # type: ignore[arg-type,return-value]
+        out = dispatch(handlers, b'{"cmd": "cycle", "ring": 3}')
+        assert out["ok"] is False and "no acceptance store" in out["error"]
+        out = core.request_cycle(3, Pose(), _Records(), drive=False)
+        assert out["code"] == "refused" and "the service is STOPPED" in out["error"]
+        assert core.request_cycle(1, Pose(), _Records())["code"] == "bad_request"
+        assert "no cycle" in core.confirm_fixed("ann")["error"]
+        assert "no cycle" in core.submit_survey(pose=Pose())["error"]
+    finally:
+        bus.shutdown()
+
+
+def test_wara_ctl_cycle_bad_input_exits_2_before_anything_is_sent(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from wara.cli import main
+
+    monkeypatch.setenv("WARA_CTL_SOCKET", str(tmp_path / "none.sock"))  # no service there
+    bad = tmp_path / "bad.csv"
+    bad.write_text("point,face_y_m,face_z_m,x_m,y_m,z_m\nP1,4,0.3,abc,4,-6\n", encoding="utf-8")
+    for argv, text in [
+        (["ctl", "cycle", "--ring", "1"], "--ring must be within 2..99999, got 1"),
+        (["ctl", "cycle", "--ring", "3", "--walk-steps", "-1"], "--walk-steps must be within"),
+        (["ctl", "cycle", "--ring", "3", "--previous-deviation", "1,2"], "five finite numbers"),
+        (
+            ["ctl", "cycle", "--ring", "3", "--from-store", "--db", str(tmp_path / "x.sqlite")],
+            "no acceptance store",
+        ),
+        (["ctl", "survey", str(bad)], "line 2: x_m: 'abc' is not a number"),
+        (["ctl", "survey", str(tmp_path / "missing.csv")], "missing.csv"),
+        (["ctl", "walk", "--steps", "1", "--direction", "up"], "--direction must be one of"),
+    ]:
+        assert main(argv) == 2, argv
+        assert text in capsys.readouterr().err, argv
