@@ -27,7 +27,7 @@ def test_the_command_is_the_readme_main_command() -> None:
     assert bench.demo_command("p.yaml", quick=True)[-4:] == [
         "--config",
         "p.yaml",
-        "--examples",
+        "--rings",
         "1",
     ]
 

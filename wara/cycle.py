@@ -152,11 +152,12 @@ class _Cycle:
             raise RuntimeError(f"{what} ended in {core.modes.mode}: {self.h.fault_note()}")
 
     def hold_for(self, seconds: float) -> None:
-        """Advance ``seconds`` with the pose held (COMPLETE); a stop ends it."""
+        """Advance ``seconds`` with the pose held (COMPLETE; a short loss of the link,
+        SUSPENDED, is ridden through as the service rides it); a stop ends it."""
         t_end = self.h.sim.t_s + seconds
         while self.h.sim.t_s < t_end - 1e-9:
             self.advance(min(self.dt, t_end - self.h.sim.t_s))
-            if self.h.core.modes.mode != Mode.COMPLETE:
+            if self.h.core.modes.mode not in (Mode.COMPLETE, Mode.SUSPENDED):
                 raise RuntimeError(
                     f"the hold ended in {self.h.core.modes.mode}: {self.h.fault_note()}"
                 )
@@ -336,9 +337,8 @@ def run_cycle(
     except RuntimeError as exc:
         out["error"] = f"{cyc.phase if cyc else 'start'}: {exc}"
     finally:
-        out["final_mode"] = str(h.core.modes.mode)
+        out.update(h.run_figures())  # final_mode, fault_reasons, loop, ride_through, ...
         out["valves_enabled"] = h.core.modes.valves_enabled
-        out["fault_reasons"] = list(h.core.modes.fault_reasons)
         out["stopped_in_phase"] = cyc.phase if (cyc and out["error"]) else None
         h.close()
     rows = out["rings"]
@@ -371,3 +371,25 @@ def _moved(design: Pose, dev: Pose) -> Pose:
         float(pos[0]), float(pos[1]), float(pos[2]),
         design.roll + dev.roll, design.pitch + dev.pitch, design.yaw + dev.yaw,
     )  # fmt: skip
+
+
+def render(out: dict[str, Any]) -> str:
+    """Table 4 on the simulator's truth per ring, the cycle time and the verdict."""
+    head = (
+        "| ring | vertical mm | horizontal mm | gap mm | centreline x / y mm | pitch / tilt / "
+        "rotation deg | cycle s | passed |"
+    )
+    lines = [head, "|---|---|---|---|---|---|---|---|"]
+    for r in out["rings"]:
+        lines.append(
+            f"| {r['ring']} | {r['vertical_misalignment_mm']:+.3f} | "
+            f"{r['horizontal_misalignment_mm']:+.3f} | {r['gap_mm']:.3f} | "
+            f"{r['centreline_deviation_x_mm']:+.3f} / {r['centreline_deviation_y_mm']:+.3f} | "
+            f"{r['pitch_deg']:+.4f} / {r['tilt_deg']:+.4f} / {r['rotation_deg']:+.4f} | "
+            f"{r['cycle_time_s']:.1f} | {'yes' if r['passed'] else 'NO'} |"
+        )
+    lines.append(
+        f"acceptance records: {out['db']}; "
+        f"{'PASSED' if out['passed'] else 'FAILED'} ({out['wall_time_s']:.1f} s wall)"
+    )
+    return "\n".join(lines)
