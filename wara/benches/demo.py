@@ -10,7 +10,9 @@ the run rode through (the service's ``ride_through`` suspends/resumes, the loop'
 overruns and its longest cycle).
 
 ``--cpu-hog``: a CPU-bound process pinned to one CPU runs beside the demos for the whole
-bench (a busy neighbour, as on a shared IPC). ``--quick``: the demo with ``--rings 1``.
+bench (a busy neighbour, as on a shared IPC). ``--quick``: the demo with ``--rings 1``
+(with ``--attitude``: ``--examples 1``). ``--attitude``: ``wara demo --attitude --json``,
+the attitude examples.
 Progress on stderr, one JSON object on stdout.
 
 Goals: every run passes on a quiet machine; with ``--cpu-hog`` at least 95 % pass and a
@@ -41,13 +43,15 @@ RUN_TIMEOUT_S = 900.0
 _HOG = "import os, sys\nos.sched_setaffinity(0, {int(sys.argv[1])})\nwhile True:\n    pass\n"
 
 
-def demo_command(config: str | None, *, quick: bool) -> list[str]:
+def demo_command(config: str | None, *, quick: bool, attitude: bool = False) -> list[str]:
     """The README's main command as this interpreter runs it, with ``--json``."""
     cmd = [sys.executable, "-m", "wara", "demo", "--json"]
+    if attitude:
+        cmd += ["--attitude"]
     if config:
         cmd += ["--config", config]
     if quick:
-        cmd += ["--rings", "1"]
+        cmd += ["--examples", "1"] if attitude else ["--rings", "1"]
     return cmd
 
 
@@ -118,7 +122,11 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         from wara.cli import UsageError
 
         raise UsageError("--runs must be at least 1")
-    cmd = demo_command(getattr(args, "config", None), quick=bool(getattr(args, "quick", False)))
+    cmd = demo_command(
+        getattr(args, "config", None),
+        quick=bool(getattr(args, "quick", False)),
+        attitude=bool(getattr(args, "attitude", False)),
+    )
     repo = str(Path(__file__).resolve().parents[2])
     env = dict(os.environ)
     env["PYTHONPATH"] = os.pathsep.join(
