@@ -124,6 +124,7 @@ def run_ring_demo(
     from wara.cycle import run_cycle
 
     say = progress or (lambda _s: None)
+    out_dir = out_dir.resolve()  # the paths printed are the ones to open
     out_dir.mkdir(parents=True, exist_ok=True)
     db = out_dir / DB_NAME
     db.unlink(missing_ok=True)  # the demo's own store: this run's rings only
