@@ -174,6 +174,7 @@ def test_the_ring_cycle_steers_back_and_writes_the_records(tmp_path: Path) -> No
         assert r["goals"] and all(r["goals"].values()), r["goals"]
         assert set(r["phase_times_s"]) == set(PHASES)
         assert r["cycle_time_s"] <= 15 * 60
+        assert r["place_settled"] is True
     dev = [r["as_built_deviation"]["y_mm"] for r in out["rings"]]
     assert 3.0 <= dev[0] <= 5.0 and 1.0 <= dev[1] <= 3.0, dev  # 2 mm per ring toward 0
     assert out["passed"]

@@ -195,6 +195,8 @@ class _Cycle:
             raise RuntimeError(f"place refused: {res.get('error')}")
         self.advance(self.dt)  # the loop takes the request
         self.until_complete(f"ring {ring}'s placement")
+        placer = self.h.core.placer
+        settled = placer.settled if placer is not None else None
         times["place"] = self.h.sim.t_s - t0
         t0 = self.enter(ring, "fixing", confirm_after_s=cfg.cycle.fixing_confirm_after_s)
         self.hold_for(cfg.cycle.fixing_confirm_after_s)
@@ -258,6 +260,7 @@ class _Cycle:
             "table4_truth": table4,
             "cycle_time_s": machine_s,
             "fixing_hold_s": times["fixing"],
+            "place_settled": settled,
             "phase_times_s": times,
         }
         goals = {
