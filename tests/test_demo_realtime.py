@@ -31,15 +31,7 @@ def test_the_readme_main_command_passes(tmp_path: Path) -> None:
     """``wara demo`` in its default form (the ring cycles in real time; ``--json`` only
     to read the figures), run where a user runs it: the records and the report go to
     ``./wara-demo``."""
-    proc = subprocess.run(
-        [sys.executable, "-m", "wara", "demo", "--json"],
-        capture_output=True,
-        text=True,
-        timeout=600,
-        cwd=tmp_path,
-        env={**os.environ, "PYTHONPATH": str(REPO)},
-        check=False,
-    )
+    proc = run_wara(["demo", "--json"], timeout_s=600, cwd=tmp_path)
     out = json.loads(proc.stdout)  # one JSON object on stdout, pass or fail
     assert out["mode"] == "realtime"
     assert proc.returncode == 0, (failure_reason(out), proc.stderr[-3000:])
