@@ -24,15 +24,17 @@ def run_main(args: list[str]) -> tuple[int, str, str]:
     return code, out.getvalue(), err.getvalue()
 
 
-def run_wara(args: list[str], timeout_s: float = 120) -> subprocess.CompletedProcess[str]:
-    """``wara ARGS`` as a child process of this checkout (its directory and PYTHONPATH),
-    text output captured, never checked."""
+def run_wara(
+    args: list[str], timeout_s: float = 120, cwd: Path = REPO
+) -> subprocess.CompletedProcess[str]:
+    """``wara ARGS`` as a child process of this checkout (its PYTHONPATH; run in ``cwd``,
+    default the checkout's directory), text output captured, never checked."""
     return subprocess.run(
         [sys.executable, "-m", "wara", *args],
         capture_output=True,
         text=True,
         timeout=timeout_s,
-        cwd=REPO,
+        cwd=cwd,
         env={**os.environ, "PYTHONPATH": str(REPO)},
         check=False,
     )

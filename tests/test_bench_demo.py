@@ -27,9 +27,14 @@ def test_the_command_is_the_readme_main_command() -> None:
     assert bench.demo_command("p.yaml", quick=True)[-4:] == [
         "--config",
         "p.yaml",
-        "--examples",
+        "--rings",
         "1",
     ]
+
+
+def test_the_attitude_examples_on_request() -> None:
+    cmd = bench.demo_command(None, quick=True, attitude=True)
+    assert cmd[3:] == ["demo", "--json", "--attitude", "--examples", "1"]
 
 
 def test_a_passing_run() -> None:
@@ -95,5 +100,6 @@ def test_runs_and_cpu_hog_belong_to_the_demo_bench() -> None:
 
     assert main(["bench", "can", "--runs", "3"]) == 2
     assert main(["bench", "planner", "--cpu-hog"]) == 2
+    assert main(["bench", "planner", "--attitude"]) == 2
     with pytest.raises(SystemExit):
         main(["bench", "demo", "--runs", "x"])

@@ -1,12 +1,14 @@
 """``wara demo`` (the README's main command) in its lockstep form, as a user runs it:
-stdout is the table or one JSON object (the service's log goes to stderr), every
-example meets its goals, ``--plot`` writes the figure."""
+stdout is the table or one JSON object (the service's log goes to stderr); the ring
+cycles steer back and write the acceptance report; with ``--attitude`` every example
+meets its goals and ``--plot`` writes the figure."""
 
 from __future__ import annotations
 
 import json
 import math
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -26,7 +28,9 @@ REPO = Path(__file__).resolve().parents[1]
 
 @pytest.mark.slow
 def test_lockstep_demo_json_and_plot(tmp_path: Path) -> None:
-    proc = run_wara(["demo", "--lockstep", "--json", "--plot", str(tmp_path)], timeout_s=600)
+    proc = run_wara(
+        ["demo", "--attitude", "--lockstep", "--json", "--plot", str(tmp_path)], timeout_s=600
+    )
     assert proc.returncode == 0, proc.stderr[-3000:]
     out = json.loads(proc.stdout)  # nothing but the one object on stdout
     assert out["passed"] is True
@@ -43,6 +47,58 @@ def test_lockstep_demo_json_and_plot(tmp_path: Path) -> None:
     assert out["plots"] == [str(tmp_path / "demo.png")]
     assert (tmp_path / "demo.png").stat().st_size > 10_000
     assert "wara demo: example (+2.0, +1.0) deg: passed" in proc.stderr
+
+
+#: What ``wara demo --json`` gives per ring (the issue's list; ``wara cycle``'s rows).
+RING_KEYS = {
+    "ring", "vertical_misalignment_mm", "horizontal_misalignment_mm", "gap_mm",
+    "centreline_deviation_x_mm", "centreline_deviation_y_mm", "pitch_deg", "tilt_deg",
+    "rotation_deg", "surveyed", "cycle_time_s", "phase_times_s", "passed",
+}  # fmt: skip
+
+
+def check_ring_demo(out: dict[str, Any], rings: int, report: Path) -> None:
+    """The ring demo's JSON: every ring met its goals, steered back from ring 1's 6 mm at
+    most 2 mm per ring, and the report of the records is where it says."""
+    assert out["passed"] is True, (out["error"], [r["goals"] for r in out["rings"]])
+    assert [r["ring"] for r in out["rings"]] == list(range(2, 2 + rings))
+    for r in out["rings"]:
+        assert set(r) >= RING_KEYS, RING_KEYS - set(r)
+        assert set(r["surveyed"]) == {k for k in RING_KEYS if k.endswith(("_mm", "_deg"))}
+        assert r["passed"] and all(r["goals"].values()), r["goals"]
+        assert r["cycle_time_s"] <= 15 * 60
+    st = out["steering"]
+    assert st["start_deviation_mm"] == [6.0, -6.0]
+    assert max(st["correction_per_ring_mm"]) <= 2.0 + 0.2  # the bound, the as-built's error
+    assert out["report"] == str(report)
+    assert report.stat().st_size > 10_000
+
+
+@pytest.mark.slow
+def test_lockstep_ring_demo_steers_back_and_writes_the_report(tmp_path: Path) -> None:
+    proc = run_wara(
+        ["demo", "--lockstep", "--rings", "2", "--json", "--out", str(tmp_path)], timeout_s=900
+    )
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    out = json.loads(proc.stdout)
+    check_ring_demo(out, 2, tmp_path / "report" / "report.html")
+    dev = [r["as_built_deviation"]["y_mm"] for r in out["rings"]]
+    assert 3.0 <= dev[0] <= 5.0 and 1.0 <= dev[1] <= 3.0, dev  # 6 -> 4 -> 2 mm
+    html = (tmp_path / "report" / "report.html").read_text()
+    assert "rings 2–3" in html and "rings pass (100.0 %)" in html  # the demo's two records
+    assert "wara demo: ring 3: walk_back" in proc.stderr
+
+
+def test_ring_demo_options_are_checked() -> None:
+    from wara.cli import main
+
+    assert main(["demo", "--rings", "0"]) == 2
+    assert main(["demo", "--rings", "21"]) == 2
+    assert main(["demo", "--attitude", "--rings", "2"]) == 2  # rings: the ring cycles'
+    assert main(["demo", "--two-process", "--out", "x"]) == 2
+    assert main(["demo", "--examples", "1"]) == 2  # examples: the attitude demo's
+    assert main(["demo", "--plot", "x"]) == 2
+    assert main(["demo", "--opcua"]) == 2
 
 
 def _result(**figures: float) -> ExampleResult:

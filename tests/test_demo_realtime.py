@@ -1,5 +1,6 @@
 """``wara demo`` as the README runs it: real time, one process (the simulator and the
-service's fixed-rate loop as threads of one interpreter, on the wall clock), shortened to
+service's fixed-rate loop as threads of one interpreter, on the wall clock): the ring
+cycles exactly as the README writes the command, and the attitude examples shortened to
 Example 1; and a demo that stops at once when the service latches a fault."""
 
 from __future__ import annotations
@@ -17,7 +18,8 @@ from config.hil_scenario import HilScenario
 from config.loader import validate_data
 from ipc_app.service.modes import Mode
 from tests.cli_helpers import run_wara
-from wara.demo import failure_reason
+from tests.test_demo import check_ring_demo
+from wara.demo import RING_DEMO_RINGS, failure_reason
 from wara.examples import ATTITUDE_TOL_DEG, SYNC_TOL_MM, TWIST_TOL_MM
 from wara.harness import Harness
 
@@ -25,8 +27,25 @@ REPO = Path(__file__).resolve().parents[1]
 
 
 @pytest.mark.slow
+def test_the_readme_main_command_passes(tmp_path: Path) -> None:
+    """``wara demo`` in its default form (the ring cycles in real time; ``--json`` only
+    to read the figures), run where a user runs it: the records and the report go to
+    ``./wara-demo``."""
+    proc = run_wara(["demo", "--json"], timeout_s=600, cwd=tmp_path)
+    out = json.loads(proc.stdout)  # one JSON object on stdout, pass or fail
+    assert out["mode"] == "realtime"
+    assert proc.returncode == 0, (failure_reason(out), proc.stderr[-3000:])
+    check_ring_demo(out, RING_DEMO_RINGS, tmp_path / "wara-demo" / "report" / "report.html")
+    assert out["steering"]["returned_within_1_mm"] is True
+    assert (tmp_path / "wara-demo" / "acceptance.sqlite").is_file()
+    loop = out["loop"]
+    assert loop["cycles"] > 5000 and loop["jitter_p99_ms"] is not None
+    assert set(out["ride_through"]) == {"suspends", "resumes"}
+
+
+@pytest.mark.slow
 def test_realtime_one_process_demo_example_1() -> None:
-    proc = run_wara(["demo", "--examples", "1", "--json"], timeout_s=600)
+    proc = run_wara(["demo", "--attitude", "--examples", "1", "--json"], timeout_s=600)
     out = json.loads(proc.stdout)  # one JSON object on stdout, pass or fail
     assert out["mode"] == "realtime"
     assert proc.returncode == 0, (failure_reason(out), proc.stderr[-3000:])
@@ -44,8 +63,8 @@ def test_realtime_one_process_demo_example_1() -> None:
 def test_examples_option_is_checked() -> None:
     from wara.cli import main
 
-    assert main(["demo", "--examples", "0"]) == 2
-    assert main(["demo", "--examples", "4"]) == 2
+    assert main(["demo", "--attitude", "--examples", "0"]) == 2
+    assert main(["demo", "--attitude", "--examples", "4"]) == 2
 
 
 @pytest.mark.slow

@@ -37,7 +37,12 @@ def _one_line_error(code: int, out: str, err: str, hint: str) -> None:
 
 @pytest.mark.usefixtures("no_matplotlib")
 def test_plots_without_matplotlib_name_the_extra(tmp_path: Path) -> None:
-    _one_line_error(*run_main(["demo", "--lockstep", "--plot", str(tmp_path)]), PLOT_HINT)
+    _one_line_error(
+        *run_main(["demo", "--attitude", "--lockstep", "--plot", str(tmp_path)]), PLOT_HINT
+    )
+    # the ring demo writes the acceptance report: it says so before anything runs
+    _one_line_error(*run_main(["demo", "--lockstep", "--out", str(tmp_path / "d")]), PLOT_HINT)
+    assert not (tmp_path / "d").exists()
     png = tmp_path / "study.png"
     _one_line_error(*run_main(["sim", "dual-cylinder", "--plot", str(png)]), PLOT_HINT)
     assert not png.exists()
@@ -74,7 +79,13 @@ def _ring_values() -> list[str]:
 @pytest.mark.usefixtures("no_numba")
 @pytest.mark.parametrize(
     "argv",
-    [["demo"], ["demo", "--two-process"], ["hil", "--duration", "1"], ["soak", "--minutes", "1"]],
+    [
+        ["demo"],
+        ["demo", "--attitude"],
+        ["demo", "--two-process"],
+        ["hil", "--duration", "1"],
+        ["soak", "--minutes", "1"],
+    ],
 )
 def test_real_time_simulator_without_numba_names_the_extra(argv: list[str]) -> None:
     _one_line_error(*run_main(argv), SIM_HINT)

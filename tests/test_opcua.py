@@ -469,7 +469,7 @@ def test_demo_with_opcua_serves_the_demo_to_a_client_with_the_printed_credential
     pki.trust(tmp_path / "opcua-demo" / "pki", cert)  # as `wara opcua cert --trust` does
     env = dict(os.environ, WARA_DATA_DIR=str(tmp_path))
     demo = subprocess.Popen(
-        [sys.executable, "-m", "wara", "demo", "--opcua"],
+        [sys.executable, "-m", "wara", "demo", "--attitude", "--opcua"],
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env,
     )  # fmt: skip
     assert demo.stderr is not None

@@ -159,6 +159,7 @@ class _Cycle:
         assert cyc is not None
         as_built: Pose | None = None
         fixing_since: float | None = None
+        settled: Any = None
         waited = 0.0
         while cyc.active:
             self.phase = cyc.phase
@@ -166,6 +167,9 @@ class _Cycle:
             if not cyc.active:
                 break
             if cyc.phase == "fixing":
+                if fixing_since is None:  # the placement just ended: how it settled
+                    placer = core.placer
+                    settled = placer.settled if placer is not None else None
                 fixing_since = self.h.sim.t_s if fixing_since is None else fixing_since
                 if self.h.sim.t_s - fixing_since >= cfg.cycle.fixing_confirm_after_s - 1e-9:
                     as_built = self.truth(ring)  # what the bolts fix
@@ -216,6 +220,7 @@ class _Cycle:
             "table4_truth": table4,
             "cycle_time_s": machine_s,
             "fixing_hold_s": times["fixing"],
+            "place_settled": settled,
             "phase_times_s": times,
         }
         goals = {
@@ -288,9 +293,8 @@ def run_cycle(
     except RuntimeError as exc:
         out["error"] = f"{cyc.phase if cyc else 'start'}: {exc}"
     finally:
-        out["final_mode"] = str(h.core.modes.mode)
+        out.update(h.run_figures())  # final_mode, fault_reasons, loop, ride_through, ...
         out["valves_enabled"] = h.core.modes.valves_enabled
-        out["fault_reasons"] = list(h.core.modes.fault_reasons)
         out["stopped_in_phase"] = cyc.phase if (cyc and out["error"]) else None
         h.close()
     rows = out["rings"]
@@ -314,3 +318,25 @@ def run_cycle(
         out["error"] is None and len(rows) == rings and all(r["passed"] for r in rows)
     )
     return out
+
+
+def render(out: dict[str, Any]) -> str:
+    """Table 4 on the simulator's truth per ring, the cycle time and the verdict."""
+    head = (
+        "| ring | vertical mm | horizontal mm | gap mm | centreline x / y mm | pitch / tilt / "
+        "rotation deg | cycle s | passed |"
+    )
+    lines = [head, "|---|---|---|---|---|---|---|---|"]
+    for r in out["rings"]:
+        lines.append(
+            f"| {r['ring']} | {r['vertical_misalignment_mm']:+.3f} | "
+            f"{r['horizontal_misalignment_mm']:+.3f} | {r['gap_mm']:.3f} | "
+            f"{r['centreline_deviation_x_mm']:+.3f} / {r['centreline_deviation_y_mm']:+.3f} | "
+            f"{r['pitch_deg']:+.4f} / {r['tilt_deg']:+.4f} / {r['rotation_deg']:+.4f} | "
+            f"{r['cycle_time_s']:.1f} | {'yes' if r['passed'] else 'NO'} |"
+        )
+    lines.append(
+        f"acceptance records: {out['db']}; "
+        f"{'PASSED' if out['passed'] else 'FAILED'} ({out['wall_time_s']:.1f} s wall)"
+    )
+    return "\n".join(lines)

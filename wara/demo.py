@@ -1,9 +1,14 @@
 """The end-to-end demo in one process: ``wara demo``.
 
-Examples 1-3 of the reference machine one after another from a level start, on the
+The main job (:func:`run_ring_demo`): a few ring cycles one after another
+(:func:`wara.cycle.run_cycle`: walk, place, fixing hold, release, survey, record, walk
+back), each ring's target planned from the survey of the ring before, the part before the
+first ring deliberately off the design axis so that the rings steer back; then the
+acceptance report of the rings' records. With ``--attitude`` (:func:`run_demo`):
+Examples 1-3 of the reference machine one after another from a level start. Both on the
 :class:`~wara.harness.Harness` (the HIL simulator and the IPC service on one in-process
-bus), in real time (the default) or in lockstep; the summary, the table and the plots.
-The two-process form is :mod:`wara.demo_two_process`.
+bus), in real time (the default) or in lockstep. The two-process form of the attitude
+examples is :mod:`wara.demo_two_process`.
 """
 
 from __future__ import annotations
@@ -18,7 +23,8 @@ from typing import Any
 
 import numpy as np
 
-from config import load_project, units
+from config import load_project
+from ipc_app.model.placement import Pose, sheet_deviation
 from ipc_app.service.modes import Mode
 from wara.examples import (
     ATTITUDE_TOL_DEG,
@@ -27,7 +33,9 @@ from wara.examples import (
     TWIST_TOL_MM,
     ExampleResult,
 )
-from wara.harness import Harness, Trace
+from wara.harness import Harness, Trace, ride_through
+
+__all__ = ["ride_through", "run_demo", "run_ring_demo"]
 
 
 def run_demo(
@@ -65,7 +73,7 @@ def run_demo(
             if demo.faulted():  # the rest would be refused: report now
                 say(f"stopping: {demo.fault_note()}")
                 break
-        stats = demo.loop.stats() if demo.loop is not None else {}
+        figures = demo.run_figures()
     finally:
         stack.close()
         demo.close()
@@ -73,24 +81,7 @@ def run_demo(
         "mode": mode,
         "error": error,
         "examples": [asdict(r) for r in results],
-        "loop": {
-            "jitter_p99_ms": stats.get("jitter_p99_ms"),
-            "compute_p99_ms": stats.get("compute_p99_ms"),
-            "overruns": stats.get("overruns"),
-            "skipped_periods": stats.get("skipped_periods"),
-            "worst_overrun_cycle_ms": stats.get("worst_overrun_cycle_ms"),
-            "cycles": stats.get("cycles"),
-            "period_ms": units.to_ms(demo.period),
-        },
-        "realtime": {
-            "loop": demo.loop.realtime_report.to_dict() if demo.loop is not None else None,
-            "threads": demo.threads_realtime.to_dict(),
-        },
-        "final_mode": str(demo.core.modes.mode),
-        "fault_reasons": list(demo.core.modes.fault_reasons),
-        "ride_through": ride_through(demo.core.snapshot()),
-        "bus_load_percent": demo.core.bus_load.load_percent,
-        "simulator_realtime_factor": demo.sim.realtime_factor,
+        **figures,
         "tolerances": {
             "attitude_error_deg": ATTITUDE_TOL_DEG,
             "max_twist_mm": TWIST_TOL_MM,
@@ -105,11 +96,92 @@ def run_demo(
     return summary
 
 
-def ride_through(status: dict[str, Any]) -> dict[str, int]:
-    """Suspends and resumes the service rode through (its status' ``ride_through``;
-    zeros where the service does not report them)."""
-    rt = status.get("ride_through") or {}
-    return {"suspends": int(rt.get("suspends", 0)), "resumes": int(rt.get("resumes", 0))}
+#: The ring demo's rings: ring 1 (the part before) lies :data:`RING_DEMO_DEVIATION` off its
+#: design, rings 2-5 are built: two at the steering-back bound (6 -> 4 -> 2 mm), then
+#: within 1 mm of the design axis (docs/placement.md, "The demo's rings").
+RING_DEMO_RINGS = 4
+#: The first ring's misalignment: the previous part 6 mm left and 6 mm low
+#: (y, z mm; roll, pitch, yaw deg).
+RING_DEMO_DEVIATION: tuple[float, float, float, float, float] = (6.0, -6.0, 0.0, 0.0, 0.0)
+#: The subdirectory of the demo's output directory that gets the acceptance report.
+REPORT_SUBDIR = "report"
+#: The demo's acceptance store in its output directory (replaced on each run).
+DB_NAME = "acceptance.sqlite"
+
+
+def run_ring_demo(
+    config_path: str | None = None,
+    *,
+    out_dir: Path,
+    mode: str = "realtime",
+    rings: int = RING_DEMO_RINGS,
+    previous_deviation: Pose | None = None,
+    progress: Callable[[str], None] | None = None,
+) -> dict[str, Any]:
+    """The ring cycles and the acceptance report; the JSON-ready summary: ``passed``,
+    ``rings`` (one object per ring, :func:`wara.cycle.run_cycle`'s), ``steering``,
+    ``report`` (where the HTML is), and the cycle's other figures."""
+    from wara.cycle import run_cycle
+
+    say = progress or (lambda _s: None)
+    out_dir = out_dir.resolve()  # the paths printed are the ones to open
+    out_dir.mkdir(parents=True, exist_ok=True)
+    db = out_dir / DB_NAME
+    db.unlink(missing_ok=True)  # the demo's own store: this run's rings only
+    dev = previous_deviation or sheet_deviation(*RING_DEMO_DEVIATION)
+    out = run_cycle(config_path, rings, previous_deviation=dev, db_path=db, mode=mode, progress=say)
+    out["mode"] = mode
+    out["report"] = None
+    if out["rings"]:
+        out["report"] = str(write_ring_report(config_path, db, out_dir / REPORT_SUBDIR))
+        say(f"acceptance report: {out['report']}")
+    return out
+
+
+def write_ring_report(config_path: str | None, db: Path, out: Path) -> Path:
+    """``wara acceptance report --db DB --out OUT`` on the demo's records; the HTML's path."""
+    from acceptance.report import ReportMeta, write_report
+    from acceptance.store import AcceptanceStore
+    from wara.commands.acceptance import report_meta, summary_of
+
+    cfg = load_project(config_path)
+    with AcceptanceStore.open(db) as store:
+        summary = summary_of(store, cfg)
+    meta: ReportMeta = report_meta(cfg, config_path, db)
+    return write_report(summary, out, meta).html
+
+
+def render_ring_table(out: dict[str, Any]) -> str:
+    """Table 4 per ring on the simulator's truth (``wara cycle``'s table), the steering
+    and where the report is."""
+    from wara.cycle import render
+
+    st = out["steering"]
+    last = st["last_as_built_deviation_mm"]
+    lines = [
+        render(out),
+        f"steering back: ring 1 {st['start_deviation_mm'][0]:+.1f} / "
+        f"{st['start_deviation_mm'][1]:+.1f} mm off the design axis; corrections per ring "
+        + ", ".join(f"{c:.2f}" for c in st["correction_per_ring_mm"])
+        + f" mm (bound {st['max_correction_per_ring_mm']:g} mm); the last ring "
+        f"{last[0]:+.2f} / {last[1]:+.2f} mm off",
+        f"acceptance report: {out['report'] or 'not written (no ring finished)'}",
+    ]
+    if not out["passed"]:
+        lines.append("FAILED: " + ring_failure_reason(out))
+    return "\n".join(lines)
+
+
+def ring_failure_reason(out: dict[str, Any]) -> str:
+    """One line: why a ring demo did not pass (the cycle's error, else the first ring
+    that missed a goal, with the goals it missed)."""
+    if out.get("error"):
+        return str(out["error"])
+    for r in out.get("rings", []):
+        if not r.get("passed"):
+            missed = [k for k, v in r.get("goals", {}).items() if not v]
+            return f"ring {r['ring']}: missed " + ", ".join(missed)
+    return "not every ring ran"
 
 
 def plot_trace(trace: Trace, out_dir: Path) -> list[Path]:
@@ -173,7 +245,9 @@ def render_table(summary: dict[str, Any]) -> str:
 
 def failure_reason(summary: dict[str, Any]) -> str:
     """One line: why a demo run did not pass (the error, else the service's latched
-    faults, else the first example that missed its goals)."""
+    faults, else the first example or ring that missed its goals)."""
+    if "rings" in summary:
+        return ring_failure_reason(summary)
     if summary.get("error"):
         return str(summary["error"])
     if summary.get("fault_reasons"):

@@ -26,6 +26,7 @@ import sys
 import threading
 import time
 from collections.abc import Callable
+from typing import Any
 
 import can
 import numpy as np
@@ -314,6 +315,32 @@ class Harness:
             waited += step
         return self.core.modes.mode == mode
 
+    def run_figures(self) -> dict[str, Any]:
+        """The run's figures of the loop, the scheduler, the link and the simulator, for
+        a demo's summary (``loop``, ``realtime``, ``final_mode``, ``fault_reasons``,
+        ``ride_through``, ``bus_load_percent``, ``simulator_realtime_factor``)."""
+        stats = self.loop.stats() if self.loop is not None else {}
+        return {
+            "loop": {
+                "jitter_p99_ms": stats.get("jitter_p99_ms"),
+                "compute_p99_ms": stats.get("compute_p99_ms"),
+                "overruns": stats.get("overruns"),
+                "skipped_periods": stats.get("skipped_periods"),
+                "worst_overrun_cycle_ms": stats.get("worst_overrun_cycle_ms"),
+                "cycles": stats.get("cycles"),
+                "period_ms": units.to_ms(self.period),
+            },
+            "realtime": {
+                "loop": self.loop.realtime_report.to_dict() if self.loop is not None else None,
+                "threads": self.threads_realtime.to_dict(),
+            },
+            "final_mode": str(self.core.modes.mode),
+            "fault_reasons": list(self.core.modes.fault_reasons),
+            "ride_through": ride_through(self.core.snapshot()),
+            "bus_load_percent": self.core.bus_load.load_percent,
+            "simulator_realtime_factor": self.sim.realtime_factor,
+        }
+
     def faulted(self) -> bool:
         return self.core.modes.mode is Mode.ABORTED
 
@@ -367,6 +394,13 @@ class Harness:
         res.duration_s = m.duration_s
         holding = self.core.modes.mode == Mode.COMPLETE
         return judge_example(res, problem="" if holding else self.fault_note())
+
+
+def ride_through(status: dict[str, Any]) -> dict[str, int]:
+    """Suspends and resumes the service rode through (its status' ``ride_through``;
+    zeros where the service does not report them)."""
+    rt = status.get("ride_through") or {}
+    return {"suspends": int(rt.get("suspends", 0)), "resumes": int(rt.get("resumes", 0))}
 
 
 def fifo_all_threads(priority: int, pid: int | None = None) -> RealtimeReport:

@@ -8,7 +8,16 @@ Two phases, each checked before it starts:
    turn); then :data:`SETTLE_S` [0] of settling;
 2. ``slide``: the rotation pair, the lateral pair and the central axis on one time
    scaling to their planned extensions (:class:`SlideController`), while the attitude
-   layers hold their end point; then :data:`SETTLE_S` [1] of settling.
+   layers hold their end point. The lateral pair's and the central axis' extensions are
+   corrected for the lever arm of the layers' end attitudes (:func:`lever_corrected`):
+   the lower layer turns the upper one about its own origin,
+   ``layers.upper.origin_in_lower_m`` (0.9 m) below the part's reference point, which a
+   split of the roll or pitch between the layers would otherwise carry sideways (0.5 mm
+   for 0.035 deg on each layer in opposite senses); then :data:`SETTLE_S` [1] of
+   settling, and further until every slide axis has stayed within
+   :data:`SETTLED_BAND_M` of its goal for :data:`SETTLED_FOR_S` (a suspension late in
+   the motion, whose resume restarts the controllers at the measurement, gets the time
+   to bring the part back), at most :data:`SETTLE_MAX_S` in all.
 
 After the second phase the sequencer is ``done`` and holds both sets where they ended.
 The caller (the service's step, or the lockstep move of ``wara place run``) reads the
@@ -30,6 +39,7 @@ from numpy.typing import NDArray
 from config.schema import ProjectConfig
 from ipc_app.control.attitude import AttitudeController
 from ipc_app.control.slide import SlideController
+from ipc_app.model.kinematics import attitude_matrix
 from ipc_app.planner.trajectory import Trajectory
 
 FloatArray = NDArray[np.float64]
@@ -38,6 +48,43 @@ FloatArray = NDArray[np.float64]
 PHASES: tuple[str, ...] = ("attitude", "slide")
 #: Settling after each phase before the next starts (s).
 SETTLE_S: tuple[float, float] = (1.0, 2.0)
+#: The slide phase ends once every slide axis has stayed this close to its goal (m) ...
+SETTLED_BAND_M = 0.02e-3
+#: ... for this long (s) ...
+SETTLED_FOR_S = 0.25
+#: ... or, settled or not, this long after its motion ended (s).
+SETTLE_MAX_S = 10.0
+
+
+def lever_corrected(
+    cfg: ProjectConfig, trajectory: Trajectory, extensions_m: dict[str, tuple[float, ...]]
+) -> dict[str, tuple[float, ...]]:
+    """The slide extensions that put the part's reference point where ``extensions_m``
+    would with level layers, at the trajectory's end attitudes.
+
+    The reference point sits at ``t = R_L (o + R_U s) - o`` from its home position
+    (besides the lower layer's heave): ``R_L``, ``R_U`` the layers' end attitudes
+    (``Ry(pitch) Rx(roll)``, model.md), ``o = layers.upper.origin_in_lower_m`` and ``s``
+    the slide's ``(x, y, 0)``: the central axis' extension and the lateral pair's mean.
+    The planned extensions take ``t = s``; this solves ``t_xy = s_planned`` for ``s`` and
+    moves both lateral cylinders and the central axis by the difference. The rotation
+    pair is left as planned (the layers' attitudes do not turn the part about z)."""
+    if not ("lateral" in extensions_m and "central_axis" in extensions_m):
+        return extensions_m
+    r_l = attitude_matrix(trajectory.lower.roll1, trajectory.lower.pitch1)
+    r_u = attitude_matrix(trajectory.upper.roll1, trajectory.upper.pitch1)
+    o = np.asarray(cfg.layers.upper.origin_in_lower_m, dtype=float)
+    lat = extensions_m["lateral"]
+    (cx,) = extensions_m["central_axis"]
+    want = np.array([cx, float(np.mean(lat))])
+    lever = (r_l @ o - o)[:2]
+    m = (r_l @ r_u)[:2, :2]
+    s = np.linalg.solve(m, want - lever)
+    dx, dy = float(s[0] - want[0]), float(s[1] - want[1])
+    out = dict(extensions_m)
+    out["lateral"] = tuple(e + dy for e in lat)
+    out["central_axis"] = (cx + dx,)
+    return out
 
 
 class PlacementSequencer:
@@ -54,6 +101,7 @@ class PlacementSequencer:
     ) -> None:
         self.attitude = attitude
         self.slide = SlideController(cfg, period_s)
+        extensions_m = lever_corrected(cfg, trajectory, extensions_m)
         why = self.slide.check(extensions_m)
         if why:
             raise ValueError("; ".join(why))
@@ -67,6 +115,10 @@ class PlacementSequencer:
         self.phase_times_s: dict[str, float] = {}
         self.max_sync_error_m = 0.0
         self.last_refs: FloatArray | None = None
+        #: since when every slide axis is within :data:`SETTLED_BAND_M` (None: it is not)
+        self._settled_since: float | None = None
+        #: whether the slide phase ended settled (None: not ended yet)
+        self.settled: bool | None = None
 
     @property
     def phase_name(self) -> str:
@@ -97,6 +149,7 @@ class PlacementSequencer:
         if self.phase == 1:
             self.slide.t_start += shift_s
             self.slide.reset(np.asarray(x_rod_m, dtype=float))
+            self._settled_since = None
 
     def finish(self) -> None:
         """The lower layer's offset back to none (a later adjustment plans from the rods)."""
@@ -127,7 +180,18 @@ class PlacementSequencer:
                 self.slide.engage(x, t_now, self.extensions_m)
                 self.phase = 1
                 self.phase_started_s = t_now
-        elif t_now - self.slide.t_start >= self.slide.duration_s + SETTLE_S[1]:
-            self.phase_times_s[PHASES[1]] = t_now - self.phase_started_s
-            self.done = True
+        else:
+            after = t_now - self.slide.t_start - self.slide.duration_s
+            off = self.slide.goal_error_m(x)
+            if off > SETTLED_BAND_M or after < 0.0:
+                self._settled_since = None
+            elif self._settled_since is None:
+                self._settled_since = t_now
+            settled = self._settled_since is not None and t_now - self._settled_since >= (
+                SETTLED_FOR_S
+            )
+            if after >= SETTLE_S[1] and (settled or after >= SETTLE_MAX_S):
+                self.phase_times_s[PHASES[1]] = t_now - self.phase_started_s
+                self.settled = settled
+                self.done = True
         return u

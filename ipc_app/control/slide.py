@@ -121,6 +121,10 @@ class SlideController:
             for c, i in zip(members, self.index[role], strict=True):
                 c.reset(float(x_rod_m[i]))
 
+    def goal_error_m(self, x_rod_m: FloatArray) -> float:
+        """The largest |goal - measurement| of the moving axes (m)."""
+        return max(abs(float(self.goal[i]) - float(x_rod_m[i])) for i in self.active)
+
     def motion_done(self, t_now: float) -> bool:
         return t_now - self.t_start >= self.duration_s
 

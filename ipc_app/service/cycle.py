@@ -198,7 +198,9 @@ class RingCycle:
             if self._motion("place", self._place):
                 self._enter("fixing", waiting_for="operator confirmation (wara ctl confirm-fixed)")
         elif ph == "fixing":
-            if mode != Mode.COMPLETE:
+            # a short loss of the link (SUSPENDED) is ridden through as the service rides
+            # it: the pose is held either way
+            if mode not in (Mode.COMPLETE, Mode.SUSPENDED):
                 raise CycleError(f"the hold for fixing ended in {mode}")
         elif ph == "survey" and self.surveyed is not None:
             self._enter("record")

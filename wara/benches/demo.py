@@ -1,15 +1,18 @@
 """``wara bench demo --runs N [--cpu-hog] --json``: the README's main command, N times.
 
-Each run is ``wara demo --json`` (the default form: real time, one process) started as a
-user starts it, a new interpreter through ``sys.executable -m wara``, one after another.
+Each run is ``wara demo --json`` (the default form: the ring cycles in real time, one
+process) started as a user starts it, a new interpreter through ``sys.executable -m
+wara``, in a directory of its own (the demo writes ``./wara-demo``), one after another.
 Per run: exit code, wall time, the verdict and, for a run that did not pass, the reason
-(the demo's own one-line reason: the service's latched faults, or the example that
-missed its goals; the end of its stderr when it printed no JSON), and what the run
-rode through (the service's ``ride_through`` suspends/resumes, the loop's overruns and
-its longest cycle).
+(the demo's own one-line reason: the cycle's error or the service's latched faults, or
+the ring that missed its goals; the end of its stderr when it printed no JSON), and what
+the run rode through (the service's ``ride_through`` suspends/resumes, the loop's
+overruns and its longest cycle).
 
 ``--cpu-hog``: a CPU-bound process pinned to one CPU runs beside the demos for the whole
-bench (a busy neighbour, as on a shared IPC). ``--quick``: the demo with ``--examples 1``.
+bench (a busy neighbour, as on a shared IPC). ``--quick``: the demo with ``--rings 1``
+(with ``--attitude``: ``--examples 1``). ``--attitude``: ``wara demo --attitude --json``,
+the attitude examples.
 Progress on stderr, one JSON object on stdout.
 
 Goals: every run passes on a quiet machine; with ``--cpu-hog`` at least 95 % pass and a
@@ -40,13 +43,15 @@ RUN_TIMEOUT_S = 900.0
 _HOG = "import os, sys\nos.sched_setaffinity(0, {int(sys.argv[1])})\nwhile True:\n    pass\n"
 
 
-def demo_command(config: str | None, *, quick: bool) -> list[str]:
+def demo_command(config: str | None, *, quick: bool, attitude: bool = False) -> list[str]:
     """The README's main command as this interpreter runs it, with ``--json``."""
     cmd = [sys.executable, "-m", "wara", "demo", "--json"]
+    if attitude:
+        cmd += ["--attitude"]
     if config:
         cmd += ["--config", config]
     if quick:
-        cmd += ["--examples", "1"]
+        cmd += ["--examples", "1"] if attitude else ["--rings", "1"]
     return cmd
 
 
@@ -66,13 +71,14 @@ def cpu_hog(enabled: bool) -> Iterator[int | None]:
 
 
 def one_run(cmd: list[str], env: dict[str, str]) -> dict[str, Any]:
-    """Run the demo once; what a user would see, condensed."""
-    with tempfile.TemporaryFile() as err:
+    """Run the demo once (in a temporary directory); what a user would see, condensed."""
+    with tempfile.TemporaryFile() as err, tempfile.TemporaryDirectory() as cwd:
         t0 = time.monotonic()
         try:
             proc = subprocess.run(
-                cmd, stdout=subprocess.PIPE, stderr=err, env=env, timeout=RUN_TIMEOUT_S
-            )
+                cmd, stdout=subprocess.PIPE, stderr=err, env=env, timeout=RUN_TIMEOUT_S,
+                cwd=cwd,
+            )  # fmt: skip
             code, out = proc.returncode, proc.stdout.decode(errors="replace")
         except subprocess.TimeoutExpired as exc:
             code = None
@@ -116,7 +122,11 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         from wara.cli import UsageError
 
         raise UsageError("--runs must be at least 1")
-    cmd = demo_command(getattr(args, "config", None), quick=bool(getattr(args, "quick", False)))
+    cmd = demo_command(
+        getattr(args, "config", None),
+        quick=bool(getattr(args, "quick", False)),
+        attitude=bool(getattr(args, "attitude", False)),
+    )
     repo = str(Path(__file__).resolve().parents[2])
     env = dict(os.environ)
     env["PYTHONPATH"] = os.pathsep.join(

@@ -32,7 +32,7 @@ from typing import Any
 from acceptance.csv_import import CsvFileError, ImportResult, import_parsed, parse_csv
 from acceptance.example import example_csv_text
 from acceptance.items import ITEMS, ControlItem, parse_ring
-from acceptance.judge import RingVerdict, Status, judge_ring, limits_from, summarize
+from acceptance.judge import RingVerdict, Status, Summary, judge_ring, limits_from, summarize
 from acceptance.report import ReportMeta, report_dict, write_report
 from acceptance.store import (
     AcceptanceStore,
@@ -40,7 +40,7 @@ from acceptance.store import (
     StoreError,
     default_db_path,
 )
-from config import default_project_path, load_project
+from config import ProjectConfig, default_project_path, load_project
 from config.files import InputFileError, read_input_file
 from wara.cli import EXIT_FAILED, EXIT_OK, EXIT_USAGE, UsageError
 from wara.extras import require
@@ -326,18 +326,35 @@ def _import(args: argparse.Namespace) -> int:
     return EXIT_OK if res.ok else EXIT_USAGE
 
 
+def summary_of(
+    store: AcceptanceStore,
+    project: ProjectConfig,
+    ring_from: int | None = None,
+    ring_to: int | None = None,
+) -> Summary:
+    """The store's current records judged against the project's Table 4 (the report's)."""
+    return summarize(
+        store.current(ring_from, ring_to),
+        project.acceptance,
+        ring_from=ring_from,
+        ring_to=ring_to,
+        rings_with_plan=store.rings_with_plan(),
+    )
+
+
+def report_meta(project: ProjectConfig, config_path: str | None, db: Path) -> ReportMeta:
+    """Where the report's numbers came from (its header)."""
+    return ReportMeta(
+        project=f"{project.project.name} {project.project.section}".strip(),
+        config_source=config_path or f"shipped project {default_project_path().name}",
+        database=str(db),
+    )
+
+
 def _summary_for(args: argparse.Namespace, store: AcceptanceStore) -> Any:
     project = load_project(args.config)
     _check_range(args)
-    records = store.current(args.ring_from, args.ring_to)
-    summary = summarize(
-        records,
-        project.acceptance,
-        ring_from=args.ring_from,
-        ring_to=args.ring_to,
-        rings_with_plan=store.rings_with_plan(),
-    )
-    return project, summary
+    return project, summary_of(store, project, args.ring_from, args.ring_to)
 
 
 def _report(args: argparse.Namespace) -> int:
@@ -347,11 +364,7 @@ def _report(args: argparse.Namespace) -> int:
     if not summary.rings:
         print("wara acceptance report: no ring records in that range", file=sys.stderr)
         return EXIT_FAILED
-    meta = ReportMeta(
-        project=f"{project.project.name} {project.project.section}".strip(),
-        config_source=args.config or f"shipped project {default_project_path().name}",
-        database=str(_db_path(args)),
-    )
+    meta = report_meta(project, args.config, _db_path(args))
     files = write_report(summary, args.out, meta)
     if args.json:
         print(json.dumps(report_dict(summary, meta), indent=2))

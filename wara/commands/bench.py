@@ -51,6 +51,11 @@ def register(sub: argparse._SubParsersAction) -> None:
         action="store_true",
         help="demo: a CPU-bound process pinned to one CPU beside the runs",
     )
+    p.add_argument(
+        "--attitude",
+        action="store_true",
+        help="demo: the demo's attitude examples (wara demo --attitude) instead of the rings",
+    )
     # Hidden: the re-execution inside the namespace (opcua).
     p.add_argument("--inside-netns", default=None, help=argparse.SUPPRESS)
     p.set_defaults(func=_run)
@@ -59,8 +64,10 @@ def register(sub: argparse._SubParsersAction) -> None:
 def _run(args: argparse.Namespace) -> int:
     from wara.cli import UsageError
 
-    if args.name != "demo" and args.cpu_hog:
-        raise UsageError("--cpu-hog goes with `wara bench demo`")
+    if args.name != "demo" and (args.cpu_hog or args.attitude):
+        raise UsageError(
+            f"--{'cpu-hog' if args.cpu_hog else 'attitude'} goes with `wara bench demo`"
+        )
     if args.baseline is not None and args.name != "step":
         raise UsageError("--baseline goes with `wara bench step`")
     if args.runs is not None and not (args.name == "demo" or args.baseline is not None):

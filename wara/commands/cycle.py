@@ -13,7 +13,6 @@ import argparse
 import json
 import sys
 from pathlib import Path
-from typing import Any
 
 from acceptance.store import default_db_path
 from config import load_project
@@ -79,6 +78,8 @@ def run(args: argparse.Namespace) -> int:
         )
     finally:
         logs.stop()
+    from wara.cycle import render
+
     print(json.dumps(out, indent=2) if args.json else render(out))
     if out["refused"] is not None:
         print(f"wara cycle: refused: {out['refused']}", file=sys.stderr)
@@ -88,25 +89,3 @@ def run(args: argparse.Namespace) -> int:
         print(f"wara cycle: FAILED: {why}", file=sys.stderr)
         return EXIT_FAILED
     return EXIT_OK
-
-
-def render(out: dict[str, Any]) -> str:
-    """Table 4 on the simulator's truth per ring, the cycle time and the verdict."""
-    head = (
-        "| ring | vertical mm | horizontal mm | gap mm | centreline x / y mm | pitch / tilt / "
-        "rotation deg | cycle s | passed |"
-    )
-    lines = [head, "|---|---|---|---|---|---|---|---|"]
-    for r in out["rings"]:
-        lines.append(
-            f"| {r['ring']} | {r['vertical_misalignment_mm']:+.3f} | "
-            f"{r['horizontal_misalignment_mm']:+.3f} | {r['gap_mm']:.3f} | "
-            f"{r['centreline_deviation_x_mm']:+.3f} / {r['centreline_deviation_y_mm']:+.3f} | "
-            f"{r['pitch_deg']:+.4f} / {r['tilt_deg']:+.4f} / {r['rotation_deg']:+.4f} | "
-            f"{r['cycle_time_s']:.1f} | {'yes' if r['passed'] else 'NO'} |"
-        )
-    lines.append(
-        f"acceptance records: {out['db']}; "
-        f"{'PASSED' if out['passed'] else 'FAILED'} ({out['wall_time_s']:.1f} s wall)"
-    )
-    return "\n".join(lines)
