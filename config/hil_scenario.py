@@ -38,6 +38,7 @@ class PlantSettings(Strict):
     def rod_mass_for(self, cfg: ProjectConfig) -> float:
         """The rod mass the rig simulates: this override, else the project's."""
         return cfg.hydraulics.rod_mass_kg if self.rod_mass_kg is None else self.rod_mass_kg
+
     #: pilot-operated check valves on the attitude cylinders: while the PLC has the
     #: drives off, the cylinder ports are blocked (no valve flow, no leakage to tank)
     load_holding_valves: bool = True

@@ -431,7 +431,8 @@ class WalkSequencer:
         self._x_k += 1
         # the checks' forces: at one instant, less each rod's friction (what the legs
         # put on the body, the statics' terms)
-        f_check = self.aligned_forces_n(now, f, p_age_s) - self.friction_n()
+        f_aligned = self.aligned_forces_n(now, f, p_age_s)
+        f_check = f_aligned - self.friction_n()
         fig = self.figures
         run = self.run
         if run is None or self.done:
@@ -610,7 +611,13 @@ class WalkSequencer:
             held = list(self._frame(ph.standing, self.leg_ids))
         expected = self._residual_share(x_s_now, share8, f_check, plan_f, held)
         fig.expected_n = tuple(np.maximum(expected, share8).tolist())
-        fig.leg_force_n = tuple(f_check.tolist())
+        # judged: a leg in force control its cap-side force (what its loop sets against
+        # its reference), any other its force on the body (against its statics' share)
+        judged = f_check.copy()
+        for j, i in enumerate(self.legs):
+            if i in self.force_mode:
+                judged[j] = f_aligned[j]
+        fig.leg_force_n = tuple(judged.tolist())
         fig.phase_t_s = run.tau
         st = self.steps[-1]
         st.max_leg_sync_error_m = max(st.max_leg_sync_error_m, fig.leg_sync_m)
