@@ -19,7 +19,7 @@ from pydantic import Field, model_validator
 
 from config import units
 from config.loader import load_model
-from config.schema import NonNegative, Positive, Strict, Vec3
+from config.schema import NonNegative, Positive, ProjectConfig, Strict, Vec3
 
 Fraction = Annotated[float, Field(ge=0, le=1)]
 
@@ -31,8 +31,14 @@ class PlantSettings(Strict):
     step_ms: Annotated[float, Field(ge=0.1, le=0.5)] = 0.25
     #: PLC scan: commands read, faults applied, sensors written once per scan
     plc_cycle_ms: Annotated[float, Field(ge=0.1, le=10)] = 1.0
-    #: moving mass of each attitude cylinder's rod and piston (the load is the platform)
-    rod_mass_kg: Positive = 150.0
+    #: the simulator's rod mass when it is to differ from the machine's (a model error of
+    #: the truth, e.g. in a campaign); None: the project's ``hydraulics.rod_mass_kg``
+    rod_mass_kg: Positive | None = None
+
+    def rod_mass_for(self, cfg: ProjectConfig) -> float:
+        """The rod mass the rig simulates: this override, else the project's."""
+        return cfg.hydraulics.rod_mass_kg if self.rod_mass_kg is None else self.rod_mass_kg
+
     #: pilot-operated check valves on the attitude cylinders: while the PLC has the
     #: drives off, the cylinder ports are blocked (no valve flow, no leakage to tank)
     load_holding_valves: bool = True

@@ -344,6 +344,10 @@ class Hydraulics(Strict):
     valve_natural_frequency_hz: Annotated[Finite, Field(gt=0, le=1000)] = 60.0
     valve_damping_ratio: Annotated[Finite, Field(gt=0, le=10)] = 0.7
     valve_max_opening_mm: Annotated[Finite, Field(gt=0, le=20)] = 0.5
+    #: weight of each leg's and upper-platform cylinder's rod and piston (a leg's with its
+    #: foot): what a hanging leg pulls on the body, and what the upper rods add to the
+    #: load the legs carry; the HIL rig's rod mass (machine data, one value for all)
+    rod_mass_kg: Annotated[Finite, Field(gt=0, le=10_000)] = 150.0
     cylinder_defaults: CylinderPlant = CylinderPlant()
 
     @model_validator(mode="after")

@@ -138,7 +138,7 @@ class HilSimulator:
         self.rig = (WalkingRig if plant.contact else Rig)(
             cfg,
             step_s=plant.step_s,
-            rod_mass_kg=plant.rod_mass_kg,
+            rod_mass_kg=plant.rod_mass_for(cfg),
             load_holding_valves=plant.load_holding_valves,
         )
         self.catalog = catalog if catalog is not None else load_catalog()

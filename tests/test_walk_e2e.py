@@ -304,8 +304,8 @@ def test_a_malformed_hmi_walk_request_is_refused_with_its_reason_and_nothing_mov
 
 @pytest.mark.xfail(
     strict=True,
-    reason="known: the shipped 2 m step trips the overload in phase 7a (sub_leg_3 at "
-    "110.2 % of its expected share, M's front feet touching first; docs/walking.md)",
+    reason="known: the shipped 2 m step trips the overload in phase 7b (sub_leg_3 at "
+    "110.35 % of its expected share: S's twist after M's touch-downs; docs/walking.md)",
 )
 def test_three_shipped_steps_as_the_user_runs_them() -> None:
     """`wara walk --steps 3 --lockstep --json` with the shipped project (2 m steps): the

@@ -46,7 +46,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from config import units
-from config.derived import hydraulic_stiffness_n_m
+from config.derived import hydraulic_stiffness_n_m, viscous_damping_n_s_m
 from config.schema import ProjectConfig
 from ipc_app.control.ladrc import LADRC
 from ipc_app.control.plant_gain import cylinder_b0
@@ -156,8 +156,6 @@ class _PhaseRun:
     duration_s: float = 0.0
     touched: list[bool] = field(default_factory=list)
     baseline_pa: list[float] = field(default_factory=list)
-    #: a lowering leg's free-rod cap-side force (the motion's friction), low-passed, N
-    free_f: list[float] = field(default_factory=list)
     #: the lowering is in its slow part (touch-down looked for)
     near: bool = False
     frozen_x: list[float] = field(default_factory=list)
@@ -177,6 +175,13 @@ class WalkSequencer:
     FREE_ROD_S = 0.25
     #: preload ends with every preloaded leg within this fraction of its target
     PRELOAD_TOLERANCE = 0.10
+    #: a lowering rod's speed is taken over this window (the pressures' 50 ms cycle), s
+    MOTION_WINDOW_S = 0.05
+    #: in the slow part of a lowering, the free rod's pressure follows while within this
+    #: fraction of the touch rise above its baseline
+    FREE_BAND = 0.1
+    #: a rod's Coulomb friction is full above this speed, m/s
+    COULOMB_SPEED_M_S = 1e-4
 
     def __init__(self, cfg: ProjectConfig, period_s: float, plan: WalkPlan) -> None:
         if cfg.walking is None or cfg.frames is None:
@@ -205,6 +210,13 @@ class WalkSequencer:
             self.b0[i] = cylinder_b0(cyl, cfg.hydraulics, order=ctl.ladrc.order)
             self.pos[i] = LADRC.from_config(ctl.ladrc, float(self.b0[i]), period_s)
         self.k_contact = self.walk.contact.stiffness_n_m
+        #: each leg's rod friction (its plant's): Coulomb, N, and viscous, N s/m
+        plants = [(by_index[i], by_index[i].plant or cfg.hydraulics.cylinder_defaults)
+                  for i in self.legs]  # fmt: skip
+        self.coulomb_n = np.array([pl.coulomb_friction_n for _c, pl in plants])
+        self.viscous_n_s_m = np.array(
+            [viscous_damping_n_s_m(c, pl, cfg.hydraulics) for c, pl in plants]
+        )
         self.force: dict[int, LADRC] = {}
         for i in self.legs:
             cyl = by_index[i]
@@ -247,6 +259,9 @@ class WalkSequencer:
         self._f_prev = np.zeros(8)
         self._t_last = np.full(8, -math.inf)
         self._t_prev = np.full(8, -math.inf)
+        #: the legs' last rod positions over :attr:`MOTION_WINDOW_S` (a ring), m
+        self._x_hist = np.zeros((max(2, round(self.MOTION_WINDOW_S / period_s) + 1), 8))
+        self._x_k = 0
 
     # ----------------------------------------------------------------- helpers
 
@@ -295,6 +310,7 @@ class WalkSequencer:
         """Engage at the measured state: every walk cylinder holds, the first phase starts."""
         self.set_upper(x)
         self.hold_ref = np.array(x, dtype=float)
+        self._x_hist[:] = x[self.legs]
         for i, c in self.pos.items():
             c.reset(float(x[i]))
         self._begin(0, now, x, p)
@@ -320,7 +336,6 @@ class WalkSequencer:
             frame = MAIN if key == "7a" else SUB
             run.touched = [False] * 4
             run.baseline_pa = [float(p[self.legs[j], 0]) for j in frame]
-            run.free_f = [float(f[j]) for j in frame]
             run.frozen_x = [0.0] * 4
             run.touch_f = [0.0] * 4
         elif key in LIFT:
@@ -414,7 +429,12 @@ class WalkSequencer:
         rates = np.zeros(self.n)
         f = self.forces_n(p)
         self.leg_force_n = f
-        f_check = self.aligned_forces_n(now, f, p_age_s)
+        self._x_hist[self._x_k % self._x_hist.shape[0]] = x[self.legs]
+        self._x_k += 1
+        # the checks' forces: at one instant, less each rod's friction (what the legs
+        # put on the body, the statics' terms)
+        f_aligned = self.aligned_forces_n(now, f, p_age_s)
+        f_check = f_aligned - self.friction_n()
         fig = self.figures
         run = self.run
         if run is None or self.done:
@@ -493,12 +513,15 @@ class WalkSequencer:
                         if i in moving:
                             moving.remove(i)
                     elif pa - run.baseline_pa[k] <= 0.5 * self.touch_pa:
-                        # the free rod's pressure and force, low-passed while it moves; a
-                        # sample more than half the touch rise above it is the foot
-                        # pressing the invert, not the free motion: the values hold
+                        # the free rod's pressure, low-passed while it moves; a sample more
+                        # than half the touch rise above it is the foot pressing the
+                        # invert, not the free motion: the value holds
+                        # in the slow part it holds sooner: a foot pressing by a tenth of
+                        # the touch rise is not free any more (followed up to half of it,
+                        # the baseline rose with a fast press and the touch-down came late)
                         a = dt / self.FREE_ROD_S
-                        run.baseline_pa[k] += (pa - run.baseline_pa[k]) * a
-                        run.free_f[k] += (float(f[j]) - run.free_f[k]) * a
+                        if not near or pa - run.baseline_pa[k] <= self.FREE_BAND * self.touch_pa:
+                            run.baseline_pa[k] += (pa - run.baseline_pa[k]) * a
                 finished = all(run.touched)
                 if not finished and run.tau >= run.duration_s:
                     j = frame[run.touched.index(False)]
@@ -590,7 +613,13 @@ class WalkSequencer:
             held = list(self._frame(ph.standing, self.leg_ids))
         expected = self._residual_share(x_s_now, share8, f_check, plan_f, held)
         fig.expected_n = tuple(np.maximum(expected, share8).tolist())
-        fig.leg_force_n = tuple(f_check.tolist())
+        # judged: a leg in force control its cap-side force (what its loop sets against
+        # its reference), any other its force on the body (against its statics' share)
+        judged = f_check.copy()
+        for j, i in enumerate(self.legs):
+            if i in self.force_mode:
+                judged[j] = f_aligned[j]
+        fig.leg_force_n = tuple(judged.tolist())
         fig.phase_t_s = run.tau
         st = self.steps[-1]
         st.max_leg_sync_error_m = max(st.max_leg_sync_error_m, fig.leg_sync_m)
@@ -641,20 +670,55 @@ class WalkSequencer:
         return out
 
     def contact_n(self, f: FloatArray) -> FloatArray:
-        """Each leg's foot force as the pressures show it (8,), N: a leg in force control
-        or touched down its cap-side force; a lowering leg not (yet) touched down, in the
-        slow part of its lowering, what its force rose above its free-rod value (a foot
-        that presses the invert before its touch-down is declared carries that load);
-        any other leg of the lowering frame 0 (in the air, its pressures show only the
-        motion's friction). The standing frame's legs: their force."""
-        out = np.maximum(f, 0.0)
+        """Each leg's force on the body (8,), N, from ``f``, the legs' cap-side forces less
+        their rods' friction (:meth:`friction_n`); the body's equilibrium is in these (a
+        leg's rod and foot are not in the load: a standing leg's is its foot's load less
+        its rod's weight):
+
+        - a leg in force control, standing or touched down: ``f``;
+        - a leg of a frame hanging while the travel pair moves: its rod's weight
+          (``hydraulics.rod_mass_kg``) pulling down;
+        - a lowering leg not touched down: in the fast part of its lowering (in the air)
+          its rod's weight; in the slow part ``f`` (a foot that presses the invert before
+          its touch-down is declared carries that load), at least its rod's weight;
+        - any other leg (a lifting frame): ``f``, at least its rod's weight."""
+        w_rod = self.machine.rod_weight_n
+        out = np.maximum(f, -w_rod)
         run = self.run
-        if run is not None and run.phase.key in LOWER:
-            frame = MAIN if run.phase.key == "7a" else SUB
+        if run is None:
+            return out
+        key = run.phase.key
+        if key in TRAVEL:
+            standing = self._frame(run.phase.standing, self.leg_ids)
+            for j in range(8):
+                if j not in standing:
+                    out[j] = -w_rod
+        elif key in LOWER:
+            frame = MAIN if key == "7a" else SUB
             for k, j in enumerate(frame):
-                if not run.touched[k]:
-                    out[j] = max(0.0, float(f[j]) - run.free_f[k]) if run.near else 0.0
+                if not run.near and not run.touched[k]:
+                    out[j] = -w_rod
+                else:
+                    out[j] = max(-w_rod, float(f[j]))
         return out
+
+    def friction_n(self) -> FloatArray:
+        """Each leg's rod friction now (8,), N, opposing its measured motion (extending
+        positive): its plant's Coulomb friction (full above :attr:`COULOMB_SPEED_M_S`)
+        and viscous damping (``config.derived.viscous_damping_n_s_m``) at the rod's speed
+        over :attr:`MOTION_WINDOW_S`. The pressures carry it on top of what the leg
+        puts on the body."""
+        v = np.array([self._rod_speed(j) for j in range(8)])
+        coulomb = self.coulomb_n * np.clip(v / self.COULOMB_SPEED_M_S, -1.0, 1.0)
+        return np.asarray(coulomb + self.viscous_n_s_m * v)
+
+    def _rod_speed(self, j: int) -> float:
+        """Leg ``j``'s rod speed (extending positive) over the last
+        :attr:`MOTION_WINDOW_S`, m/s, from its measured positions."""
+        n = self._x_hist.shape[0]
+        newest = self._x_hist[(self._x_k - 1) % n, j]
+        oldest = self._x_hist[self._x_k % n, j]
+        return float(newest - oldest) / ((n - 1) * self.period_s)
 
     def aligned_forces_n(self, now: float, f: FloatArray, age_s: FloatArray | None) -> FloatArray:
         """The legs' cap-side forces (8,) at one instant, N, for the checks.

@@ -43,7 +43,9 @@ class WalkingMachine:
 
     Frames (walking.md section 1): M's legs at ``(s_i a_M, t_i b_M)``, S's legs at
     ``(x_S + s_i a_S, t_i b_S)``, in the lower platform frame. The upper platform's
-    attitude relative to the lower one is given (it does not change during a walk).
+    attitude relative to the lower one is given (it does not change during a walk). The
+    load is the bodies and the upper platform's rods (``hydraulics.rod_mass_kg`` each);
+    the legs' own rods are not in it: a leg's force on the body is its cap-side force.
 
     ``unloaded``: without the workpiece, the upper layer's body named
     :data:`WORKPIECE_BODY` (the ring cycle walks back once the part is fixed to the
@@ -71,6 +73,14 @@ class WalkingMachine:
         fixed = [b for b in cfg.layers.lower.bodies] + list(cfg.frames.main.bodies)
         if upper_in_lower is not None:
             fixed.append(upper_in_lower)
+        #: the weight of one leg's rod (and foot), N along the base z: what a hanging leg
+        #: pulls on the body; a standing leg's cap-side force is its foot's load less it
+        self.rod_mass_kg = cfg.hydraulics.rod_mass_kg
+        self.rod_weight_n = -self.rod_mass_kg * float(self.g_base.z)
+        # the upper platform's rods hang between the layers: the legs carry them (at the
+        # upper cylinders' centroid, the upper platform's origin)
+        n_up = len(cfg.layers.upper.cylinders)
+        fixed.append(Body(name="upper rods", mass_kg=n_up * self.rod_mass_kg, cog_m=o))
         #: everything that moves with M (lower platform frame)
         self.main: MassProperties = lump(tuple(fixed))
         #: S's structure (S's frame)

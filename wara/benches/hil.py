@@ -53,7 +53,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     n_scans = round(seconds / plant.plc_cycle_s)
     rtf: dict[str, float] = {}
     for name, cls in (("rigid", Rig), ("contact", WalkingRig)):
-        rig = cls(cfg, plant.step_s, plant.rod_mass_kg, plant.load_holding_valves)
+        rig = cls(cfg, plant.step_s, plant.rod_mass_for(cfg), plant.load_holding_valves)
         rig.ports_open[:] = 1.0
         rig.command[:] = u
         rtf[name] = 0.0

@@ -273,6 +273,8 @@ class Campaign:
             sorted(expanded.items(), key=lambda kv: _is_cylinder_plant(kv[1][0]))
         )
         scen = HilScenario().model_dump(mode="json")
+        # the simulated rod mass defaults to the machine's: a dispersion draws around it
+        scen["plant"]["rod_mass_kg"] = HilScenario().plant.rod_mass_for(self.project)
         self.simulator = _expand(scen, spec.simulator, source, "simulator")
         self._nominal = nominal
         self._scenario_nominal = scen
