@@ -297,10 +297,6 @@ def test_the_cycle_section_is_validated(tmp_path: Path, change: Any, text: str) 
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(
-    strict=True,
-    reason="the walk back's preload after a placement latches an overload (docs/placement.md)",
-)
 def test_a_cycle_that_walks_goes_to_the_ring_and_back(tmp_path: Path) -> None:
     """200 mm steps, one step to the ring and one back (the gait mirrored)."""
     data = yaml.safe_load(default_project_path().read_text())
