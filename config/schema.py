@@ -545,6 +545,9 @@ class Safety(Strict):
     #: IPC: start-up (STOPPED) not complete within this ends in ABORTED (``start-up``, with
     #: what is missing)
     boot_timeout_s: Annotated[Finite, Field(gt=0, le=3600)] = 5.0
+    #: IPC: the control socket's server thread without a turn for longer is stalled: it
+    #: latches ``control channel`` and stops the service (systemd starts it again)
+    ctl_stall_timeout_s: Annotated[Finite, Field(gt=0, le=3600)] = 5.0
 
 
 # --------------------------------------------------------------------------- OPC UA

@@ -29,7 +29,7 @@ from typing import Any
 import numpy as np
 import structlog
 
-from config import load_project
+from config import ProjectConfig, load_project
 from ipc_app.model.placement import sheet_deviation
 from ipc_app.service.core import ServiceCore
 from ipc_app.service.ctl import CtlError, CtlHandlers, CtlServer
@@ -142,6 +142,13 @@ class CtlWatch:
         return True
 
 
+def ctl_server(
+    cfg: ProjectConfig, handlers: CtlHandlers, socket_path: str | Path | None
+) -> CtlServer:
+    """The service's control channel: stalled after ``safety.ctl_stall_timeout_s``."""
+    return CtlServer(handlers, socket_path, stall_s=cfg.safety.ctl_stall_timeout_s)
+
+
 def run_service(
     config_path: str | Path | None,
     *,
@@ -161,7 +168,7 @@ def run_service(
     logging_handle = configure_logging(log_level)
     stop = stop_event or threading.Event()
     root = Path(record_root) if record_root else default_record_root()
-    ctl = CtlServer(service_handlers(lambda: core, lambda: ctl), socket_path)
+    ctl = ctl_server(cfg, service_handlers(lambda: core, lambda: ctl), socket_path)
     # The bus and the socket first: a start that fails there writes nothing.
     with contextlib.ExitStack() as undo:
         undo.callback(logging_handle.stop)

@@ -155,10 +155,11 @@ SPECS: dict[Interlock, Spec] = {
     ),
     Interlock.PLANNER: Spec(None, Applies.EVENT, "", "the planner process crashed or timed out"),
     Interlock.CONTROL_CHANNEL: Spec(
-        None,
+        "safety.ctl_stall_timeout_s",
         Applies.ALWAYS,
-        "",
-        "the control socket's server thread ended or stalled, or its socket file is gone "
+        "s",
+        "the control socket's server thread ended or stalled (no turn for longer than the "
+        "limit), or its socket file is gone "
         "(where: the server's state; the service binds it again)",
     ),
     Interlock.STARTUP: Spec(
