@@ -433,6 +433,9 @@ class Planner(Strict):
     ldw_pso: LdwPso = LdwPso()
     exact: Exact = Exact()
     trajectory: Trajectory = Trajectory()
+    #: IPC: a plan request without a result for longer (a worker still starting counts)
+    #: latches ``planner``; the planner process is killed and started again
+    request_timeout_s: Annotated[Finite, Field(gt=0, le=3600)] = 10.0
 
     @property
     def min_rod_force_n(self) -> float:

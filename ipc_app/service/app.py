@@ -196,7 +196,7 @@ def run_service(
                 "(--record-dir, or $STATE_DIRECTORY under systemd)"
             ) from None
         undo.pop_all()
-    worker = PlannerWorker(config_path)
+    worker = PlannerWorker(config_path, timeout_s=cfg.planner.request_timeout_s)
     worker.start()
     core = ServiceCore(cfg, link, worker, record=recorder)
     notifier = SystemdNotifier.from_env()

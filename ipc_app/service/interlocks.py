@@ -153,7 +153,12 @@ SPECS: dict[Interlock, Spec] = {
         "fresh frames are back, but an active rod is further than the limit from where "
         "the motion stopped, or an active pressure is not valid",
     ),
-    Interlock.PLANNER: Spec(None, Applies.EVENT, "", "the planner process crashed or timed out"),
+    Interlock.PLANNER: Spec(
+        "planner.request_timeout_s",
+        Applies.EVENT,
+        "s",
+        "the planner process crashed, or gave no result within the limit",
+    ),
     Interlock.CONTROL_CHANNEL: Spec(
         "safety.ctl_stall_timeout_s",
         Applies.ALWAYS,
