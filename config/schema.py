@@ -437,6 +437,9 @@ class Planner(Strict):
     ldw_pso: LdwPso = LdwPso()
     exact: Exact = Exact()
     trajectory: Trajectory = Trajectory()
+    #: IPC: a plan request without a result for longer (a worker still starting counts)
+    #: latches ``planner``; the planner process is killed and started again
+    request_timeout_s: Annotated[Finite, Field(gt=0, le=3600)] = 10.0
 
     @property
     def min_rod_force_n(self) -> float:
@@ -549,6 +552,9 @@ class Safety(Strict):
     #: IPC: start-up (STOPPED) not complete within this ends in ABORTED (``start-up``, with
     #: what is missing)
     boot_timeout_s: Annotated[Finite, Field(gt=0, le=3600)] = 5.0
+    #: IPC: the control socket's server thread without a turn for longer is stalled: it
+    #: latches ``control channel`` and stops the service (systemd starts it again)
+    ctl_stall_timeout_s: Annotated[Finite, Field(gt=0, le=3600)] = 5.0
 
 
 # --------------------------------------------------------------------------- OPC UA

@@ -2,14 +2,17 @@
 # Install the W-ARa IPC service on an industrial PC (Debian/Ubuntu with systemd).
 #
 #   sudo deploy/install.sh [--config PROJECT.yaml] [--prefix /opt/wara] [--vcan]
-#                          [--extras sim,plot,opcua] [--no-start] [--dry-run]
+#                          [--extras sim,plot,opcua] [--wheelhouse DIR] [--no-start]
+#                          [--dry-run]
 #
 # Steps (each printed as "+ command"; --dry-run prints them and changes nothing):
 #   1. system user and group "wara" (no login shell, home /var/lib/wara)
 #   2. a virtualenv under PREFIX/venv with this source tree installed (pip): the service
 #      alone; --extras adds optional parts (plot: matplotlib for the acceptance report,
 #      sim: numba for the HIL simulator, opcua: the OPC UA server; with opcua the
-#      server certificate is created under /var/lib/wara/opcua/pki, owned by wara)
+#      server certificate is created under /var/lib/wara/opcua/pki, owned by wara);
+#      --wheelhouse DIR installs offline: the package and every dependency as wheels from
+#      DIR only (made where there is network: pip wheel -w DIR '.[EXTRAS]')
 #   3. /etc/wara/project.yaml (kept if it exists; --config replaces it), validated
 #   4. systemd-networkd files for can0 (BitRate from the project's can.bitrate),
 #      and vcan0 with --vcan
@@ -23,6 +26,7 @@ PREFIX=/opt/wara
 CONFIG=""
 VCAN=0
 EXTRAS=""
+WHEELHOUSE=""
 START=1
 DRY=0
 ETC=/etc/wara
@@ -30,7 +34,7 @@ NETDIR=/etc/systemd/network
 UNITDIR=/etc/systemd/system
 USER_NAME=wara
 
-usage() { sed -n '2,18p' "$0" | sed 's/^# \{0,1\}//'; }
+usage() { sed -n '2,21p' "$0" | sed 's/^# \{0,1\}//'; }
 
 while [ $# -gt 0 ]; do
   case "$1" in
@@ -38,6 +42,7 @@ while [ $# -gt 0 ]; do
     --config) CONFIG="$2"; shift 2 ;;
     --vcan) VCAN=1; shift ;;
     --extras) EXTRAS="${2:-}"; shift 2 ;;
+    --wheelhouse) WHEELHOUSE="${2:-}"; shift 2 ;;
     --no-start) START=0; shift ;;
     --dry-run) DRY=1; shift ;;
     -h|--help) usage; exit 0 ;;
@@ -63,6 +68,10 @@ for extra in ${EXTRAS//,/ }; do
     *) echo "install.sh: --extras: unknown extra '$extra' (known: sim, plot, opcua)" >&2; exit 2 ;;
   esac
 done
+if [ -n "$WHEELHOUSE" ] && ! compgen -G "$WHEELHOUSE/wara_control-*.whl" >/dev/null; then
+  echo "install.sh: --wheelhouse $WHEELHOUSE: no wara_control-*.whl there (pip wheel -w DIR .)" >&2
+  exit 2
+fi
 if [ -n "$CONFIG" ] && [ ! -f "$CONFIG" ]; then
   echo "install.sh: --config $CONFIG: file not found" >&2
   exit 2
@@ -79,7 +88,12 @@ fi
 echo "# 2. virtualenv"
 run install -d -m 0755 "$PREFIX"
 run python3 -m venv "$PREFIX/venv"
-run "$PREFIX/venv/bin/pip" install --quiet --upgrade "$SRC${EXTRAS:+[$EXTRAS]}"
+if [ -n "$WHEELHOUSE" ]; then
+  run "$PREFIX/venv/bin/pip" install --quiet --upgrade --no-index --find-links "$WHEELHOUSE" \
+    "wara-control${EXTRAS:+[$EXTRAS]}"
+else
+  run "$PREFIX/venv/bin/pip" install --quiet --upgrade "$SRC${EXTRAS:+[$EXTRAS]}"
+fi
 
 echo "# 3. project configuration"
 run install -d -m 0755 "$ETC"

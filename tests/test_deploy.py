@@ -191,3 +191,18 @@ def test_install_with_opcua_creates_the_server_certificate(tmp_path: Path) -> No
 def test_install_rejects_unknown_options() -> None:
     proc = _install("--frobnicate")
     assert proc.returncode == 2 and "unknown option --frobnicate" in proc.stderr
+
+
+def test_install_from_a_wheelhouse_takes_nothing_from_an_index(tmp_path: Path) -> None:
+    """--wheelhouse DIR: offline, the package by name from DIR's wheels, not the source."""
+    (tmp_path / "wara_control-0.1.0-py3-none-any.whl").write_bytes(b"")
+    proc = _install("--prefix", str(tmp_path / "p"), "--wheelhouse", str(tmp_path),
+                    "--extras", "plot")  # fmt: skip
+    assert proc.returncode == 0, proc.stderr
+    assert _pip_line(proc.stdout).endswith(
+        f"install --quiet --upgrade --no-index --find-links {tmp_path} wara-control[plot]"
+    )
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    proc = _install("--wheelhouse", str(empty))
+    assert proc.returncode == 2 and "no wara_control-*.whl there" in proc.stderr, proc.stderr

@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 
 from config import load_project
-from config.schema import Safety, Walking
+from config.schema import Planner, Safety, Walking
 from ipc_app.service.interlocks import SPECS, Applies, Cause, Interlock, markdown_table
 from ipc_app.service.modes import Mode
 from wara.harness import Harness
@@ -36,8 +36,8 @@ def test_every_interlock_has_a_spec_with_a_real_key() -> None:
     for il, spec in SPECS.items():
         if spec.key is not None:
             section, name = spec.key.split(".")
-            fields = Walking.model_fields if section == "walking" else Safety.model_fields
-            assert section in ("safety", "walking") and name in fields, il
+            sections = {"safety": Safety, "walking": Walking, "planner": Planner}
+            assert section in sections and name in sections[section].model_fields, il
         assert spec.applies in Applies and spec.condition
 
 

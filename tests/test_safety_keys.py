@@ -9,7 +9,10 @@ reaction in the whole system.
 from __future__ import annotations
 
 import itertools
+import tempfile
+import threading
 from collections.abc import Callable
+from pathlib import Path
 from typing import Any
 
 import can
@@ -17,9 +20,11 @@ import numpy as np
 import pytest
 
 from config import ProjectConfig, load_project
-from config.schema import Safety, Walking
+from config.schema import Planner, Safety, Walking
 from ipc_app.control.attitude import LayerMetrics
+from ipc_app.service.app import ctl_server
 from ipc_app.service.core import ServiceCore
+from ipc_app.service.ctl import CtlHandlers
 from ipc_app.service.interlocks import SPECS, Interlock, Limits, motion_causes, present_causes
 from ipc_app.service.modes import Mode
 from plc_bridge import Fault
@@ -154,6 +159,29 @@ def boot_timeout(cfg: ProjectConfig) -> Any:
         core.link.close()
 
 
+def ctl_stall(cfg: ProjectConfig) -> str:
+    """The service's control channel (as ``wara serve`` makes it) with its I/O thread
+    caught in one turn for 6 s: its state (``stalled`` latches ``control channel``)."""
+    entered, release = threading.Event(), threading.Event()
+
+    def stuck_turn(_sel: object) -> None:
+        entered.set()
+        release.wait(10.0)
+
+    handlers = CtlHandlers(dict, dict, dict, dict)
+    with tempfile.TemporaryDirectory(prefix="wara-") as tmp:
+        server = ctl_server(cfg, handlers, Path(tmp) / "c.sock")
+        server._turn = stuck_turn  # type: ignore[method-assign]
+        server.start()
+        try:
+            assert entered.wait(10.0)
+            server._tick -= 6.0  # its last turn began 6 s ago
+            return server.state()
+        finally:
+            release.set()
+            server.stop()
+
+
 CASES: dict[str, tuple[float, Callable[[ProjectConfig], Any]]] = {
     # key: (changed value, the situation)
     "max_twist_mm": (1.0, twist),
@@ -166,6 +194,7 @@ CASES: dict[str, tuple[float, Callable[[ProjectConfig], Any]]] = {
     "command_timeout_ms": (200.0, command_timeout),
     "max_suspend_ms": (150.0, max_suspend),
     "boot_timeout_s": (10.0, boot_timeout),
+    "ctl_stall_timeout_s": (10.0, ctl_stall),
 }
 
 
@@ -176,7 +205,9 @@ def test_every_safety_key_has_a_case() -> None:
 def test_every_interlock_key_is_a_config_key() -> None:
     keys = {s.key for s in SPECS.values() if s.key is not None}
     walking = {f"walking.{k}" for k in Walking.model_fields}  # tests/test_walk_interlocks.py
-    assert keys <= {f"safety.{k}" for k in Safety.model_fields} | walking
+    planner = {"planner.request_timeout_s"}  # tests/test_e2e.py: a planner that times out
+    assert keys <= {f"safety.{k}" for k in Safety.model_fields} | walking | planner
+    assert all(k in Planner.model_fields for k in (p.split(".")[1] for p in planner))
 
 
 @pytest.mark.parametrize("key", sorted(CASES))
@@ -209,3 +240,4 @@ def test_the_cases_see_the_reaction_they_stand_for() -> None:
     )
     assert boot_timeout(cfg) == (Mode.ABORTED, (Interlock.PLC_HEARTBEAT, Interlock.STARTUP))
     assert boot_timeout(_with(cfg, boot_timeout_s=10.0)) == (Mode.STOPPED, ())
+    assert ctl_stall(cfg) == "stalled" and ctl_stall(_with(cfg, ctl_stall_timeout_s=10.0)) == "ok"

@@ -29,7 +29,7 @@ from typing import Any
 import numpy as np
 import structlog
 
-from config import load_project
+from config import ProjectConfig, load_project
 from ipc_app.model.placement import Pose, sheet_deviation
 from ipc_app.planner.survey import SurveyPoint
 from ipc_app.service.core import ServiceCore
@@ -198,6 +198,13 @@ class CtlWatch:
         return True
 
 
+def ctl_server(
+    cfg: ProjectConfig, handlers: CtlHandlers, socket_path: str | Path | None
+) -> CtlServer:
+    """The service's control channel: stalled after ``safety.ctl_stall_timeout_s``."""
+    return CtlServer(handlers, socket_path, stall_s=cfg.safety.ctl_stall_timeout_s)
+
+
 def run_service(
     config_path: str | Path | None,
     *,
@@ -220,7 +227,8 @@ def run_service(
     stop = stop_event or threading.Event()
     root = Path(record_root) if record_root else default_record_root()
     slack = SlackGate()
-    ctl = CtlServer(
+    ctl = ctl_server(
+        cfg,
         service_handlers(lambda: core, lambda: ctl, slack=slack, records=ring_records),
         socket_path,
     )
@@ -251,7 +259,7 @@ def run_service(
                 "(--record-dir, or $STATE_DIRECTORY under systemd)"
             ) from None
         undo.pop_all()
-    worker = PlannerWorker(config_path)
+    worker = PlannerWorker(config_path, timeout_s=cfg.planner.request_timeout_s)
     worker.start()
     core = ServiceCore(cfg, link, worker, record=recorder)
     notifier = SystemdNotifier.from_env()

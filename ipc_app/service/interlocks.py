@@ -153,12 +153,18 @@ SPECS: dict[Interlock, Spec] = {
         "fresh frames are back, but an active rod is further than the limit from where "
         "the motion stopped, or an active pressure is not valid",
     ),
-    Interlock.PLANNER: Spec(None, Applies.EVENT, "", "the planner process crashed or timed out"),
+    Interlock.PLANNER: Spec(
+        "planner.request_timeout_s",
+        Applies.EVENT,
+        "s",
+        "the planner process crashed, or gave no result within the limit",
+    ),
     Interlock.CONTROL_CHANNEL: Spec(
-        None,
+        "safety.ctl_stall_timeout_s",
         Applies.ALWAYS,
-        "",
-        "the control socket's server thread ended or stalled, or its socket file is gone "
+        "s",
+        "the control socket's server thread ended or stalled (no turn for longer than the "
+        "limit), or its socket file is gone "
         "(where: the server's state; the service binds it again)",
     ),
     Interlock.STARTUP: Spec(

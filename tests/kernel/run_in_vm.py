@@ -172,20 +172,22 @@ def forwarded_env() -> list[str]:
 
 
 def build_wheelhouse(dest: Path) -> None:
-    """The build backend for installing the project from source (setuptools, wheel), for
-    the guest's pip, which has no network (tests/kernel/test_deploy_vcan.py). Best effort:
-    a test that needs it fails with pip's own message when it is missing."""
+    """The project's wheel, built here from this checkout, for install.sh's offline
+    install in the guest (``--wheelhouse``; tests/kernel/test_deploy_vcan.py): the guest
+    has no network, and building the package there (pip's isolated build environment,
+    setuptools' hooks in fresh interpreters) costs minutes on its emulated CPU. Best
+    effort: without it the test fails with install.sh's own message."""
     dest.mkdir()
     proc = subprocess.run(
-        [sys.executable, "-m", "pip", "download", "-q", "--only-binary=:all:", "-d", str(dest),
-         "setuptools>=68", "wheel"],
+        [sys.executable, "-m", "pip", "wheel", "-q", "--no-deps",
+         "-w", str(dest), str(REPO)],
         capture_output=True,
         text=True,
         check=False,
     )  # fmt: skip
     if proc.returncode != 0:
         last = (proc.stderr.strip() or "?").splitlines()[-1]
-        say(f"no wheelhouse for the guest's pip: {last}")
+        say(f"no wheel of the project for the guest's install.sh: {last}")
 
 
 #: Caches the guest reads instead of building them on its emulated CPU, prepared on this
@@ -313,7 +315,11 @@ def boot(command: list[str], args: argparse.Namespace) -> int:
         ]
         if not args.kvm:
             vng.append("--disable-kvm")
-        vng += ["--exec", guest_script(command, marker, wheelhouse)]
+        # The script in a file on the shared directory: virtme-ng passes --exec on the
+        # kernel's command line, which the kernel cuts at 2 KiB.
+        script = Path(tmp) / "guest.sh"
+        script.write_text(guest_script(command, marker, wheelhouse) + "\n")
+        vng += ["--exec", f"sh {shlex.quote(str(script))}"]
         vng.append(f"--qemu-opts={' '.join(qemu_opts(args.kvm))}")  # greedy: the last option
         accel = "KVM" if args.kvm else "TCG (no KVM)"
         say(f"booting {kernel} in qemu, {accel}, {args.cpus} CPUs, {args.memory}")

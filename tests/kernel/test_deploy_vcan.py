@@ -41,9 +41,11 @@ pytestmark = pytest.mark.skipif(_REASON is not None, reason=str(_REASON))
 
 
 def _sh(
-    *argv: str, check: bool = False, timeout: float = 120.0
+    *argv: str, check: bool = False, timeout: float = 120.0, cwd: str | None = None
 ) -> subprocess.CompletedProcess[str]:
-    return subprocess.run(argv, capture_output=True, text=True, timeout=timeout, check=check)
+    return subprocess.run(
+        argv, capture_output=True, text=True, timeout=timeout, check=check, cwd=cwd
+    )
 
 
 def _unmask_passwd_files() -> None:
@@ -101,7 +103,9 @@ def installed(
     _unmask_passwd_files()
     env = {**os.environ, **offline_pip_env()}
     steps = tmp_path_factory.mktemp("deploy") / "install-steps.txt"
-    proc = _run_timed([str(DEPLOY / "install.sh"), "--vcan", "--no-start"], env, 2400.0, steps)
+    argv = [str(DEPLOY / "install.sh"), "--vcan", "--no-start",
+            "--wheelhouse", os.environ.get("WARA_VM_WHEELHOUSE", "")]  # fmt: skip
+    proc = _run_timed(argv, env, 2400.0, steps)
     try:
         yield proc
     finally:
@@ -109,7 +113,7 @@ def installed(
 
 
 #: Not lent from the project venv: what install.sh's own steps bring (pip, by ``python3 -m
-#: venv``), the build backend (from the wheelhouse) and the project itself (from source).
+#: venv``) and the project itself (from its wheel), and setuptools, which it does not need.
 NOT_LENT = ("pip", "setuptools", "wheel", "_distutils_hack", "distutils-precedence",
             "wara_control", "__editable__")  # fmt: skip
 
@@ -117,12 +121,11 @@ NOT_LENT = ("pip", "setuptools", "wheel", "_distutils_hack", "distutils-preceden
 def offline_pip_env(prefix: Path = Path("/opt/wara")) -> dict[str, str]:
     """Make install.sh's ``pip install`` work without network, and quickly on an emulated
     CPU, as on an IPC image with the dependencies preinstalled: ``PREFIX/deps`` holds a
-    link to every distribution of the project venv (numpy, scipy, ...) but pip, the build
-    backend and the project, and the prefix's venv is made beforehand (without pip, as
-    ``python3 -m venv`` would) with a ``.pth`` that puts ``PREFIX/deps`` on its path. pip
-    then finds every dependency installed and builds and installs only the package from
-    the source tree; its build backend (setuptools, wheel) comes from the wheels
-    run_in_vm.py downloaded on the host (``WARA_VM_WHEELHOUSE``)."""
+    link to every distribution of the project venv (numpy, scipy, ...) but pip, setuptools
+    and the project, and the prefix's venv is made beforehand (without pip, as ``python3
+    -m venv`` would) with a ``.pth`` that puts ``PREFIX/deps`` on its path. pip then finds
+    every dependency installed and installs only the package, offline from the wheel
+    run_in_vm.py built on the host (``install.sh --wheelhouse $WARA_VM_WHEELHOUSE``)."""
     deps = prefix / "deps"
     deps.mkdir(parents=True, exist_ok=True)
     for entry in Path(sysconfig.get_paths()["purelib"]).iterdir():
@@ -132,11 +135,7 @@ def offline_pip_env(prefix: Path = Path("/opt/wara")) -> dict[str, str]:
     subprocess.run([sys.executable, "-m", "venv", "--without-pip", str(venv)], check=True)
     ver = f"python{sys.version_info.major}.{sys.version_info.minor}"
     (venv / "lib" / ver / "site-packages" / "wara_vm_deps.pth").write_text(f"{deps}\n")
-    return {
-        "PIP_NO_INDEX": "1",
-        "PIP_FIND_LINKS": os.environ.get("WARA_VM_WHEELHOUSE", ""),
-        "PIP_NO_CACHE_DIR": "1",  # the guest's home is on the read-only root
-    }
+    return {"PIP_NO_CACHE_DIR": "1"}  # the guest's home is on the read-only root
 
 
 def test_install_runs_every_step_up_to_systemctl(
@@ -148,7 +147,8 @@ def test_install_runs_every_step_up_to_systemctl(
     assert installed.returncode != 0, out
     assert steps[-1] == "+ systemctl daemon-reload", (out, installed.stderr[-3000:])
     assert "# 5. service" in out
-    for want in ("+ useradd", "+ python3 -m venv /opt/wara/venv", "/opt/wara/venv/bin/pip install",
+    for want in ("+ useradd", "+ python3 -m venv /opt/wara/venv",
+                 "/opt/wara/venv/bin/pip install --quiet --upgrade --no-index --find-links",
                  "/opt/wara/venv/bin/wara config validate /etc/wara/project.yaml"):  # fmt: skip
         assert any(want in s for s in steps), (want, steps)
 
@@ -166,7 +166,7 @@ def test_user_venv_and_project_are_in_place(installed: subprocess.CompletedProce
     # The installed package, not this checkout: its modules live under /opt/wara (found
     # without importing them: an import costs a minute on the emulated CPU).
     find = "import importlib.util as u; print(u.find_spec('plc_bridge').origin)"
-    p = _sh("/opt/wara/venv/bin/python", "-c", find, timeout=600.0)
+    p = _sh("/opt/wara/venv/bin/python", "-c", find, timeout=600.0, cwd="/")  # not the checkout
     assert p.stdout.startswith("/opt/wara/venv/"), p
 
 

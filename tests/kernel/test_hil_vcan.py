@@ -56,17 +56,28 @@ STRANGER_ID = 0x191  # no node of the DBC sends it (PLC_HmiTarget is 0x190)
 #: trajectory at 5 mm/s and 5 mm/s^2 instead of 20 (a rig slower than the wall clock the
 #: trajectory runs on still follows it); supervision timeouts of 3 s instead of 100 ms
 #: (sensor, PLC heartbeat, command; a message stale after 100 cycles, 2 s; a suspended
-#: motion may wait 5 s); the tracking-error interlock at 30 mm instead of 10 mm.
+#: motion may wait 5 s); the tracking-error interlock at 30 mm instead of 10 mm and the
+#: sync-error interlock at 10 mm instead of 2 mm (the simulator at 0.4x real time behind
+#: the service's 50 Hz commands: ABORTED ``sync error: upper 2.17 mm``); the
+#: start-up limit at 900 s and the control channel's stall limit at 300 s instead of 5 s
+#: (a loop cycle of the slowed service took 6.9 s in the guest, its control thread
+#: without a turn for as long); a plan request may take 600 s instead of 10 s (the
+#: planner process starts in the guest's first request: ABORTED ``planner`` after 10 s).
 SLOW: dict[str, dict[str, Any]] = {
     "control": {"loop_rate_hz": 50.0},
-    "planner": {"trajectory": {"max_rod_speed_mm_s": 5.0, "max_rod_accel_mm_s2": 5.0}},
+    "planner": {
+        "trajectory": {"max_rod_speed_mm_s": 5.0, "max_rod_accel_mm_s2": 5.0},
+        "request_timeout_s": 600.0,
+    },
     "safety": {
         "sensor_timeout_ms": 3000.0,
         "plc_heartbeat_timeout_ms": 3000.0,
         "command_timeout_ms": 3000.0,
         "max_suspend_ms": 5000.0,
         "max_tracking_error_mm": 30.0,
+        "max_sync_error_mm": 10.0,
         "boot_timeout_s": 900.0,
+        "ctl_stall_timeout_s": 300.0,
     },
     "can": {"interface": "socketcan", "channel": "vcan0", "stale_cycles": 100.0},
 }
@@ -158,7 +169,7 @@ def _frames_to_inject() -> tuple[list[tuple[int, bytes]], dict[str, int]]:
     for _ in range(2):
         frames.append((status.frame_id, status.encode(15, estop)))  # 15 is never sent
     hmi = FrameCodec(CAT.by_name("PLC_HmiTarget"))
-    body = bytearray(hmi.encode(0, [8.0, -3.0, 1, 77]))
+    body = bytearray(hmi.encode(0, [8.0, -3.0, 1, 77, 0]))
     for counter in range(3):
         body[1] = (body[1] & 0xF0) | counter
         body[0] = crc8_p01(0xA000 | STRANGER_ID, bytes(body[1:]))  # valid for its own id
