@@ -71,7 +71,9 @@ class FakeService:
             self.mode, self.target = "EXECUTE", [roll, pitch]
             return {"mode": "EXECUTE"}
 
-    def walk(self, steps: int) -> dict[str, Any]:
+    def walk(
+        self, steps: int, direction: str = "forward", unloaded: bool = False
+    ) -> dict[str, Any]:
         with self.lock:
             self.calls.append(("walk", steps))
             if self.mode != "IDLE":
