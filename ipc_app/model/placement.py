@@ -58,6 +58,11 @@ class Pose(NamedTuple):
     def matrix(self) -> Array:
         return rot_z(self.yaw) @ attitude_matrix(self.roll, self.pitch)
 
+    def deviated(self, dev: Pose) -> Pose:
+        """This (design) pose with a survey sheet's deviation added: positions and angles
+        term by term, in this pose's frame (not composed)."""
+        return Pose(*(a + b for a, b in zip(self, dev, strict=True)))
+
     def apply(self, points: Array) -> Array:
         """Points (n, 3) of the part frame, in the pose's frame."""
         return np.asarray(points, dtype=float) @ self.matrix.T + self.position

@@ -505,9 +505,4 @@ def plan_from_deviation(cfg: ProjectConfig, ring: int, dev: Pose) -> PlacementPl
         if ring > 1
         else compose(design_pose(cfg, ring), Pose(x=-cfg.workpiece.width_m))
     )
-    pos = prev_design.position + dev.position
-    prev = Pose(
-        float(pos[0]), float(pos[1]), float(pos[2]),
-        prev_design.roll + dev.roll, prev_design.pitch + dev.pitch, prev_design.yaw + dev.yaw,
-    )  # fmt: skip
-    return plan_target(cfg, prev, ring)
+    return plan_target(cfg, prev_design.deviated(dev), ring)

@@ -56,12 +56,7 @@ MOTION_LIMIT_S = 3600.0
 def previous_from_deviation(cfg: ProjectConfig, ring: int, dev: Pose) -> Pose:
     """The part before ring ``ring`` (ring - 1) as built, in its own T, from its
     deviation from its design (a survey sheet's figures, positions and angles added)."""
-    design = design_pose(cfg, ring - 1)
-    pos = design.position + dev.position
-    return Pose(
-        float(pos[0]), float(pos[1]), float(pos[2]),
-        design.roll + dev.roll, design.pitch + dev.pitch, design.yaw + dev.yaw,
-    )  # fmt: skip
+    return design_pose(cfg, ring - 1).deviated(dev)
 
 
 class RingRecords(Protocol):
