@@ -38,6 +38,11 @@ from ipc_app.model.kinematics import Array, attitude_matrix, rot_z
 
 #: Names of a pose's six coordinates, in order.
 POSE_KEYS: tuple[str, ...] = ("x", "y", "z", "roll", "pitch", "yaw")
+#: :meth:`Pose.to_dict`'s keys in that order (mm and deg): a pose as six numbers on the
+#: control channel
+POSE_DICT_KEYS: tuple[str, ...] = tuple(
+    f"{k}_mm" if k in ("x", "y", "z") else f"{k}_deg" for k in POSE_KEYS
+)
 
 
 class Pose(NamedTuple):
@@ -82,8 +87,7 @@ class Pose(NamedTuple):
     def from_dict(cls, d: dict[str, Any]) -> Pose:
         """The inverse of :meth:`to_dict`; KeyError/ValueError name a bad item."""
         vals = []
-        for k in POSE_KEYS:
-            key = f"{k}_mm" if k in ("x", "y", "z") else f"{k}_deg"
+        for key in POSE_DICT_KEYS:
             v = float(d[key])
             if not math.isfinite(v):
                 raise ValueError(f"{key}: got {v!r}: expected a finite number")

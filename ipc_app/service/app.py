@@ -30,7 +30,7 @@ import numpy as np
 import structlog
 
 from config import ProjectConfig, load_project
-from ipc_app.model.placement import Pose, sheet_deviation
+from ipc_app.model.placement import POSE_DICT_KEYS, Pose, sheet_deviation
 from ipc_app.planner.survey import SurveyPoint
 from ipc_app.service.core import ServiceCore
 from ipc_app.service.ctl import CtlError, CtlHandlers, CtlServer
@@ -110,8 +110,7 @@ def _cycle(
         msg = "cycle refused: this service has no acceptance store for the ring's records"
         return {"ok": False, "code": "refused", "error": msg}
     if len(prev) == 6:
-        keys = ("x_mm", "y_mm", "z_mm", "roll_deg", "pitch_deg", "yaw_deg")
-        previous = Pose.from_dict(dict(zip(keys, prev, strict=True)))
+        previous = _pose(prev)
     else:
         previous = previous_from_deviation(core.cfg, ring, sheet_deviation(*prev))
     return core.request_cycle(
@@ -119,13 +118,17 @@ def _cycle(
     )
 
 
+def _pose(values: tuple[float, ...]) -> Pose:
+    """A pose sent as six numbers (:data:`POSE_DICT_KEYS`: mm and deg)."""
+    return Pose.from_dict(dict(zip(POSE_DICT_KEYS, values, strict=True)))
+
+
 def _survey(
     core: ServiceCore, pts: tuple[Any, ...] | None, pose: tuple[float, ...] | None
 ) -> dict[str, Any]:
     """``wara ctl survey``: the points of a survey file, or the store's as-built pose."""
     if pose is not None:
-        keys = ("x_mm", "y_mm", "z_mm", "roll_deg", "pitch_deg", "yaw_deg")
-        return core.submit_survey(pose=Pose.from_dict(dict(zip(keys, pose, strict=True))))
+        return core.submit_survey(pose=_pose(pose))
     assert pts is not None
     points = [
         SurveyPoint(k, name, (fy, fz), (x, y, z))

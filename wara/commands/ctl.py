@@ -142,15 +142,8 @@ def _cycle_fields(args: argparse.Namespace) -> dict[str, Any]:
         if not 0 <= args.walk_steps <= 1000:
             raise UsageError(f"--walk-steps must be within 0..1000, got {args.walk_steps}")
         fields["walk_steps"] = args.walk_steps
-    keys = ("x_mm", "y_mm", "z_mm", "roll_deg", "pitch_deg", "yaw_deg")
     if args.from_store:
-        pose = _store_pose(args.db, args.ring - 1)
-        try:
-            fields["previous_pose"] = [float(pose[k]) for k in keys]
-        except (KeyError, TypeError, ValueError) as exc:
-            raise UsageError(
-                f"ring {args.ring - 1}: the attached pose is unusable: {exc}"
-            ) from None
+        fields["previous_pose"] = _store_pose(args.db, args.ring - 1)
     elif args.previous_deviation is not None:
         d = parse_deviation(args.previous_deviation).to_dict()
         fields["previous_deviation"] = [
@@ -159,12 +152,14 @@ def _cycle_fields(args: argparse.Namespace) -> dict[str, Any]:
     return fields
 
 
-def _store_pose(db: str | None, ring: int) -> dict[str, float]:
+def _store_pose(db: str | None, ring: int) -> list[float]:
     """The as-built pose attached to ``ring`` in the acceptance store (by ``wara survey
-    import --db`` or a cycle's record), mm and deg in the ring's own T."""
+    import --db`` or a cycle's record), mm and deg in the ring's own T, as the six
+    numbers the control channel takes (``POSE_DICT_KEYS``)."""
     from pathlib import Path
 
     from acceptance.store import AcceptanceStore, default_db_path
+    from ipc_app.model.placement import POSE_DICT_KEYS
 
     path = Path(db) if db else default_db_path()
     if not path.exists():
@@ -174,7 +169,11 @@ def _store_pose(db: str | None, ring: int) -> dict[str, float]:
     att = plan.final_attitude if plan is not None else None
     if not att or not isinstance(att.get("as_built_pose"), dict):
         raise UsageError(f"{path}: ring {ring} has no as-built pose (wara survey import --db)")
-    return dict(att["as_built_pose"])
+    pose = att["as_built_pose"]
+    try:
+        return [float(pose[k]) for k in POSE_DICT_KEYS]
+    except (KeyError, TypeError, ValueError) as exc:
+        raise UsageError(f"ring {ring}: the attached pose is unusable: {exc}") from None
 
 
 def _survey_fields(args: argparse.Namespace) -> dict[str, Any]:
@@ -189,12 +188,7 @@ def _survey_fields(args: argparse.Namespace) -> dict[str, Any]:
         cyc = status.get("cycle") or {}
         if cyc.get("phase") != "survey":
             raise UsageError("the service's cycle is not waiting for a survey")
-        pose = _store_pose(args.db, int(cyc["ring"]))
-        keys = ("x_mm", "y_mm", "z_mm", "roll_deg", "pitch_deg", "yaw_deg")
-        try:
-            return {"pose": [float(pose[k]) for k in keys]}
-        except (KeyError, TypeError, ValueError) as exc:
-            raise UsageError(f"ring {cyc['ring']}: the attached pose is unusable: {exc}") from None
+        return {"pose": _store_pose(args.db, int(cyc["ring"]))}
     try:
         text = Path(args.file).read_text(encoding="utf-8")
         points = parse_survey_text(text, args.file)
