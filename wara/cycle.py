@@ -50,7 +50,7 @@ from ipc_app.model.placement import (
 )
 from ipc_app.planner.placement import home_pose, judge
 from ipc_app.planner.survey import SurveyPoint
-from ipc_app.service.cycle import previous_from_deviation
+from ipc_app.service.cycle import RECORD_KEYS, previous_from_deviation
 from ipc_app.service.modes import Mode
 from ipc_app.service.record import RunRecorder
 from wara.harness import Harness
@@ -58,16 +58,23 @@ from wara.placement_run import GOAL_DEG, GOAL_MM
 from wara.ring_records import StoreRecords
 from wara.walk import walk_scenario
 
-#: The Table 4 items in the cycle's per-ring figures: (key of the result, acceptance key).
-ITEMS: tuple[tuple[str, str], ...] = (
-    ("vertical_misalignment_mm", "vertical_misalignment_mm"),
-    ("horizontal_misalignment_mm", "horizontal_misalignment_mm"),
-    ("gap_mm", "max_gap_mm"),
-    ("centreline_deviation_x_mm", "centreline_deviation_x_mm"),
-    ("centreline_deviation_y_mm", "centreline_deviation_y_mm"),
-    ("pitch_deg", "pitch_angle_deg"),
-    ("tilt_deg", "tilt_angle_deg"),
-    ("rotation_deg", "rotation_angle_deg"),
+#: The Table 4 items in the cycle's per-ring figures: (key of the result, acceptance key
+#: as the service's cycle records it).
+ITEMS: tuple[tuple[str, str], ...] = tuple(
+    zip(
+        (
+            "vertical_misalignment_mm",
+            "horizontal_misalignment_mm",
+            "gap_mm",
+            "centreline_deviation_x_mm",
+            "centreline_deviation_y_mm",
+            "pitch_deg",
+            "tilt_deg",
+            "rotation_deg",
+        ),
+        RECORD_KEYS,
+        strict=True,
+    )
 )
 #: How long a motion phase may take in machine time before the cycle gives up (s).
 MOTION_LIMIT_S = 600.0
@@ -170,7 +177,7 @@ class _Cycle:
                 if fixing_since is None:  # the placement just ended: how it settled
                     placer = core.placer
                     settled = placer.settled if placer is not None else None
-                fixing_since = self.h.sim.t_s if fixing_since is None else fixing_since
+                    fixing_since = self.h.sim.t_s
                 if self.h.sim.t_s - fixing_since >= cfg.cycle.fixing_confirm_after_s - 1e-9:
                     as_built = self.truth(ring)  # what the bolts fix
                     core.confirm_fixed("wara cycle (automatic confirmation)")
@@ -196,9 +203,7 @@ class _Cycle:
         times = dict(cyc.phase_times_s)
         design = plan.design
         prev_t = to_ring_frame(cfg, previous_truth, ring - 1, ring)
-        prev_s = to_ring_frame(cfg, previous, ring - 1, ring)
         truth_fig = joint_figures(cfg, prev_t, as_built, design)
-        survey_fig = joint_figures(cfg, prev_s, cyc.surveyed, design)
         table4 = judge(cfg, truth_fig)
         err = deviation(as_built, plan.target)
         errors = err.to_dict()  # mm and deg
@@ -208,7 +213,7 @@ class _Cycle:
         row: dict[str, Any] = {
             "ring": ring,
             **_items(truth_fig.to_dict()),
-            "surveyed": _items(survey_fig.to_dict()),
+            "surveyed": _items(cyc.table4),  # what the service recorded from the survey
             "target_deviation": plan.to_dict()["target_deviation"],
             "as_built_deviation": {
                 "y_mm": units.to_mm(truth_dev.y),
