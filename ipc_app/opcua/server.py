@@ -408,7 +408,7 @@ class OpcUaServer:
         walk_in = [_arg("Steps", _nid(ua.ObjectIds.UInt32), "steps to walk (1..1000)")]
 
         async def start_walk(parent: Any, steps: Any) -> Any:
-            n = steps.Value if isinstance(steps, ua.Variant) else steps
+            n = _value(steps)
             if isinstance(n, bool) or not isinstance(n, int) or not 1 <= n <= MAX_WALK_STEPS:
                 return await self._refused(
                     "StartWalk",
@@ -454,7 +454,7 @@ class OpcUaServer:
         names = {code: name for name, code in m.UNIT_MODE_CODES.items()}
 
         async def set_unit_mode(parent: Any, requested: Any) -> Any:
-            n = requested.Value if isinstance(requested, ua.Variant) else requested
+            n = _value(requested)
             if isinstance(n, bool) or n not in names:
                 return await self._refused(
                     "SetUnitMode",
@@ -467,16 +467,13 @@ class OpcUaServer:
 
         srv.link_method(node("SetUnitMode"), set_unit_mode)
         for name, what in PACKML_UNSUPPORTED.items():
+            srv.link_method(node(name), self._unsupported(name, what))
 
-            def refuse(name: str, what: str) -> Callable[..., Awaitable[Any]]:
-                async def call(parent: Any, *_args: Any) -> Any:
-                    return await self._refused(
-                        name, f"W-ARa has no {what}", ua.StatusCodes.BadNotSupported
-                    )
+    def _unsupported(self, name: str, what: str) -> Callable[..., Awaitable[Any]]:
+        async def call(parent: Any, *_args: Any) -> Any:
+            return await self._refused(name, f"W-ARa has no {what}", ua.StatusCodes.BadNotSupported)
 
-                return call
-
-            srv.link_method(node(name), refuse(name, what))
+        return call
 
     def _simple(self, name: str, cmd: str) -> Callable[[Any], Awaitable[Any]]:
         async def call(parent: Any) -> Any:
@@ -639,8 +636,13 @@ def _arg(name: str, dtype: ua.NodeId, text: str) -> ua.Argument:
     return a
 
 
+def _value(v: Any) -> Any:
+    """A method argument's plain value (asyncua passes a Variant or the value)."""
+    return v.Value if isinstance(v, ua.Variant) else v
+
+
 def _radians(v: Any) -> float | None:
-    x = v.Value if isinstance(v, ua.Variant) else v
+    x = _value(v)
     if isinstance(x, bool) or not isinstance(x, int | float) or not math.isfinite(x):
         return None
     return float(x)
