@@ -90,24 +90,21 @@ def _prepare(work: Path) -> tuple[list[str], list[str]]:
     return server, [url, str(cert), str(key), USER, PASSWORD, str(CLIENTS)]
 
 
-def _cycles(svc: Any, watch: Any, n: int, say: Any) -> int:
-    changes = 0
+def _cycles(svc: Any, watch: Any, n: int, say: Any) -> None:
     for i in range(n):
         roll, pitch = TARGETS[i % 2]
         reply = svc.call("adjust", roll_deg=roll, pitch_deg=pitch)
         if not reply.get("ok"):
             raise d2.TwoProcessError(f"adjust refused: {reply.get('error')}")
-        st = svc.wait(lambda s: (watch.see(s), s.get("mode") in ("COMPLETE", "ABORTED"))[1], 120.0)
+        st = svc.wait(_seeing(watch, "COMPLETE", "ABORTED"), 120.0)
         if st is None or st.get("mode") != "COMPLETE":
             raise d2.TwoProcessError(
                 f"cycle {i}: {st and (st.get('mode'), st.get('fault_reasons'))}"
             )
         time.sleep(1.0)
         svc.call("stop")
-        svc.wait(lambda s: (watch.see(s), s.get("mode") == "IDLE")[1], 30.0)
-        changes += 4  # STARTING, EXECUTE, COMPLETE, IDLE
+        svc.wait(_seeing(watch, "IDLE"), 30.0)
         say(f"cycle {i + 1}/{n} done")
-    return changes
 
 
 def _seeing(watch: Any, *modes: str) -> Callable[[dict[str, Any]], bool]:
