@@ -241,7 +241,7 @@ class SlackGate:
     (:meth:`cycle_done`), with the rest of the period before the next deadline; between
     steps it goes on at once.
 
-    The loop's side is bounded: two attribute writes per cycle, and a notify only while a
+    The loop's side is bounded: three attribute writes per cycle, and a notify only while a
     thread waits. :meth:`wait` returns at once while no loop runs (:attr:`active`), and
     after ``timeout_s`` in any case, so a late or stopped loop never blocks the caller
     for long.

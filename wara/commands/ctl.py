@@ -160,20 +160,17 @@ def _store_pose(db: str | None, ring: int) -> list[float]:
 
     from acceptance.store import AcceptanceStore, default_db_path
     from ipc_app.model.placement import POSE_DICT_KEYS
+    from wara.commands.place import attached_pose
 
     path = Path(db) if db else default_db_path()
     if not path.exists():
         raise UsageError(f"{path}: no acceptance store")
     with AcceptanceStore.open(path, create=False) as store:
-        plan = store.latest_plan(ring)
-    att = plan.final_attitude if plan is not None else None
-    if not att or not isinstance(att.get("as_built_pose"), dict):
+        pose = attached_pose(store, ring)
+    if pose is None:
         raise UsageError(f"{path}: ring {ring} has no as-built pose (wara survey import --db)")
-    pose = att["as_built_pose"]
-    try:
-        return [float(pose[k]) for k in POSE_DICT_KEYS]
-    except (KeyError, TypeError, ValueError) as exc:
-        raise UsageError(f"ring {ring}: the attached pose is unusable: {exc}") from None
+    d = pose.to_dict()
+    return [d[k] for k in POSE_DICT_KEYS]
 
 
 def _survey_fields(args: argparse.Namespace) -> dict[str, Any]:

@@ -104,6 +104,20 @@ def parse_deviation(text: str) -> Pose:
     return sheet_deviation(*v)
 
 
+def attached_pose(store: AcceptanceStore, ring: int) -> Pose | None:
+    """The as-built pose a survey (``wara survey import --db``) or a ring cycle attached
+    to ``ring`` (``final_attitude.as_built_pose`` of its latest plan), in its own tunnel
+    frame; None when there is none."""
+    plan = store.latest_plan(ring)
+    att = plan.final_attitude if plan is not None else None
+    if not att or "as_built_pose" not in att:
+        return None
+    try:
+        return Pose.from_dict(att["as_built_pose"])
+    except (KeyError, TypeError, ValueError) as exc:
+        raise UsageError(f"ring {ring}: the attached as-built pose is unusable: {exc}") from None
+
+
 def as_built_from_store(cfg: ProjectConfig, store: AcceptanceStore) -> tuple[int, Pose]:
     """The store's last ring and its part's as-built pose in its own tunnel frame: the
     pose a survey or a cycle attached to it (``final_attitude.as_built_pose``), else
@@ -114,14 +128,9 @@ def as_built_from_store(cfg: ProjectConfig, store: AcceptanceStore) -> tuple[int
     if not rings:
         raise UsageError(f"{store.path}: no ring recorded yet")
     ring = max(rings)
-    plan = store.latest_plan(ring)
-    if plan is not None and plan.final_attitude and "as_built_pose" in plan.final_attitude:
-        try:
-            return ring, Pose.from_dict(plan.final_attitude["as_built_pose"])
-        except (KeyError, TypeError, ValueError) as exc:
-            raise UsageError(
-                f"ring {ring}: the attached as-built pose is unusable: {exc}"
-            ) from None
+    pose = attached_pose(store, ring)
+    if pose is not None:
+        return ring, pose
     if ring not in records:
         raise UsageError(f"ring {ring}: neither a survey record nor an as-built pose")
     v = records[ring].measurement.values
