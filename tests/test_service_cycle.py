@@ -103,7 +103,8 @@ def test_the_cycle_waits_for_the_operator_and_the_survey(tmp_path: Path) -> None
     assert ring == 3 and set(values) == set(RECORD_KEYS)
     assert attached["kind"] == "ring_cycle" and attached["plan"]["ring"] == 3
     assert attached["cycle"]["fixed_by"] == "operator A"
-    assert Pose.from_dict(attached["as_built_pose"]) == cyc.surveyed
+    # the as-built pose as the store keeps it (mm, deg; a round trip to SI is not exact)
+    assert attached["as_built_pose"] == cyc.surveyed.to_dict()
     evs = _events(tmp_path)
     phases = [e["phase"] for e in evs if e["kind"] == "cycle_phase"]
     assert phases == list(PHASES)
