@@ -460,7 +460,10 @@ def test_demo_with_opcua_serves_the_demo_to_a_client_with_the_printed_credential
 ) -> None:
     """`wara demo --opcua` as a commissioning engineer uses it: the printed endpoint, user
     and password file let a client (its certificate trusted as the printed line says)
-    open a SignAndEncrypt session and follow the PackML state through the examples."""
+    open a SignAndEncrypt session and follow the PackML state into Execute and the demo
+    to its end. One example (``--examples 1``): the OPC UA side is the same for each, and a
+    real-time run on a shared machine is exposed to its stalls for a third as long. On a
+    failure the message carries the demo's loop and scheduler figures (``--json``)."""
     from asyncua import Client
 
     from ipc_app.opcua import pki
@@ -469,7 +472,8 @@ def test_demo_with_opcua_serves_the_demo_to_a_client_with_the_printed_credential
     pki.trust(tmp_path / "opcua-demo" / "pki", cert)  # as `wara opcua cert --trust` does
     env = dict(os.environ, WARA_DATA_DIR=str(tmp_path))
     demo = subprocess.Popen(
-        [sys.executable, "-m", "wara", "demo", "--attitude", "--opcua"],
+        [sys.executable, "-m", "wara", "demo", "--attitude", "--opcua", "--examples", "1",
+         "--json"],
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env,
     )  # fmt: skip
     assert demo.stderr is not None
@@ -490,6 +494,10 @@ def test_demo_with_opcua_serves_the_demo_to_a_client_with_the_printed_credential
 
     reader = threading.Thread(target=drain, args=(demo.stderr,), daemon=True)
     reader.start()
+    out: list[str] = []
+    assert demo.stdout is not None
+    stdout_reader = threading.Thread(target=lambda: out.extend(demo.stdout), daemon=True)
+    stdout_reader.start()
     named.wait(300.0)
     assert len(found) == 2, f"the demo did not name its endpoint: {lines[-20:]}"
     url, pw_file = found["url"], found["pw_file"]
@@ -519,8 +527,12 @@ def test_demo_with_opcua_serves_the_demo_to_a_client_with_the_printed_credential
             demo.kill()
             demo.wait()
         reader.join(10.0)
+        stdout_reader.join(10.0)
     assert 6 in seen, seen  # Execute, while the demo's first example runs
-    assert demo.returncode == 0, "".join(lines[-20:])
+    summary = json.loads("".join(out))
+    figures = {k: summary.get(k) for k in ("loop", "realtime", "fault_reasons")}
+    assert demo.returncode == 0, f"{figures}\n" + "".join(lines[-20:])
+    assert summary["passed"] is True and len(summary["examples"]) == 1
 
 
 # ---------------------------------------------------------------------- the process
