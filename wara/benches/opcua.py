@@ -5,12 +5,17 @@ multicast in a private network namespace, the loop thread on a CPU of its own). 
 run of the pair: phase ``without`` (no OPC UA server at all) and phase ``with`` (the OPC
 UA server process on the service's control socket and 10 clients, asyncua, one process,
 each subscribed at 10 Hz to the attitude, the PackML state and every cylinder position);
+and a control phase ``same_load`` (no OPC UA server; instead plain CPU burners, as many
+processes as the OPC UA server and the clients used CPUs, together as much CPU time per
+second as they did in the latest ``with`` phase, under the normal scheduler like them);
 each phase runs the same adjustment cycles (adjust, COMPLETE, stop to IDLE). The phases
-alternate over ``ROUNDS`` rounds in the order without-with, with-without, ... (so a drift
-of the machine's load weighs on both alike). Per phase the loop's compute p99 and
+rotate over ``ROUNDS`` rounds (without-with-same_load, with-same_load-without, ...: a
+drift of the machine's load weighs on all alike). Per phase the loop's compute p99 and
 overruns (the service's own reports, as the two-process demo judges them); per round the
-ratio with/without of the compute p99, and its median over the rounds; for the ``with``
-phases the latency from each PackML state change in the loop to its notification at a
+ratio with/without of the compute p99 and the ratio with/same_load (what the OPC UA
+server costs the loop beyond the CPU time it takes from the machine), and their medians
+over the rounds; for the ``with`` phases the CPU share of the server and the clients,
+and the latency from each PackML state change in the loop to its notification at a
 client (p50/p99/max; goal p99 < 200 ms).
 
 ``--quick``: one round of 2 cycles per phase instead of 3 rounds of 6. Progress on stderr.
@@ -21,6 +26,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import json
+import math
 import os
 import socket
 import statistics
@@ -88,6 +94,56 @@ def _prepare(work: Path) -> tuple[list[str], list[str]]:
               "--port", str(port), "--host", "127.0.0.1"]  # fmt: skip
     url = f"opc.tcp://127.0.0.1:{port}/wara/"
     return server, [url, str(cert), str(key), USER, PASSWORD, str(CLIENTS)]
+
+
+PHASES = ("without", "with", "same_load")
+#: The burners' duty period: busy for share x this, then asleep for the rest.
+BURN_PERIOD_S = 0.01
+
+
+def _cpu_s(pids: list[int]) -> float:
+    """User + system CPU seconds so far of the processes ``pids`` (0 for one gone)."""
+    total = 0.0
+    tick = os.sysconf("SC_CLK_TCK")
+    for pid in pids:
+        with contextlib.suppress(OSError, IndexError, ValueError):
+            fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+            total += (int(fields[11]) + int(fields[12])) / tick
+    return total
+
+
+def burn(share: float, period_s: float = BURN_PERIOD_S) -> None:
+    """Keep a CPU busy for ``share`` of every ``period_s`` (until killed): the
+    ``same_load`` phase's burner (``python -c``, one per CPU's worth of share)."""
+    share = min(max(share, 0.0), 1.0)
+    t = time.monotonic()
+    while True:
+        busy_until = t + share * period_s
+        while time.monotonic() < busy_until:
+            pass
+        t += period_s
+        time.sleep(max(0.0, t - time.monotonic()))
+
+
+def _phase_same_load(svc: Any, watch: Any, cycles: int, say: Any, share: float) -> dict[str, Any]:
+    """The control phase: burners taking ``share`` CPUs' worth of time, the cycles."""
+    from ipc_app.service.worker import under_normal_scheduler
+
+    n = max(1, math.ceil(share))
+    code = f"from wara.benches.opcua import burn; burn({share / n!r})"
+    burners = [
+        under_normal_scheduler(
+            lambda: subprocess.Popen([sys.executable, "-c", code], env=d2._env())
+        )
+        for _ in range(n)
+    ]
+    try:
+        say(f"{n} CPU burner(s) at {share:.2f} CPUs in all")
+        return _measure(svc, watch, cycles, say) | {"cpu_share": share}
+    finally:
+        for b in burners:
+            b.kill()
+            b.wait()
 
 
 def _cycles(svc: Any, watch: Any, n: int, say: Any) -> None:
@@ -165,7 +221,10 @@ def _phase_with(
             if clients.stdout.readline().strip() != "READY":
                 raise d2.TwoProcessError("the OPC UA clients did not connect")
             say(f"{CLIENTS} OPC UA clients subscribed")
+            pids = [clients.pid] + ([srv.proc.pid] if srv.proc is not None else [])
+            cpu0 = _cpu_s(pids)
             summary = _measure(svc, watch, cycles, say)
+            summary["cpu_share"] = (_cpu_s(pids) - cpu0) / summary["wall_s"]
             clients.terminate()
             out, _ = clients.communicate(timeout=60)
             got = json.loads(out.strip().splitlines()[-1])
@@ -199,12 +258,15 @@ def inside(work: Path, config_path: str, cycles: int, rounds: int = ROUNDS) -> d
     notifications = 0
     feed: list[dict[str, Any]] = []
     n_clients = 0
+    share: float | None = None  # the latest with phase's CPU share (server + clients)
     with d2.service_and_simulator(work, config_path, say, codes) as (svc, _sim, placement):
         for r in range(rounds):
-            order = ("without", "with") if r % 2 == 0 else ("with", "without")
+            # rotated; a same_load phase needs a with phase before it (round 1: the
+            # order as PHASES; round 3 reuses round 2's share)
+            order = PHASES[r % 3 :] + PHASES[: r % 3]
             phases: dict[str, Any] = {}
             for phase in order:
-                say(f"round {r + 1}/{rounds}: {phase} OPC UA")
+                say(f"round {r + 1}/{rounds}: {phase}")
                 watch = d2._LoopWatch()
                 if phase == "with":
                     timing, got = _phase_with(
@@ -215,11 +277,17 @@ def inside(work: Path, config_path: str, cycles: int, rounds: int = ROUNDS) -> d
                     notifications += got["notifications"]
                     n_clients = got["clients"]
                     feed += got["server_feed"]
+                    share = timing["cpu_share"]
+                elif phase == "same_load":
+                    assert share is not None  # PHASES puts with before same_load
+                    timing = _phase_same_load(svc, watch, cycles, say, share)
                 else:
                     timing = _measure(svc, watch, cycles, say)
                 phases[phase] = watch.summary(cfg_period) | timing
-            wo, w = phases["without"].get("compute_p99_ms"), phases["with"].get("compute_p99_ms")
-            phases["compute_p99_ratio"] = w / wo if w and wo else None
+            w = phases["with"].get("compute_p99_ms")
+            for key, base in (("compute_p99_ratio", "without"), ("same_load_ratio", "same_load")):
+                b = phases[base].get("compute_p99_ms")
+                phases[key] = w / b if w and b else None
             per_round.append(phases)
     lat.sort()
     to_server.sort()
@@ -229,7 +297,10 @@ def inside(work: Path, config_path: str, cycles: int, rounds: int = ROUNDS) -> d
         vals = [x[phase][key] for x in per_round if x[phase].get(key) is not None]
         return statistics.median(vals) if vals else None
 
-    ratios = [x["compute_p99_ratio"] for x in per_round if x["compute_p99_ratio"] is not None]
+    def ratios_of(key: str) -> dict[str, Any]:
+        vals = [x[key] for x in per_round if x[key] is not None]
+        return {"per_round": vals, "median": statistics.median(vals) if vals else None}
+
     return {
         "bench": "opcua",
         "form": "two-process (private netns), OPC UA server a third process",
@@ -237,19 +308,15 @@ def inside(work: Path, config_path: str, cycles: int, rounds: int = ROUNDS) -> d
         "cycles_per_phase": cycles,
         "rounds": per_round,
         # the last round's phases (as before), and the medians over the rounds
-        "without": per_round[-1]["without"],
-        "with": per_round[-1]["with"],
-        "compute_p99_ms": {
-            "without": median_of("without", "compute_p99_ms"),
-            "with": median_of("with", "compute_p99_ms"),
-        },
-        "compute_p99_ratio": {
-            "per_round": ratios,
-            "median": statistics.median(ratios) if ratios else None,
-        },
+        **{phase: per_round[-1][phase] for phase in PHASES},
+        "compute_p99_ms": {phase: median_of(phase, "compute_p99_ms") for phase in PHASES},
+        "compute_p50_ms": {phase: median_of(phase, "compute_p50_ms") for phase in PHASES},
+        # with / without, and with / the same CPU load without OPC UA
+        "compute_p99_ratio": ratios_of("compute_p99_ratio"),
+        "same_load_ratio": ratios_of("same_load_ratio"),
+        "opcua_cpu_share": median_of("with", "cpu_share"),
         "overruns": {
-            "without": sum(x["without"].get("overruns") or 0 for x in per_round),
-            "with": sum(x["with"].get("overruns") or 0 for x in per_round),
+            phase: sum(x[phase].get("overruns") or 0 for x in per_round) for phase in PHASES
         },
         "latency_ms": {
             "samples": len(lat),
