@@ -46,3 +46,43 @@ def test_bridge_and_config_are_leaves() -> None:
         ours -= allowed | {pkg}
         bad = {f: n for f, n in _imports(pkg).items() if n & ours}
         assert not bad, f"{pkg} may import only {allowed or 'nothing'} of ours: {bad}"
+
+
+#: The planners the service runs: only its planner process may call them
+#: (ipc_app/service/worker.py names them for PlannerWorker.call).
+PLANNING = {
+    "ipc_app.planner": {"plan"},
+    "ipc_app.planner.plan": {"plan"},
+    "ipc_app.planner.walk": {"plan_walk"},
+    "ipc_app.planner.placement": {"plan_from_deviation", "plan_target"},
+}
+
+
+def test_the_service_plans_only_in_its_planner_process() -> None:
+    """No module of the service but the worker imports a planning function: the walk,
+    the placement target and the attitude trajectory are planned in the planner process
+    (``PlannerWorker.call``), never in a thread of the loop's process."""
+    bad: dict[str, list[str]] = {}
+    for path in (REPO / "ipc_app" / "service").rglob("*.py"):
+        if path.name == "worker.py":
+            continue
+        for node in ast.walk(ast.parse(path.read_text(), filename=str(path))):
+            if isinstance(node, ast.ImportFrom) and node.module in PLANNING:
+                names = [a.name for a in node.names if a.name in PLANNING[node.module]]
+                if names:
+                    bad.setdefault(path.name, []).extend(names)
+    assert not bad, f"planning in the service's process: {bad}"
+
+
+def test_the_planner_processs_functions_exist() -> None:
+    import importlib
+    import inspect
+
+    from ipc_app.service import worker
+
+    names = [n for n in dir(worker) if n.startswith("PLAN_") and n.endswith("_FN")]
+    assert len(names) == 4
+    for name in names:
+        module, _, fn = getattr(worker, name).partition(":")
+        target = getattr(importlib.import_module(module), fn)
+        assert next(iter(inspect.signature(target).parameters)) == "cfg", name

@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import contextlib
+import os
+import threading
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -12,7 +14,7 @@ import pytest
 
 from config import ConfigError, ProjectConfig
 from ipc_app.planner import plan
-from ipc_app.service.worker import PlannerWorker, PlanResult
+from ipc_app.service.worker import PlannerCallError, PlannerWorker, PlanResult
 from tests.service_helpers import CRASH_ROLL_DEG, HANG_ROLL_DEG, RAISE_ROLL_DEG
 
 WAIT_S = 60.0  # generous: a loaded 2-core machine; never a timing assertion
@@ -114,6 +116,73 @@ def test_crash_is_detected_and_the_worker_restarted(worker: PlannerWorker) -> No
     r = wait_result(worker)
     assert r.request_id == 9 and r.ok and r.feasible
     assert worker.restarts == restarts + 1
+
+
+PROBE = "tests.service_helpers:planner_call_probe"
+
+
+def test_a_call_runs_in_the_planner_process_with_its_config(
+    worker: PlannerWorker, project: ProjectConfig
+) -> None:
+    """The walk's and the placement's planning (``call``) runs in the planner process,
+    not in a thread of the service's, on the config the process loaded."""
+    got = worker.call(PROBE, "where", value=(1, 2.5))
+    assert got == {"pid": worker.pid, "project": project.project.name, "value": (1, 2.5)}
+    assert got["pid"] != os.getpid()
+
+
+def test_a_call_that_raises_names_the_exception_and_the_process_lives(
+    worker: PlannerWorker,
+) -> None:
+    restarts = worker.restarts
+    with pytest.raises(PlannerCallError, match="raised ValueError: refused 3") as info:
+        worker.call(PROBE, "raise", 3)
+    assert info.value.raised == "ValueError"
+    assert worker.restarts == restarts and worker.call(PROBE, "where")["pid"] == worker.pid
+
+
+def test_a_call_and_the_loops_request_are_both_answered(worker: PlannerWorker) -> None:
+    """A walk planned for the control channel while the loop's attitude request is
+    pending: the one process answers both, each to its own caller."""
+    assert worker.submit(11, 1.0, 0.5)
+    got = worker.call(PROBE, "where", value="walk")
+    assert got["value"] == "walk"
+    r = wait_result(worker)
+    assert r.request_id == 11 and r.ok and r.feasible
+
+
+def test_calls_from_two_threads_queue_one_behind_the_other(worker: PlannerWorker) -> None:
+    values: list[int] = []
+    threads = [
+        threading.Thread(target=lambda i=i: values.append(worker.call(PROBE, "where", i)["value"]))
+        for i in range(4)
+    ]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join(WAIT_S)
+    assert sorted(values) == [0, 1, 2, 3]
+
+
+def test_a_hung_call_times_out_and_the_process_is_restarted(impatient: PlannerWorker) -> None:
+    worker = impatient
+    restarts, pid = worker.restarts, worker.pid
+    with pytest.raises(PlannerCallError, match="planner timeout: no value after 2 s"):
+        worker.call(PROBE, "hang")
+    got = worker.call(PROBE, "where")  # a new process answers the next call
+    assert worker.restarts == restarts + 1 and got["pid"] == worker.pid != pid
+
+
+def test_a_call_whose_process_dies_fails_and_the_next_one_works(worker: PlannerWorker) -> None:
+    with pytest.raises(PlannerCallError, match="died \\(exit code 7\\)"):
+        worker.call(PROBE, "crash")
+    assert worker.call(PROBE, "where", 5)["value"] == 5
+
+
+def test_a_call_on_a_stopped_worker_is_refused() -> None:
+    w = PlannerWorker(None)
+    with pytest.raises(PlannerCallError, match="not running"):
+        w.call(PROBE, "where")
 
 
 def test_bad_config_fails_in_the_caller(tmp_path: Path) -> None:

@@ -49,10 +49,10 @@ from ipc_app.control.walk import WalkSequencer
 from ipc_app.model.composition import check_attitude
 from ipc_app.model.kinematics import fit_layer
 from ipc_app.model.placement import Pose
-from ipc_app.planner.placement import PlacementPlan, plan_from_deviation
-from ipc_app.planner.plan import plan as plan_attitude
+from ipc_app.planner.placement import PlacementPlan
+from ipc_app.planner.plan import Plan
 from ipc_app.planner.survey import SurveyPoint
-from ipc_app.planner.walk import DIRECTIONS, WalkPlan, WalkStart, plan_walk
+from ipc_app.planner.walk import DIRECTIONS, WalkPlan, WalkStart
 from ipc_app.service.ctl import MAX_WALK_STEPS
 from ipc_app.service.cycle import RingCycle, RingRecords
 from ipc_app.service.interlocks import (
@@ -85,7 +85,13 @@ from ipc_app.service.modes import (
 )
 from ipc_app.service.record import RunRecorder
 from ipc_app.service.walk_interlocks import WalkLimits, walk_causes, walk_resume_cause
-from ipc_app.service.worker import PlanResult
+from ipc_app.service.worker import (
+    PLAN_ATTITUDE_FN,
+    PLAN_PLACE_FN,
+    PLAN_WALK_FN,
+    PlannerCallError,
+    PlanResult,
+)
 from plc_bridge.link import ControlWord, HmiTarget, IpcLink, LinkState, TargetAck, TargetRequest
 from plc_bridge.link import Mode as PlcMode
 
@@ -125,6 +131,10 @@ class Planner(Protocol):
     ) -> bool: ...
 
     def poll(self) -> PlanResult | None: ...
+
+    def call(self, fn: str, *args: Any, **kwargs: Any) -> Any:
+        """``fn(cfg, *args, **kwargs)`` in the planner process, blocking the caller (the
+        walk's and the placement's planning; never from the loop)."""
 
 
 @dataclass
@@ -426,8 +436,9 @@ class ServiceCore:
     def plan_walk_here(
         self, steps: int, direction: str = "forward", unloaded: bool = False
     ) -> WalkPlan | dict[str, Any]:
-        """Plan ``steps`` steps from the last measured state (the caller's thread, not
-        the loop's); a dict when the service cannot walk now (why)."""
+        """Plan ``steps`` steps from the last measured state, in the planner process
+        (the caller's thread waits; never the loop's); a dict when the service cannot walk
+        now (why)."""
         if self.cfg.walking is None or self.cfg.frames is None:
             msg = "the project has no frames and walking sections: it cannot walk"
             return {"ok": False, "code": "bad_request", "error": msg}
@@ -449,9 +460,13 @@ class ServiceCore:
             upper_extensions_m=tuple((x[up] - half[up]).tolist()),
         )
         try:
-            return plan_walk(cfg, steps, start, direction=direction, unloaded=unloaded)
-        except ValueError as exc:  # unloaded without a workpiece body
-            return {"ok": False, "code": "bad_request", "error": f"walk refused: {exc}"}
+            plan: WalkPlan = self.planner.call(
+                PLAN_WALK_FN, steps, start, direction=direction, unloaded=unloaded
+            )
+        except PlannerCallError as exc:  # ValueError: unloaded without a workpiece body
+            code = "bad_request" if exc.raised == "ValueError" else "planner"
+            return {"ok": False, "code": code, "error": f"walk refused: {exc}"}
+        return plan
 
     def request_walk(
         self,
@@ -462,7 +477,7 @@ class ServiceCore:
         unloaded: bool = False,
     ) -> dict[str, Any]:
         """Walk ``steps`` steps ``direction`` (``forward``, ``back``), ``unloaded``: the
-        statics without the workpiece. Planned here from the measured state and refused
+        statics without the workpiece. Planned from the measured state and refused
         (with the phase, instant and limit) before anything moves if a constraint breaks;
         then the loop runs the step sequencer (EXECUTE) until the last phase (COMPLETE).
         ``hmi_seq``: the HMI's TargetSeq of a WALK request (answered ACCEPTED, REJECTED,
@@ -641,23 +656,25 @@ class ServiceCore:
         self, ring: int, previous_deviation: Pose, wait_s: float = 0.0
     ) -> dict[str, Any]:
         """Place ring ``ring``'s part: its target planned from the previous part's
-        deviation from its design (:func:`plan_from_deviation`, in the caller's thread),
-        then :meth:`request_place_plan`."""
+        deviation from its design (:func:`~ipc_app.planner.placement.plan_from_deviation`,
+        in the planner process), then :meth:`request_place_plan`."""
         if self.cfg.placement is None:
             msg = "the project has no placement section (and tunnel.alignment): it cannot place"
             return {"ok": False, "code": "bad_request", "error": msg}
         if not 1 <= ring <= 99_999:
             return {"ok": False, "code": "bad_request", "error": f"ring 1..99999, got {ring}"}
-        return self.request_place_plan(
-            plan_from_deviation(self.cfg, ring, previous_deviation), wait_s
-        )
+        try:
+            plan: PlacementPlan = self.planner.call(PLAN_PLACE_FN, ring, previous_deviation)
+        except PlannerCallError as exc:
+            return {"ok": False, "code": "planner", "error": f"place refused: {exc}"}
+        return self.request_place_plan(plan, wait_s)
 
     def request_place_plan(self, plan: PlacementPlan, wait_s: float = 0.0) -> dict[str, Any]:
         """Move the part to ``plan``'s target: refused (exit 3 in ``wara ctl``, with the
-        binding limit) when the plan is infeasible; the attitude trajectory planned here
-        from the measured state, every move checked before anything moves; then the loop
-        runs the :class:`PlacementSequencer` (EXECUTE) until both phases have settled
-        (COMPLETE, holding the pose)."""
+        binding limit) when the plan is infeasible; the attitude trajectory planned in
+        the planner process from the measured state, every move checked before anything
+        moves; then the loop runs the :class:`PlacementSequencer` (EXECUTE) until both
+        phases have settled (COMPLETE, holding the pose)."""
 
         def refused(code: str, msg: str, **more: Any) -> dict[str, Any]:
             if self.record is not None:
@@ -677,11 +694,14 @@ class ServiceCore:
         lo, up = self.attitude.layers["lower"], self.attitude.layers["upper"]
         heave = plan.heave_m
         roll_deg, pitch_deg = plan.attitude_world_deg
-        att = plan_attitude(
-            self.cfg, roll_deg, pitch_deg,
-            start_lower_m=tuple((x[lo] - half[lo] - heave).tolist()),
-            start_upper_m=tuple((x[up] - half[up]).tolist()),
-        )  # fmt: skip
+        try:
+            att: Plan = self.planner.call(
+                PLAN_ATTITUDE_FN, roll_deg, pitch_deg,
+                start_lower_m=tuple((x[lo] - half[lo] - heave).tolist()),
+                start_upper_m=tuple((x[up] - half[up]).tolist()),
+            )  # fmt: skip
+        except PlannerCallError as exc:
+            return refused("planner", f"place refused: {exc}")
         if not att.feasible or att.trajectory is None:
             return refused(
                 "infeasible", "place refused: " + "; ".join(att.reasons), reasons=list(att.reasons)

@@ -27,9 +27,10 @@ from typing import TYPE_CHECKING, Any, Protocol
 from config import units
 from config.schema import ProjectConfig
 from ipc_app.model.placement import Pose, design_pose, joint_figures, to_ring_frame
-from ipc_app.planner.placement import PlacementPlan, plan_target
+from ipc_app.planner.placement import PlacementPlan
 from ipc_app.planner.survey import SurveyError, SurveyFit, SurveyPoint, fit_survey
 from ipc_app.service.modes import Mode
+from ipc_app.service.worker import PLAN_TARGET_FN, PlannerCallError
 
 if TYPE_CHECKING:
     from ipc_app.service.core import ServiceCore
@@ -249,7 +250,10 @@ class RingCycle:
     def _place(self) -> dict[str, Any]:
         cfg = self.cfg
         previous = to_ring_frame(cfg, self.previous, self.ring - 1, self.ring)
-        plan = plan_target(cfg, previous, self.ring)
+        try:  # in the planner process, as the core's own placement planning
+            plan: PlacementPlan = self.core.planner.call(PLAN_TARGET_FN, previous, self.ring)
+        except PlannerCallError as exc:
+            raise CycleError(f"ring {self.ring}: {exc}") from exc
         self.plan = plan
         if not plan.feasible:
             err = CycleError(f"ring {self.ring}: " + "; ".join(plan.reasons))

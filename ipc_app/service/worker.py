@@ -13,6 +13,12 @@ The loop thread calls only:
 - :meth:`PlannerWorker.poll` - takes a finished :class:`PlanResult` off an in-process
   queue, or ``None``.
 
+The service's other threads (the control channel's, the ring cycle's; never the loop)
+call :meth:`PlannerWorker.call`: the walk's and the placement's planning
+(``"module:function"`` with picklable arguments, run as ``fn(cfg, *args, **kwargs)`` in
+the same process), blocking the caller until the value comes back; one such call at a
+time, beside the loop's request.
+
 A supervisor thread of this process does everything that may block: starting the process,
 sending the request, unpickling the result, the per-request timeout (the process is killed
 and restarted), and crash detection (the process sentinel; restarted with a back-off).
@@ -42,6 +48,7 @@ from __future__ import annotations
 
 import contextlib
 import importlib
+import itertools
 import multiprocessing as mp
 import multiprocessing.connection as mpc
 import os
@@ -69,6 +76,14 @@ StartMethod = Literal["forkserver", "spawn"]
 #: The planner function run in the worker: "module:function", called ``fn(cfg, request)``
 #: and returning a :class:`~ipc_app.planner.plan.Plan` (tests point it at fakes).
 DEFAULT_PLAN_FN = "ipc_app.service.worker:run_planner"
+#: What the service's threads have the planner process run (:meth:`PlannerWorker.call`):
+#: the walk, the placement target (from a deviation, or from the previous part's pose)
+#: and the placement's attitude trajectory. Planning is never the loop's work, nor that
+#: of any thread of the loop's process.
+PLAN_WALK_FN = "ipc_app.planner.walk:plan_walk"
+PLAN_PLACE_FN = "ipc_app.planner.placement:plan_from_deviation"
+PLAN_TARGET_FN = "ipc_app.planner.placement:plan_target"
+PLAN_ATTITUDE_FN = "ipc_app.planner.plan:plan"
 
 
 @dataclass(frozen=True)
@@ -109,6 +124,38 @@ class PlanResult:
     @classmethod
     def failure(cls, request_id: int, error: str, elapsed_s: float) -> PlanResult:
         return cls(request_id, False, (error,), error, None, None, elapsed_s)
+
+
+@dataclass(frozen=True)
+class JobRequest:
+    """A call of ``fn`` (``"module:function"``) as ``fn(cfg, *args, **kwargs)`` in the
+    planner process (:meth:`PlannerWorker.call`)."""
+
+    request_id: int
+    fn: str
+    args: tuple[Any, ...]
+    kwargs: dict[str, Any]
+
+
+@dataclass(frozen=True)
+class JobResult:
+    request_id: int
+    value: Any
+    error: str | None
+    elapsed_s: float
+    #: the exception's class name when the function raised (``ValueError``: a request
+    #: the function refuses), else None
+    raised: str | None = None
+
+
+class PlannerCallError(RuntimeError):
+    """:meth:`PlannerWorker.call` did not return a value: the function raised in the
+    planner process (:attr:`raised`: its exception's class name), the call timed out (the
+    process was restarted) or the worker stopped; the message says which."""
+
+    def __init__(self, message: str, raised: str | None = None) -> None:
+        super().__init__(message)
+        self.raised = raised
 
 
 def run_planner(cfg: ProjectConfig, req: PlanRequest) -> Plan:
@@ -159,7 +206,7 @@ def _child_main(
     results.put(("ready", os.getpid()))
     while True:
         try:
-            req: PlanRequest | None = requests.get(timeout=PARENT_CHECK_S)
+            req: PlanRequest | JobRequest | None = requests.get(timeout=PARENT_CHECK_S)
         except queue.Empty:
             if not _alive(owner_pid):  # the service was killed (its forkserver lives on
                 return  # as long as this process holds its "alive" pipe)
@@ -167,6 +214,9 @@ def _child_main(
         if req is None:
             return
         t0 = time.perf_counter()
+        if isinstance(req, JobRequest):
+            results.put(("job", _run_job(cfg, req, t0)))
+            continue
         try:
             p = fn(cfg, req)
             result = PlanResult(
@@ -214,6 +264,14 @@ class PlannerWorker:
         self._pending_since = 0.0
         self._sent = False  # pending request handed to the current process
         self._out: queue.SimpleQueue[PlanResult] = queue.SimpleQueue()
+        # the one call in flight (call()): its request, since when, handed over, answer
+        self._call_lock = threading.Lock()  # one caller at a time
+        self._job: JobRequest | None = None
+        self._job_since = 0.0
+        self._job_sent = False
+        self._job_done = threading.Event()
+        self._job_result: JobResult | None = None
+        self._job_ids = itertools.count(1)
         self._wake_r, self._wake_w = os.pipe()
         os.set_blocking(self._wake_w, False)
         self._closing = threading.Event()
@@ -254,6 +312,42 @@ class PlannerWorker:
             return self._out.get_nowait()
         except queue.Empty:
             return None
+
+    def call(self, fn: str, *args: Any, **kwargs: Any) -> Any:
+        """``fn(cfg, *args, **kwargs)`` in the planner process, ``fn`` as
+        ``"module:function"``; blocks the calling thread (never the loop's) until its
+        value comes back, at most :attr:`timeout_s` once handed over (then the process is
+        restarted). Callers queue one behind the other. :class:`PlannerCallError` when no
+        value comes back (why: the function's exception, the timeout, a stopped worker)."""
+        with self._call_lock:
+            if self._thread is None or self._closing.is_set():
+                raise PlannerCallError(f"{fn}: the planner worker is not running")
+            job = JobRequest(next(self._job_ids), fn, args, kwargs)
+            self._job_done.clear()
+            with self._lock:
+                self._job, self._job_since, self._job_sent = job, time.monotonic(), False
+                self._job_result = None
+            self._wake()
+            self._job_done.wait()
+            res = self._job_result
+        assert res is not None
+        if res.error is not None:
+            raise PlannerCallError(res.error, res.raised)
+        log.info("planner_call", fn=fn, elapsed_s=round(res.elapsed_s, 4))
+        return res.value
+
+    def _finish_job(self, res: JobResult) -> None:
+        with self._lock:
+            if self._job is None or self._job.request_id != res.request_id:
+                log.warning("planner_stale_call_result", request_id=res.request_id)
+                return
+            self._job, self._job_result = None, res
+        self._job_done.set()
+
+    def _fail_job(self, error: str) -> None:
+        job = self._job
+        if job is not None:
+            self._finish_job(JobResult(job.request_id, None, f"{job.fn}: {error}", 0.0))
 
     @property
     def busy(self) -> bool:
@@ -329,7 +423,7 @@ class PlannerWorker:
             requests, results, proc = under_normal_scheduler(self._new_process)
             self.pid = proc.pid
             with self._lock:
-                self._sent = False
+                self._sent = self._job_sent = False
             outcome = self._serve(proc, requests, results)
             self._ready = False
             if proc.is_alive():
@@ -346,6 +440,7 @@ class PlannerWorker:
                 "planner_restart", reason=outcome, exitcode=proc.exitcode, backoff_s=backoff
             )
         self._fail_pending("planner worker stopped")
+        self._fail_job("planner worker stopped")
 
     def _new_process(self) -> tuple[Any, Any, Any]:
         """The two queues and a started planner process."""
@@ -372,21 +467,29 @@ class PlannerWorker:
                 return "closing"
             with self._lock:
                 req, since, sent = self._pending, self._pending_since, self._sent
-            if req is not None and time.monotonic() - since > self.timeout_s:
+                job, job_since, job_sent = self._job, self._job_since, self._job_sent
+            now = time.monotonic()
+            if req is not None and now - since > self.timeout_s:
                 self._fail_pending(
                     f"planner timeout: no result after {self.timeout_s:g} s "
                     f"(request {req.request_id}); worker restarted"
                 )
+                self._fail_job("the planner process was restarted (another request timed out)")
+                return "timeout"
+            if job is not None and now - job_since > self.timeout_s:
+                self._fail_job(f"planner timeout: no value after {self.timeout_s:g} s")
+                self._fail_pending("the planner process was restarted (a call timed out)")
                 return "timeout"
             if req is not None and not sent and was_ready:
                 requests.put(req)
                 with self._lock:
                     self._sent = True
-            wait = (
-                0.5
-                if req is None
-                else max(0.0, min(0.5, since + self.timeout_s - time.monotonic()))
-            )
+            if job is not None and not job_sent and was_ready:
+                requests.put(job)
+                with self._lock:
+                    self._job_sent = True
+            due = [t + self.timeout_s for t, r in ((since, req), (job_since, job)) if r]
+            wait = max(0.0, min([0.5, *(d - now for d in due)]))
             ready = mpc.wait([results._reader, proc.sentinel, self._wake_r], timeout=wait)
             if self._wake_r in ready:
                 os.read(self._wake_r, 4096)
@@ -403,8 +506,11 @@ class PlannerWorker:
                 elif kind == "fatal":
                     log.error("planner_worker_fatal", error=payload)
                     self._fail_pending(f"planner worker could not start: {payload}")
+                    self._fail_job(f"planner worker could not start: {payload}")
                 elif kind == "result":
                     self._finish(payload)
+                elif kind == "job":
+                    self._finish_job(payload)
             if proc.sentinel in ready or not proc.is_alive():
                 code = proc.exitcode
                 if self._pending is not None and self._sent:
@@ -412,7 +518,21 @@ class PlannerWorker:
                         f"planner worker died (exit code {code}) while planning request "
                         f"{self._pending.request_id}; restarted"
                     )
+                if self._job is not None and self._job_sent:
+                    self._fail_job(f"the planner process died (exit code {code}); restarted")
                 return "died_after_ready" if was_ready else "died_at_start"
+
+
+def _run_job(cfg: ProjectConfig, job: JobRequest, t0: float) -> JobResult:
+    """One :class:`JobRequest` in the planner process; an exception becomes ``error``."""
+    try:
+        module, _, name = job.fn.partition(":")
+        fn = getattr(importlib.import_module(module), name)
+        value = fn(cfg, *job.args, **job.kwargs)
+        return JobResult(job.request_id, value, None, time.perf_counter() - t0)
+    except Exception as exc:
+        msg = f"{job.fn} raised {type(exc).__name__}: {exc}"
+        return JobResult(job.request_id, None, msg, time.perf_counter() - t0, type(exc).__name__)
 
 
 def under_normal_scheduler(fn: Callable[[], T]) -> T:
