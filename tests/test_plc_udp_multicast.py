@@ -47,7 +47,7 @@ def netns() -> None:
 @pytest.mark.parametrize("interface", ["udp_multicast", "wara_udp"])
 def test_ipc_and_plc_processes_talk_across_processes(netns: None, interface: str) -> None:
     proc = _in_private_netns(
-        f"exec {sys.executable} -m tests.udp_multicast_peer ipc 1.5 {interface}", timeout=60
+        f"exec {sys.executable} -m tests.udp_multicast_peer ipc 1.5 {interface}", timeout=120
     )
     assert proc.returncode == 0, proc.stderr
     result = json.loads(proc.stdout.strip().splitlines()[-1])

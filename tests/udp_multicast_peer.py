@@ -33,16 +33,28 @@ def config(interface: str) -> ProjectConfig:
     return ProjectConfig.model_validate(data)
 
 
+#: how long a peer waits for the other one to come up (a loaded machine starts an
+#: interpreter with NumPy in seconds)
+START_S = 30.0
+
+
 def run_plc(seconds: float, interface: str) -> None:
+    """Answer the IPC until it has gone quiet after talking (or ``seconds`` if it never
+    talks): its valve command 0 echoed in position 18."""
     plc = PlcLink.from_config(config(interface))
     plc.set_status(PlcStatus(mode=Mode.ATTITUDE_ADJUST, pump_running=True, supply_pressure_pa=16e6))
     x = X.copy()
+    heard = False
     t_end = time.monotonic() + seconds
     while time.monotonic() < t_end:
         plc.poll()
         u0 = plc.valve_commands().value[0]
         x[18] = X[18] if np.isnan(u0) else 0.1 + 0.01 * u0
         plc.set_positions_m(x)
+        if not np.isnan(u0):
+            heard = True
+        elif heard and plc.ipc_timeout():
+            break  # the IPC has finished
         time.sleep(0.001)
     plc.close()
 
@@ -54,7 +66,7 @@ def rcvbuf_bytes(bus: can.BusABC) -> int:
 
 def run_ipc(seconds: float, interface: str) -> int:
     child = subprocess.Popen(
-        [sys.executable, "-m", "tests.udp_multicast_peer", "plc", str(seconds + 1.0), interface]
+        [sys.executable, "-m", "tests.udp_multicast_peer", "plc", str(seconds + START_S), interface]
     )
     try:
         ipc = IpcLink.from_config(config(interface))
@@ -62,12 +74,14 @@ def run_ipc(seconds: float, interface: str) -> int:
         u = np.zeros(19)
         u[0] = 0.5
         ok_since = None
-        t_end = time.monotonic() + seconds
+        # ``seconds`` of exchange once the PLC is up (the link OK), at most START_S waiting
+        t_end = time.monotonic() + START_S
         while time.monotonic() < t_end:
             ipc.poll()
             ipc.send_valve_commands(u)
             if ipc.state() is LinkState.OK and ok_since is None:
                 ok_since = time.monotonic()
+                t_end = ok_since + seconds
             time.sleep(0.005)
         x = ipc.positions_m()
         st = ipc.status()
@@ -93,7 +107,7 @@ def run_ipc(seconds: float, interface: str) -> int:
         )
         ipc.close()
     finally:
-        child.wait(timeout=10)
+        child.wait(timeout=START_S)
     return child.returncode
 
 
