@@ -66,7 +66,6 @@ class IpcLink(LinkSide):
             (self._rx_by_name[m.name], list(m.slots))
             for m in self.catalog.with_prefix("PLC_Pressure_")
         ]
-        self._pos_fast = self._compile_rows(self._pos, 1)
         self._press_fast = self._compile_rows(self._press, 2)
         self._status_rec = self._rx_by_name["PLC_Status"]
         self._hmi_rec = self._rx_by_name["PLC_HmiTarget"]
@@ -191,55 +190,9 @@ class IpcLink(LinkSide):
 
     # ----------------------------------------------------------------- readings
 
-    @staticmethod
-    def _compile_rows(
-        rows: list[tuple[RxRecord, list[int]]], width: int
-    ) -> list[tuple[RxRecord, int, int, int, int]]:
-        """Per message (record, first slot, end slot, first value, end value), for
-        :meth:`_array`: each message carries consecutive ``can_index`` slots (checked)."""
-        out = []
-        for rec, slots in rows:
-            lo, hi = slots[0], slots[-1] + 1
-            if list(slots) != list(range(lo, hi)):
-                raise ValueError(f"{rec.name}: slots {slots} are not consecutive")
-            out.append((rec, lo, hi, lo * width, hi * width))
-        return out
-
-    def _array(
-        self,
-        rows: list[tuple[RxRecord, int, int, int, int]],
-        width: int,
-        si_per_unit: float,
-        now: float,
-    ) -> Reading:
-        """The latest values of ``rows`` by ``can_index`` in SI; NaN where not usable.
-
-        Plain list slices per message, one numpy conversion at the end (this runs twice
-        every loop cycle).
-        """
-        vals = [math.nan] * (N_CYLINDERS * width)
-        ages = [math.inf] * N_CYLINDERS
-        for rec, lo, hi, vlo, vhi in rows:
-            last = rec.last_rx
-            if last is None:
-                continue
-            age = now - last
-            ages[lo:hi] = [age] * (hi - lo)
-            # rec.latest(now), written out: values while fresh (RxRecord.fresh)
-            v = rec.values
-            if v is not None and age <= (
-                rec.grace_timeout_s if now < rec.grace_until else rec.timeout_s
-            ):
-                vals[vlo:vhi] = v[: vhi - vlo]
-        val = np.array(vals)
-        val *= si_per_unit  # DBC unit -> SI, factor from config.units
-        if width > 1:
-            val = val.reshape(N_CYLINDERS, width)
-        return Reading(value=val, valid=val == val, age_s=np.array(ages))  # == : not NaN
-
     def positions_m(self, now: float | None = None) -> Reading:
         """Rod positions from fully retracted [m], by ``can_index`` (NaN where not valid)."""
-        return self._array(self._pos_fast, 1, units.MM, self._clock() if now is None else now)
+        return self._array(self._loop_slices, 1, units.MM, self._clock() if now is None else now)
 
     def pressures_pa(self, now: float | None = None) -> Reading:
         """Chamber pressures [Pa], shape (19, 2): column 0 cap side, column 1 rod side."""

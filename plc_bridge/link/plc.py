@@ -23,7 +23,7 @@ from plc_bridge.link.words import (
     Reading,
     TargetAck,
 )
-from plc_bridge.supervision import RxRecord
+from plc_bridge.supervision import SURELY_MARGIN_S, RxRecord
 
 log = logging.getLogger("plc_bridge")
 
@@ -58,7 +58,13 @@ class PlcLink(LinkSide):
         self._hmi: HmiTarget | None = None
         self._ctl_rec = self._rx_by_name["IPC_Control"]
         self._valve = self._loop_rows
+        #: what the PLC's command timeouts watch: the control word and the valve frames
+        self._command_recs = (self._ctl_rec, *(rec for rec, _ in self._valve))
         self._ipc_timeout_s = units.ms(cfg.safety.command_timeout_ms)
+        # before these times the answers of command_timeout / ipc_timeout are certainly
+        # False (the PLC asks every scan; a frame accepted only moves them on)
+        self._commands_fresh_until = -math.inf
+        self._ipc_seen_until = -math.inf
 
     def _on_accepted(self, rec: RxRecord, now: float) -> None:
         if rec.name == "IPC_Control" and rec.values is not None:
@@ -67,6 +73,7 @@ class PlcLink(LinkSide):
             if act != self._active:
                 log.info("PLC: active group now %s", sorted(act))
                 self._apply_active(act, now)
+                self._commands_fresh_until = -math.inf  # the timeouts changed
 
     # ----------------------------------------------------------------- inputs
 
@@ -89,26 +96,20 @@ class PlcLink(LinkSide):
 
     def valve_commands(self, now: float | None = None) -> Reading:
         """Spool commands in [-1, 1] by ``can_index``; NaN where stale (centre the spool)."""
-        if now is None:
-            now = self._clock()
-        val = np.full(N_CYLINDERS, math.nan)
-        age = np.full(N_CYLINDERS, math.inf)
-        for rec, slots in self._valve:
-            age[slots] = rec.age_s(now)
-            v = rec.latest(now)
-            if v is not None:
-                val[slots] = v
-        return Reading(value=val, valid=~np.isnan(val), age_s=age)
+        return self._array(self._loop_slices, 1, 1.0, self._clock() if now is None else now)
 
     def command_timeout(self, now: float | None = None) -> bool:
         """True when the control word or any valve frame is stale: hold spools at centre."""
         if now is None:
             now = self._clock()
-        if not self._ctl_rec.fresh(now):
-            return True
-        for r, _ in self._valve:  # noqa: SIM110 - no generator: every PLC scan asks
+        if now < self._commands_fresh_until:
+            return False
+        until = math.inf
+        for r in self._command_recs:
             if not r.fresh(now):
                 return True
+            until = min(until, r.fresh_until_s())
+        self._commands_fresh_until = until
         return False
 
     def ipc_timeout(self, now: float | None = None) -> bool:
@@ -116,12 +117,17 @@ class PlcLink(LinkSide):
         than ``safety.command_timeout_ms``: the loss is no longer short (latch a fault)."""
         if now is None:
             now = self._clock()
+        if now < self._ipc_seen_until:
+            return False
         limit = self._ipc_timeout_s
-        if self._ctl_rec.age_s(now) > limit:
-            return True
-        for r, _ in self._valve:  # noqa: SIM110 - no generator: every PLC scan asks
+        oldest = math.inf
+        for r in self._command_recs:
             if r.age_s(now) > limit:
                 return True
+            last = r.last_rx
+            if last is not None and last < oldest:
+                oldest = last
+        self._ipc_seen_until = oldest + limit - SURELY_MARGIN_S
         return False
 
     # ----------------------------------------------------------------- outputs
