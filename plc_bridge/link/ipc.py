@@ -3,9 +3,9 @@
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Iterable, Sequence
 from dataclasses import replace
-from typing import Any, TypeVar
+from typing import Any
 
 import can
 import numpy as np
@@ -28,9 +28,6 @@ from plc_bridge.link.words import (
     Reading,
     TargetRequest,
 )
-from plc_bridge.supervision import RxRecord
-
-W = TypeVar("W")
 
 
 class IpcLink(LinkSide):
@@ -57,10 +54,6 @@ class IpcLink(LinkSide):
             for m in self.catalog.with_prefix("IPC_ValveCmd_")
         ]
         self._last_hmi_seq: int | None = None
-        # Per received word: the decoded values (a new tuple per accepted frame) and the
-        # word built from them. status(), hmi_target() and limit_switches() run every
-        # cycle, a frame comes every 2-10.
-        self._words: dict[str, tuple[object, Any]] = {}
         self._pos = self._loop_rows
         self._press = [
             (self._rx_by_name[m.name], list(m.slots))
@@ -198,21 +191,6 @@ class IpcLink(LinkSide):
         """Chamber pressures [Pa], shape (19, 2): column 0 cap side, column 1 rod side."""
         return self._array(self._press_fast, 2, units.MPA, self._clock() if now is None else now)
 
-    def _word(
-        self, rec: RxRecord, build: Callable[[dict[str, float]], W], now: float | None
-    ) -> W | None:
-        """The word ``build`` makes of ``rec``'s latest values, None when stale; the same
-        (frozen) object until the next frame."""
-        v = rec.latest(self._clock() if now is None else now)
-        if v is None:
-            return None
-        last = self._words.get(rec.name)
-        if last is not None and last[0] is v:
-            return last[1]
-        word = build(dict(zip(rec.codec.signal_names, v, strict=True)))
-        self._words[rec.name] = (v, word)
-        return word
-
     def status(self, now: float | None = None) -> PlcStatus | None:
         """The PLC status word, or None when stale (the PLC is then considered lost)."""
         return self._word(self._status_rec, _plc_status, now)
@@ -250,7 +228,8 @@ class IpcLink(LinkSide):
 
     def limit_switches(self, now: float | None = None) -> LimitSwitches | None:
         """The limit switches by ``can_index``, or None when stale. The same object (its
-        arrays read-only) until the next frame: the loop asks every cycle."""
+        arrays read-only) while the frame's values stay the same: the loop asks every
+        cycle."""
         return self._word(self._limits_rec, _limit_switches, now)
 
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import logging
 import math
-from collections.abc import Iterable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from typing import Any
 
 import can
@@ -54,6 +54,7 @@ class PlcLink(LinkSide):
         self._press_pa: FloatArray = np.full((N_CYLINDERS, 2), math.nan)
         self._pos_mm: list[float] | None = None
         self._press_mpa: list[list[float]] | None = None
+        self._deferred: Callable[[], None] | None = None
         self._limits = (0, 0)
         self._hmi: HmiTarget | None = None
         self._ctl_rec = self._rx_by_name["IPC_Control"]
@@ -79,20 +80,7 @@ class PlcLink(LinkSide):
 
     def control(self, now: float | None = None) -> ControlWord | None:
         """The IPC control word, or None when stale (command timeout)."""
-        v = self._ctl_rec.latest(self._clock() if now is None else now)
-        if v is None:
-            return None
-        d = dict(zip(self._ctl_rec.codec.signal_names, v, strict=True))
-        return ControlWord(
-            mode=Mode(int(d["ModeRequest"])),
-            enable=bool(d["EnableRequest"]),
-            stop=bool(d["StopRequest"]),
-            fault_reset=bool(d["FaultReset"]),
-            ack_seq=int(d["TargetAckSeq"]),
-            ack_status=TargetAck(int(d["TargetAckStatus"])),
-            state=int(d["PackMLState"]),
-            unit_mode=int(d["UnitMode"]),
-        )
+        return self._word(self._ctl_rec, _control_word, now)
 
     def valve_commands(self, now: float | None = None) -> Reading:
         """Spool commands in [-1, 1] by ``can_index``; NaN where stale (centre the spool)."""
@@ -149,6 +137,14 @@ class PlcLink(LinkSide):
             raise ValueError(f"pressures: expected shape ({N_CYLINDERS}, 2), got {arr.shape}")
         self._press_pa, self._press_mpa = arr, None
 
+    def defer_readings(self, source: Callable[[], None] | None) -> None:
+        """Readings on demand: ``source`` is called once, before the next frame that
+        carries positions or pressures is built in :meth:`poll`, and sets them
+        (:meth:`set_positions_m`, :meth:`set_pressures_pa`); ``None``: no longer. For a
+        simulated PLC whose transducers sample every scan while most scans send none of
+        those frames."""
+        self._deferred = source
+
     def set_limit_switches(self, retracted: Iterable[bool], extended: Iterable[bool]) -> None:
         self._limits = (
             mask_of(i for i, b in enumerate(retracted) if b),
@@ -161,6 +157,9 @@ class PlcLink(LinkSide):
     def _values_for(self, spec: MessageSpec, now: float) -> list[float] | None:
         name = spec.name
         names = self._codec_by_name[name].signal_names
+        if self._deferred is not None and name.startswith(("PLC_RodPos_", "PLC_Pressure_")):
+            source, self._deferred = self._deferred, None
+            source()
         if name.startswith("PLC_RodPos_"):
             pos = self._pos_mm
             if pos is None:
@@ -196,3 +195,16 @@ class PlcLink(LinkSide):
         else:  # pragma: no cover - the DBC has no other PLC message
             return None
         return [d[n] for n in names]
+
+
+def _control_word(d: dict[str, float]) -> ControlWord:
+    return ControlWord(
+        mode=Mode(int(d["ModeRequest"])),
+        enable=bool(d["EnableRequest"]),
+        stop=bool(d["StopRequest"]),
+        fault_reset=bool(d["FaultReset"]),
+        ack_seq=int(d["TargetAckSeq"]),
+        ack_status=TargetAck(int(d["TargetAckStatus"])),
+        state=int(d["PackMLState"]),
+        unit_mode=int(d["UnitMode"]),
+    )

@@ -16,7 +16,7 @@ import time
 from collections import Counter
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, TypeVar
 
 import can
 import numpy as np
@@ -40,6 +40,8 @@ from plc_bridge.supervision import (
 )
 
 log = logging.getLogger("plc_bridge")
+
+W = TypeVar("W")
 
 #: A DEGRADED link stays so for this long after the last rejected/lost frame or bus error.
 FAULT_HOLD_S = 1.0
@@ -147,6 +149,8 @@ class LinkSide:
             for m in self.catalog.with_prefix(role.loop_rx_prefix)
         ]
         self._loop_slices = self._compile_rows(self._loop_rows, 1)
+        #: Per received word (:meth:`_word`): the values it was built from, and the word.
+        self._words: dict[str, tuple[tuple[float, ...], Any]] = {}
         self._tx_counter: dict[int, int] = {m.frame_id: 0 for m in self.tx_specs}
         self._period: dict[int, float] = {}
         self._next_due: dict[int, float] = {}
@@ -270,6 +274,22 @@ class LinkSide:
         if width > 1:
             val = val.reshape(N_CYLINDERS, width)
         return Reading(value=val, valid=val == val, age_s=np.array(ages))  # == : not NaN
+
+    def _word(
+        self, rec: RxRecord, build: Callable[[dict[str, float]], W], now: float | None
+    ) -> W | None:
+        """The word ``build`` makes of ``rec``'s latest values, None when stale; the same
+        (frozen) object while the values stay the same (the IPC's status, HMI target and
+        limit switches every cycle, the PLC's control word every scan with frames)."""
+        v = rec.latest(self._clock() if now is None else now)
+        if v is None:
+            return None
+        last = self._words.get(rec.name)
+        if last is not None and last[0] == v:
+            return last[1]
+        word = build(dict(zip(rec.codec.signal_names, v, strict=True)))
+        self._words[rec.name] = (v, word)
+        return word
 
     # ----------------------------------------------------------------- transmit
 
