@@ -14,7 +14,8 @@ The model, per cylinder (SI units; ``x`` is the rod position, 0 = fully retracte
 Every model function below is pure, takes floats or equally shaped float64 arrays
 (one element per cylinder) and works the same for both, so the full-rig simulator can
 call them with rod positions and velocities imposed by its rigid platforms. They are
-compiled with numba; :class:`CylinderBank` integrates standalone cylinders (rod plus
+compiled with numba (:func:`hil_sim._jit.jit`: NumPy's float error model, so the loops
+over the cylinders vectorize); :class:`CylinderBank` integrates standalone cylinders (rod plus
 lumped load mass) with fixed-step RK4 inside one compiled kernel.
 
 Over 500 lines because the vectorized model and the compiled RK4 kernel of the standalone

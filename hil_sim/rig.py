@@ -107,6 +107,13 @@ def _rotation_partials(roll, pitch):
 def extension_and_jacobian(z, roll, pitch, px, py):
     """Extension from mid-stroke of the rod at ``(px, py)`` and its row ``dd/d(z, roll, pitch)``."""
     cr, sr, cp, sp = math.cos(roll), math.sin(roll), math.cos(pitch), math.sin(pitch)
+    return _extension_row(z, cr, sr, cp, sp, px, py)
+
+
+@jit
+def _extension_row(z, cr, sr, cp, sp, px, py):
+    """:func:`extension_and_jacobian` from the layer's ``cos``/``sin`` of roll and pitch,
+    taken once for the four rods of a layer (the kernel's inner loop)."""
     d = z - px * sp + py * sr * cp
     return d, 1.0, py * cr * cp, -px * cp - py * sr * sp
 
@@ -275,9 +282,10 @@ def _derivative(
     jrows = np.empty((8, 3))
     for j in range(8):
         qo = 3 * (j // 4)
-        d, j0, j1, j2 = extension_and_jacobian(
-            q[qo], q[qo + 1], q[qo + 2], rod_xy[j, 0], rod_xy[j, 1]
-        )
+        if j % 4 == 0:  # the layer's trigonometry, once for its four rods
+            roll, pitch = q[qo + 1], q[qo + 2]
+            cr, sr, cp, sp = math.cos(roll), math.sin(roll), math.cos(pitch), math.sin(pitch)
+        d, j0, j1, j2 = _extension_row(q[qo], cr, sr, cp, sp, rod_xy[j, 0], rod_xy[j, 1])
         jrows[j, 0], jrows[j, 1], jrows[j, 2] = j0, j1, j2
         i = plat_idx[j]
         x[i] = half_stroke[j] + d

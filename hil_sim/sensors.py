@@ -34,11 +34,22 @@ class Transducer:
 
     def read(self, true_value: FloatArray) -> FloatArray:
         """The readings of all ``n`` transducers for the true values (N,)."""
+        return self.quantize(true_value, self.next_noise())
+
+    def next_noise(self) -> FloatArray:
+        """The noise of the next sample (n,): the stream moves on by one sample whether
+        or not its reading is ever taken (:meth:`quantize`), so a run stays the same."""
         if self._next >= self._block.shape[0]:
             self._block = self._rng.standard_normal((_BLOCK, self.n)) * self.noise_rms
             self._next = 0
-        value = true_value + self._block[self._next]
+        noise = self._block[self._next]
         self._next += 1
+        return noise
+
+    def quantize(self, true_value: FloatArray, noise: FloatArray) -> FloatArray:
+        """The readings for the true values with one sample's ``noise``
+        (:meth:`next_noise`): ``quantize(true + noise)``."""
+        value = true_value + noise
         if self.resolution > 0:  # np.round(value * inv_res) * resolution, in place
             value *= self._inv_res
             np.rint(value, out=value)

@@ -165,6 +165,15 @@ class HilSimulator:
         self._pos_every = max(1, round(units.ms(sens.position.sample_ms) / self.cycle_s))
         self._press_every = max(1, round(units.ms(sens.pressure.sample_ms) / self.cycle_s))
         self._fault_rng = np.random.default_rng(s_fault)
+        # Both transducers sample every scan and no event ever reads or changes a
+        # reading: each scan's readings are taken only when a frame needs them
+        # (PlcLink.defer_readings), within that scan; the noise streams move on anyway.
+        self._deferred_readings = (
+            self._pos_every == 1
+            and self._press_every == 1
+            and not any(isinstance(ev, SensorFault) for ev in self.scenario.events)
+        )
+        self._pos_noise = self._press_noise = np.zeros(0)
         self._stroke = self.rig.params.stroke_m.copy()
         self._limit_m = plant.limit_switch_m
         self._extended_at = self._stroke - self._limit_m
@@ -336,7 +345,6 @@ class HilSimulator:
             self._k += 1
             self.t_s = self._k * self.cycle_s
             return
-        silent = self.wire.silent
         self._sample(self._k)
         self.wire.release_due(t)
         frames = 0
@@ -344,7 +352,9 @@ class HilSimulator:
         if not faults or not any(f.kind == "plc_silent" for f in faults):
             # on bus-off the PLC still runs (its frames are lost), when silent it is dead
             frames = self.plc.poll(t)
-        self._logic(t, silent, frames)
+        self._logic(t, frames)
+        if self._deferred_readings:
+            self.plc.defer_readings(None)  # this scan's readings, or none
         self.rig.advance(self.steps_per_cycle)
         self._k += 1
         self.t_s = self._k * self.cycle_s
@@ -449,17 +459,22 @@ class HilSimulator:
         self._active_version += 1
 
     def _sample(self, k: int) -> None:
-        faults = self._sensor_faults
-        new_pos = k % self._pos_every == 0
-        new_press = k % self._press_every == 0
         rig = self.rig
-        if new_pos:
-            self._pos_reading = self._pos_sensor.read(rig.x_view)
-        if new_press:
-            p = rig.pressure_view
-            self._press_reading = self._press_sensor.read(p).reshape(2, N_CYLINDERS).T
-        if faults or new_pos or new_press or self._sensor_fault:
-            self._hand_over(faults)
+        if self._deferred_readings:
+            self._pos_noise = self._pos_sensor.next_noise()
+            self._press_noise = self._press_sensor.next_noise()
+            self.plc.defer_readings(self._take_readings)
+        else:
+            faults = self._sensor_faults
+            new_pos = k % self._pos_every == 0
+            new_press = k % self._press_every == 0
+            if new_pos:
+                self._pos_reading = self._pos_sensor.read(rig.x_view)
+            if new_press:
+                p = rig.pressure_view
+                self._press_reading = self._press_sensor.read(p).reshape(2, N_CYLINDERS).T
+            if faults or new_pos or new_press or self._sensor_fault:
+                self._hand_over(faults)
         x = rig.x_view
         self._retracted = x <= self._limit_m
         self._extended = x >= self._extended_at
@@ -467,6 +482,14 @@ class HilSimulator:
         if key != self._limits:
             self._limits = key
             self.plc.set_limit_switches(self._retracted, self._extended)
+
+    def _take_readings(self) -> None:
+        """This scan's readings, deferred by :meth:`_sample` until a frame needs them."""
+        rig = self.rig
+        self._pos_reading = self._pos_sensor.quantize(rig.x_view, self._pos_noise)
+        press = self._press_sensor.quantize(rig.pressure_view, self._press_noise)
+        self._press_reading = press.reshape(2, N_CYLINDERS).T
+        self._hand_over([])
 
     def _hand_over(self, faults: list[int]) -> None:
         """Readings with the sensor faults applied, to the link."""
@@ -499,7 +522,7 @@ class HilSimulator:
         self.plc.set_positions_m(pos)
         self.plc.set_pressures_pa(press)
 
-    def _logic(self, t: float, silent: bool, frames: int) -> None:
+    def _logic(self, t: float, frames: int) -> None:
         estop, dead, ignore = self._estop, self._dead, self._ignore
         plc = self.plc
         # Stale commands: spools centred at once; the fault is latched only when the

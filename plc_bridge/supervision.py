@@ -73,6 +73,12 @@ class LinkState(StrEnum):
     LOST = "LOST"
 
 
+#: How far short of a timeout's exact edge a "certainly not yet" time is kept
+#: (:meth:`RxRecord.fresh_until_s`): far more than the rounding of ``now - last_rx``
+#: on any clock, far less than a PLC scan.
+SURELY_MARGIN_S = 1e-6
+
+
 class RxRecord:
     """Supervision and latest accepted values of one received message."""
 
@@ -174,6 +180,16 @@ class RxRecord:
 
     def age_s(self, now: float) -> float:
         return math.inf if self.last_rx is None else now - self.last_rx
+
+    def fresh_until_s(self) -> float:
+        """A time before which :meth:`fresh` is certainly True with the timeouts now in
+        force (:data:`SURELY_MARGIN_S` short of the exact edge, which only
+        :meth:`fresh` decides); -inf when nothing was received. A later frame only moves
+        it on; :meth:`set_timeout` may move it back."""
+        last = self.last_rx
+        if last is None:
+            return -math.inf
+        return last + min(self.timeout_s, self.grace_timeout_s) - SURELY_MARGIN_S
 
     def latest(self, now: float) -> tuple[float, ...] | None:
         """The latest accepted values in DBC units, or None when stale."""

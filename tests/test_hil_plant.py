@@ -4,6 +4,7 @@ blocked layer holding its load, lockstep reproducibility."""
 from __future__ import annotations
 
 from collections.abc import Iterator
+from typing import Any
 
 import numpy as np
 import pytest
@@ -213,3 +214,51 @@ def test_lockstep_is_bit_for_bit_reproducible_with_a_seed(project: ProjectConfig
     assert np.array_equal(a_pos, b_pos, equal_nan=True)
     assert np.array_equal(a_p, b_p)
     assert not np.array_equal(a_pos, c_pos, equal_nan=True)
+
+
+def _sensor_frames(cfg: ProjectConfig, deferred: bool) -> list[tuple[float, int, bytes]]:
+    """The PLC's position and pressure frames of a short move, with the readings taken
+    when a frame needs them (``deferred``) or every scan."""
+    b = make_bench(cfg, seed=3)
+    sim = b.sim
+    assert sim._deferred_readings  # no sensor-fault event: the simulator defers
+    sim._deferred_readings = deferred
+    carry = ("PLC_RodPos_", "PLC_Pressure_")
+    wanted = {m.frame_id for m in sim.catalog.messages if m.name.startswith(carry)}
+    out: list[tuple[float, int, bytes]] = []
+    wire_send = sim.wire.send
+
+    def send(msg: Any, timeout: float | None = None) -> None:
+        if msg.arbitration_id in wanted:
+            out.append((sim.t_s, msg.arbitration_id, bytes(msg.data)))
+        wire_send(msg, timeout)
+
+    sim.wire.send = send  # type: ignore[method-assign]
+    try:
+        b.start()
+        u = np.zeros(19)
+        u[8:12] = [0.3, 0.2, -0.2, 0.1]
+        b.run(0.4, u)
+    finally:
+        b.close()
+    return out
+
+
+def test_readings_taken_for_the_frames_are_those_of_every_scan(project: ProjectConfig) -> None:
+    """Deferred to the frames that carry them (PlcLink.defer_readings), the readings are
+    the ones taken every scan: the same noise sample and the same plant state, so the
+    same frames, byte for byte."""
+    deferred = _sensor_frames(project, deferred=True)
+    every_scan = _sensor_frames(project, deferred=False)
+    assert deferred == every_scan
+    pos0 = [d for _, fid, d in deferred if fid == deferred[0][1]]
+    assert len(deferred) > 200 and len(set(pos0)) > 10  # the rods moved, noise changed
+
+
+def test_a_sensor_fault_event_takes_the_readings_every_scan(project: ProjectConfig) -> None:
+    ev = {"kind": "sensor", "cylinder": "upper_2", "mode": "stuck", "start_s": 0.2}
+    b = make_bench(project, [ev])
+    try:
+        assert not b.sim._deferred_readings  # a stuck sensor holds the reading before it
+    finally:
+        b.close()

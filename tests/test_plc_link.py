@@ -637,16 +637,20 @@ def test_unchanged_control_word_sends_nothing(project: ProjectConfig) -> None:
         link.set_control(not_a_field=1)
 
 
-def test_limit_switches_are_one_read_only_word_per_frame(project: ProjectConfig) -> None:
+def test_limit_switches_are_one_read_only_word_per_value(project: ProjectConfig) -> None:
+    """A word is built when a frame brings other values than the word's, and kept while
+    the frames repeat them (the loop asks every cycle)."""
     clock = Clock()
     bus, plc_bus = QueueBus(), QueueBus()
     ipc = IpcLink(project, bus, clock=clock)
     plc = PlcLink(project, plc_bus, clock=clock)
     words = []
+    frames = 0
     for k in range(200):
         plc.set_limit_switches([i == 3 and k >= 100 for i in range(19)], [False] * 19)
         plc.poll()
         for m in plc_bus.sent:
+            frames += m.arbitration_id == CAT.by_name("PLC_Limits").frame_id
             bus.inject(m)
         plc_bus.sent.clear()
         ipc.poll()
@@ -655,9 +659,11 @@ def test_limit_switches_are_one_read_only_word_per_frame(project: ProjectConfig)
         if ls is not None:
             assert ls is ipc.limit_switches()  # no new frame: the same word
             assert not ls.retracted.flags.writeable and not ls.extended.flags.writeable
-            words.append((id(ls), bool(ls.retracted[3])))
-    assert len({w for w, _ in words}) > 2  # a new word per received frame
-    assert not words[0][1] and words[-1][1]  # the change arrived
+            words.append(ls)
+    assert frames > 10
+    distinct = list({id(w): w for w in words}.values())
+    assert [bool(w.retracted[3]) for w in distinct] == [False, True]  # one word per value
+    assert not words[0].retracted[3] and words[-1].retracted[3]  # the change arrived
     ipc.close()
     plc.close()
 
@@ -693,3 +699,52 @@ def test_counter_lookup_is_check_counter(project: ProjectConfig) -> None:
             for counter in range(16):
                 i = (15 if last is None else last) * 16 + counter
                 assert rec._counter_checks[i] == check_counter(last, counter, max_delta)
+
+
+def test_plc_timeouts_skipped_until_they_can_change_answer_as_every_record(
+    project: ProjectConfig,
+) -> None:
+    """The PLC's per-scan questions (command_timeout, ipc_timeout, the stale edges of
+    poll) skip their records until an answer can change (RxRecord.fresh_until_s): each
+    answer, edge and counter is the one the records give when all are asked every scan,
+    through gaps in the frames, a stale valve frame and a change of the fast group (new
+    timeouts, with grace)."""
+    clock = Clock()
+    ipc_bus, plc_bus, ref_bus = QueueBus(), QueueBus(), QueueBus()
+    ipc = IpcLink(project, ipc_bus, clock=clock)
+    plc = PlcLink(project, plc_bus, clock=clock)
+    ref = PlcLink(project, ref_bus, clock=clock)  # every record asked every scan
+    limit = project.safety.command_timeout_ms / 1000.0
+    valve_2 = CAT.by_name("IPC_ValveCmd_2").frame_id
+    seen = set()
+    for k in range(1600):  # 1 ms PLC scans, the IPC's cycle every 5
+        now = clock.t
+        if k % 5 == 0:
+            if k == 700:
+                ipc.set_active_cylinders(range(4))  # another fast group: other timeouts
+            ipc.poll(now)
+            ipc.send_valve_commands(U, now)
+            for m in ipc_bus.sent:
+                lost = 300 <= k < 420 or (1000 <= k < 1100 and m.arbitration_id == valve_2)
+                if not lost:
+                    plc_bus.inject(m)
+                    ref_bus.inject(m)
+            ipc_bus.sent.clear()
+        ref._stale_check_at = -math.inf
+        plc.poll(now)
+        ref.poll(now)
+        recs = ref._command_recs
+        exact = (
+            any(not r.fresh(now) for r in recs),
+            any(r.age_s(now) > limit for r in recs),
+        )
+        assert (plc.command_timeout(now), plc.ipc_timeout(now)) == exact, k
+        assert [(r.was_fresh, dict(r.counters), r.values) for r in plc._rx.values()] == [
+            (r.was_fresh, dict(r.counters), r.values) for r in ref._rx.values()
+        ], k
+        seen.add(exact)
+        clock.advance(0.001)
+    assert seen == {(False, False), (True, False), (True, True)}
+    assert sum(r.counters["timeouts"] for r in plc._rx.values()) > 2
+    for link in (ipc, plc, ref):
+        link.close()

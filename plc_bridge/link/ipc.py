@@ -3,9 +3,9 @@
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Iterable, Sequence
 from dataclasses import replace
-from typing import Any, TypeVar
+from typing import Any
 
 import can
 import numpy as np
@@ -28,9 +28,6 @@ from plc_bridge.link.words import (
     Reading,
     TargetRequest,
 )
-from plc_bridge.supervision import RxRecord
-
-W = TypeVar("W")
 
 
 class IpcLink(LinkSide):
@@ -57,16 +54,11 @@ class IpcLink(LinkSide):
             for m in self.catalog.with_prefix("IPC_ValveCmd_")
         ]
         self._last_hmi_seq: int | None = None
-        # Per received word: the decoded values (a new tuple per accepted frame) and the
-        # word built from them. status(), hmi_target() and limit_switches() run every
-        # cycle, a frame comes every 2-10.
-        self._words: dict[str, tuple[object, Any]] = {}
         self._pos = self._loop_rows
         self._press = [
             (self._rx_by_name[m.name], list(m.slots))
             for m in self.catalog.with_prefix("PLC_Pressure_")
         ]
-        self._pos_fast = self._compile_rows(self._pos, 1)
         self._press_fast = self._compile_rows(self._press, 2)
         self._status_rec = self._rx_by_name["PLC_Status"]
         self._hmi_rec = self._rx_by_name["PLC_HmiTarget"]
@@ -191,74 +183,13 @@ class IpcLink(LinkSide):
 
     # ----------------------------------------------------------------- readings
 
-    @staticmethod
-    def _compile_rows(
-        rows: list[tuple[RxRecord, list[int]]], width: int
-    ) -> list[tuple[RxRecord, int, int, int, int]]:
-        """Per message (record, first slot, end slot, first value, end value), for
-        :meth:`_array`: each message carries consecutive ``can_index`` slots (checked)."""
-        out = []
-        for rec, slots in rows:
-            lo, hi = slots[0], slots[-1] + 1
-            if list(slots) != list(range(lo, hi)):
-                raise ValueError(f"{rec.name}: slots {slots} are not consecutive")
-            out.append((rec, lo, hi, lo * width, hi * width))
-        return out
-
-    def _array(
-        self,
-        rows: list[tuple[RxRecord, int, int, int, int]],
-        width: int,
-        si_per_unit: float,
-        now: float,
-    ) -> Reading:
-        """The latest values of ``rows`` by ``can_index`` in SI; NaN where not usable.
-
-        Plain list slices per message, one numpy conversion at the end (this runs twice
-        every loop cycle).
-        """
-        vals = [math.nan] * (N_CYLINDERS * width)
-        ages = [math.inf] * N_CYLINDERS
-        for rec, lo, hi, vlo, vhi in rows:
-            last = rec.last_rx
-            if last is None:
-                continue
-            age = now - last
-            ages[lo:hi] = [age] * (hi - lo)
-            # rec.latest(now), written out: values while fresh (RxRecord.fresh)
-            v = rec.values
-            if v is not None and age <= (
-                rec.grace_timeout_s if now < rec.grace_until else rec.timeout_s
-            ):
-                vals[vlo:vhi] = v[: vhi - vlo]
-        val = np.array(vals)
-        val *= si_per_unit  # DBC unit -> SI, factor from config.units
-        if width > 1:
-            val = val.reshape(N_CYLINDERS, width)
-        return Reading(value=val, valid=val == val, age_s=np.array(ages))  # == : not NaN
-
     def positions_m(self, now: float | None = None) -> Reading:
         """Rod positions from fully retracted [m], by ``can_index`` (NaN where not valid)."""
-        return self._array(self._pos_fast, 1, units.MM, self._clock() if now is None else now)
+        return self._array(self._loop_slices, 1, units.MM, self._clock() if now is None else now)
 
     def pressures_pa(self, now: float | None = None) -> Reading:
         """Chamber pressures [Pa], shape (19, 2): column 0 cap side, column 1 rod side."""
         return self._array(self._press_fast, 2, units.MPA, self._clock() if now is None else now)
-
-    def _word(
-        self, rec: RxRecord, build: Callable[[dict[str, float]], W], now: float | None
-    ) -> W | None:
-        """The word ``build`` makes of ``rec``'s latest values, None when stale; the same
-        (frozen) object until the next frame."""
-        v = rec.latest(self._clock() if now is None else now)
-        if v is None:
-            return None
-        last = self._words.get(rec.name)
-        if last is not None and last[0] is v:
-            return last[1]
-        word = build(dict(zip(rec.codec.signal_names, v, strict=True)))
-        self._words[rec.name] = (v, word)
-        return word
 
     def status(self, now: float | None = None) -> PlcStatus | None:
         """The PLC status word, or None when stale (the PLC is then considered lost)."""
@@ -297,7 +228,8 @@ class IpcLink(LinkSide):
 
     def limit_switches(self, now: float | None = None) -> LimitSwitches | None:
         """The limit switches by ``can_index``, or None when stale. The same object (its
-        arrays read-only) until the next frame: the loop asks every cycle."""
+        arrays read-only) while the frame's values stay the same: the loop asks every
+        cycle."""
         return self._word(self._limits_rec, _limit_switches, now)
 
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import logging
 import math
-from collections.abc import Iterable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from typing import Any
 
 import can
@@ -23,7 +23,7 @@ from plc_bridge.link.words import (
     Reading,
     TargetAck,
 )
-from plc_bridge.supervision import RxRecord
+from plc_bridge.supervision import SURELY_MARGIN_S, RxRecord
 
 log = logging.getLogger("plc_bridge")
 
@@ -54,11 +54,18 @@ class PlcLink(LinkSide):
         self._press_pa: FloatArray = np.full((N_CYLINDERS, 2), math.nan)
         self._pos_mm: list[float] | None = None
         self._press_mpa: list[list[float]] | None = None
+        self._deferred: Callable[[], None] | None = None
         self._limits = (0, 0)
         self._hmi: HmiTarget | None = None
         self._ctl_rec = self._rx_by_name["IPC_Control"]
         self._valve = self._loop_rows
+        #: what the PLC's command timeouts watch: the control word and the valve frames
+        self._command_recs = (self._ctl_rec, *(rec for rec, _ in self._valve))
         self._ipc_timeout_s = units.ms(cfg.safety.command_timeout_ms)
+        # before these times the answers of command_timeout / ipc_timeout are certainly
+        # False (the PLC asks every scan; a frame accepted only moves them on)
+        self._commands_fresh_until = -math.inf
+        self._ipc_seen_until = -math.inf
 
     def _on_accepted(self, rec: RxRecord, now: float) -> None:
         if rec.name == "IPC_Control" and rec.values is not None:
@@ -67,48 +74,30 @@ class PlcLink(LinkSide):
             if act != self._active:
                 log.info("PLC: active group now %s", sorted(act))
                 self._apply_active(act, now)
+                self._commands_fresh_until = -math.inf  # the timeouts changed
 
     # ----------------------------------------------------------------- inputs
 
     def control(self, now: float | None = None) -> ControlWord | None:
         """The IPC control word, or None when stale (command timeout)."""
-        v = self._ctl_rec.latest(self._clock() if now is None else now)
-        if v is None:
-            return None
-        d = dict(zip(self._ctl_rec.codec.signal_names, v, strict=True))
-        return ControlWord(
-            mode=Mode(int(d["ModeRequest"])),
-            enable=bool(d["EnableRequest"]),
-            stop=bool(d["StopRequest"]),
-            fault_reset=bool(d["FaultReset"]),
-            ack_seq=int(d["TargetAckSeq"]),
-            ack_status=TargetAck(int(d["TargetAckStatus"])),
-            state=int(d["PackMLState"]),
-            unit_mode=int(d["UnitMode"]),
-        )
+        return self._word(self._ctl_rec, _control_word, now)
 
     def valve_commands(self, now: float | None = None) -> Reading:
         """Spool commands in [-1, 1] by ``can_index``; NaN where stale (centre the spool)."""
-        if now is None:
-            now = self._clock()
-        val = np.full(N_CYLINDERS, math.nan)
-        age = np.full(N_CYLINDERS, math.inf)
-        for rec, slots in self._valve:
-            age[slots] = rec.age_s(now)
-            v = rec.latest(now)
-            if v is not None:
-                val[slots] = v
-        return Reading(value=val, valid=~np.isnan(val), age_s=age)
+        return self._array(self._loop_slices, 1, 1.0, self._clock() if now is None else now)
 
     def command_timeout(self, now: float | None = None) -> bool:
         """True when the control word or any valve frame is stale: hold spools at centre."""
         if now is None:
             now = self._clock()
-        if not self._ctl_rec.fresh(now):
-            return True
-        for r, _ in self._valve:  # noqa: SIM110 - no generator: every PLC scan asks
+        if now < self._commands_fresh_until:
+            return False
+        until = math.inf
+        for r in self._command_recs:
             if not r.fresh(now):
                 return True
+            until = min(until, r.fresh_until_s())
+        self._commands_fresh_until = until
         return False
 
     def ipc_timeout(self, now: float | None = None) -> bool:
@@ -116,12 +105,17 @@ class PlcLink(LinkSide):
         than ``safety.command_timeout_ms``: the loss is no longer short (latch a fault)."""
         if now is None:
             now = self._clock()
+        if now < self._ipc_seen_until:
+            return False
         limit = self._ipc_timeout_s
-        if self._ctl_rec.age_s(now) > limit:
-            return True
-        for r, _ in self._valve:  # noqa: SIM110 - no generator: every PLC scan asks
+        oldest = math.inf
+        for r in self._command_recs:
             if r.age_s(now) > limit:
                 return True
+            last = r.last_rx
+            if last is not None and last < oldest:
+                oldest = last
+        self._ipc_seen_until = oldest + limit - SURELY_MARGIN_S
         return False
 
     # ----------------------------------------------------------------- outputs
@@ -143,6 +137,14 @@ class PlcLink(LinkSide):
             raise ValueError(f"pressures: expected shape ({N_CYLINDERS}, 2), got {arr.shape}")
         self._press_pa, self._press_mpa = arr, None
 
+    def defer_readings(self, source: Callable[[], None] | None) -> None:
+        """Readings on demand: ``source`` is called once, before the next frame that
+        carries positions or pressures is built in :meth:`poll`, and sets them
+        (:meth:`set_positions_m`, :meth:`set_pressures_pa`); ``None``: no longer. For a
+        simulated PLC whose transducers sample every scan while most scans send none of
+        those frames."""
+        self._deferred = source
+
     def set_limit_switches(self, retracted: Iterable[bool], extended: Iterable[bool]) -> None:
         self._limits = (
             mask_of(i for i, b in enumerate(retracted) if b),
@@ -155,6 +157,9 @@ class PlcLink(LinkSide):
     def _values_for(self, spec: MessageSpec, now: float) -> list[float] | None:
         name = spec.name
         names = self._codec_by_name[name].signal_names
+        if self._deferred is not None and name.startswith(("PLC_RodPos_", "PLC_Pressure_")):
+            source, self._deferred = self._deferred, None
+            source()
         if name.startswith("PLC_RodPos_"):
             pos = self._pos_mm
             if pos is None:
@@ -190,3 +195,16 @@ class PlcLink(LinkSide):
         else:  # pragma: no cover - the DBC has no other PLC message
             return None
         return [d[n] for n in names]
+
+
+def _control_word(d: dict[str, float]) -> ControlWord:
+    return ControlWord(
+        mode=Mode(int(d["ModeRequest"])),
+        enable=bool(d["EnableRequest"]),
+        stop=bool(d["StopRequest"]),
+        fault_reset=bool(d["FaultReset"]),
+        ack_seq=int(d["TargetAckSeq"]),
+        ack_status=TargetAck(int(d["TargetAckStatus"])),
+        state=int(d["PackMLState"]),
+        unit_mode=int(d["UnitMode"]),
+    )

@@ -16,9 +16,10 @@ import time
 from collections import Counter
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, TypeVar
 
 import can
+import numpy as np
 
 from config import ConfigError, units
 from config.schema import N_CYLINDERS, ProjectConfig
@@ -27,6 +28,7 @@ from plc_bridge.busload import active_cylinders, is_active
 from plc_bridge.catalog import Catalog, MessageSpec, load_catalog
 from plc_bridge.codec import FrameCodec
 from plc_bridge.e2e import COUNTER_MODULO
+from plc_bridge.link.words import Reading
 from plc_bridge.supervision import (
     RX_FAULTS,
     RX_OUTCOMES,
@@ -38,6 +40,8 @@ from plc_bridge.supervision import (
 )
 
 log = logging.getLogger("plc_bridge")
+
+W = TypeVar("W")
 
 #: A DEGRADED link stays so for this long after the last rejected/lost frame or bus error.
 FAULT_HOLD_S = 1.0
@@ -144,6 +148,9 @@ class LinkSide:
             (self._rx_by_name[m.name], list(m.slots))
             for m in self.catalog.with_prefix(role.loop_rx_prefix)
         ]
+        self._loop_slices = self._compile_rows(self._loop_rows, 1)
+        #: Per received word (:meth:`_word`): the values it was built from, and the word.
+        self._words: dict[str, tuple[tuple[float, ...], Any]] = {}
         self._tx_counter: dict[int, int] = {m.frame_id: 0 for m in self.tx_specs}
         self._period: dict[int, float] = {}
         self._next_due: dict[int, float] = {}
@@ -151,6 +158,10 @@ class LinkSide:
         #: the scan of its messages until then. Whatever changes ``_next_due`` or
         #: ``_period`` outside that scan sets it back to -inf.
         self._wake = -math.inf
+        #: No received message can go stale before this, nor turn fresh without a frame
+        #: accepted (which sets it back to -inf, as a change of the timeouts does):
+        #: :meth:`_check_timeouts` skips its records until then.
+        self._stale_check_at = -math.inf
         self.rx_outcomes: Counter[str] = Counter()
         self.tx_counts: Counter[str] = Counter()
         self._last_fault = -math.inf
@@ -197,6 +208,7 @@ class LinkSide:
         self._active = active
         for spec in self.rx_specs:
             self._rx[spec.frame_id].set_timeout(self._timeout_for(spec, active), now)
+        self._stale_check_at = -math.inf
         for spec in self.tx_specs:
             self._period[spec.frame_id] = spec.cycle_in_force_s(
                 is_active(spec, active), self._loop_period_s
@@ -216,6 +228,68 @@ class LinkSide:
 
     def _values_for(self, spec: MessageSpec, now: float) -> list[float] | None:
         raise NotImplementedError
+
+    @staticmethod
+    def _compile_rows(
+        rows: list[tuple[RxRecord, list[int]]], width: int
+    ) -> list[tuple[RxRecord, int, int, int, int]]:
+        """Per message (record, first slot, end slot, first value, end value), for
+        :meth:`_array`: each message carries consecutive ``can_index`` slots (checked)."""
+        out = []
+        for rec, slots in rows:
+            lo, hi = slots[0], slots[-1] + 1
+            if list(slots) != list(range(lo, hi)):
+                raise ValueError(f"{rec.name}: slots {slots} are not consecutive")
+            out.append((rec, lo, hi, lo * width, hi * width))
+        return out
+
+    def _array(
+        self,
+        rows: list[tuple[RxRecord, int, int, int, int]],
+        width: int,
+        si_per_unit: float,
+        now: float,
+    ) -> Reading:
+        """The latest values of ``rows`` by ``can_index`` in SI; NaN where not usable.
+
+        Plain list slices per message, one numpy conversion at the end (the IPC's
+        positions and pressures every loop cycle, the PLC's valve commands).
+        """
+        vals = [math.nan] * (N_CYLINDERS * width)
+        ages = [math.inf] * N_CYLINDERS
+        for rec, lo, hi, vlo, vhi in rows:
+            last = rec.last_rx
+            if last is None:
+                continue
+            age = now - last
+            ages[lo:hi] = [age] * (hi - lo)
+            # rec.latest(now), written out: values while fresh (RxRecord.fresh)
+            v = rec.values
+            if v is not None and age <= (
+                rec.grace_timeout_s if now < rec.grace_until else rec.timeout_s
+            ):
+                vals[vlo:vhi] = v[: vhi - vlo]
+        val = np.array(vals)
+        val *= si_per_unit  # DBC unit -> SI, factor from config.units
+        if width > 1:
+            val = val.reshape(N_CYLINDERS, width)
+        return Reading(value=val, valid=val == val, age_s=np.array(ages))  # == : not NaN
+
+    def _word(
+        self, rec: RxRecord, build: Callable[[dict[str, float]], W], now: float | None
+    ) -> W | None:
+        """The word ``build`` makes of ``rec``'s latest values, None when stale; the same
+        (frozen) object while the values stay the same (the IPC's status, HMI target and
+        limit switches every cycle, the PLC's control word every scan with frames)."""
+        v = rec.latest(self._clock() if now is None else now)
+        if v is None:
+            return None
+        last = self._words.get(rec.name)
+        if last is not None and last[0] == v:
+            return last[1]
+        word = build(dict(zip(rec.codec.signal_names, v, strict=True)))
+        self._words[rec.name] = (v, word)
+        return word
 
     # ----------------------------------------------------------------- transmit
 
@@ -314,6 +388,7 @@ class LinkSide:
                 lost_before = rec.lost_frames
                 outcome = rec.on_frame(msg.data, now)
                 if outcome == "accepted":
+                    self._stale_check_at = -math.inf
                     self.bus_health.on_frame_ok()
                     if rec.lost_frames != lost_before:
                         self._last_fault = now
@@ -337,6 +412,9 @@ class LinkSide:
         """Hook: a frame passed all checks (the PLC side reads the active mask here)."""
 
     def _check_timeouts(self, now: float) -> None:
+        if now < self._stale_check_at:
+            return  # every record's own check below would change nothing
+        check_at = math.inf
         for rec in self._rx.values():
             was = rec.was_fresh
             if rec.check_timeout(now):
@@ -351,6 +429,11 @@ class LinkSide:
                 )
             elif rec.was_fresh and not was and rec.counters["timeouts"]:
                 log.info("%s: %s receiving again", self.role.node, rec.name)
+            if rec.was_fresh:
+                until = rec.fresh_until_s()
+                if until < check_at:
+                    check_at = until
+        self._stale_check_at = check_at
 
     def _recover(self, now: float) -> None:
         if not self.bus_health.due_for_reopen(now):
