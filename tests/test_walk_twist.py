@@ -77,3 +77,25 @@ def test_the_controlled_frame_by_phase() -> None:
     assert by_key["6"] == SUB and by_key["7a"] == SUB and by_key["7b"] == SUB
     for key in ("4", "5", "7c", "8"):
         assert by_key[key] == ()
+
+
+def test_a_force_ramp_restarts_from_the_forces_at_the_resume() -> None:
+    """After a stop in a transfer the receiving legs' ramp goes on from what they carry
+    now, not from where its reference stood (the loops restart at the measurement)."""
+    seq = sequencer()
+    k = next(i for i, ph in enumerate(seq.plan.phases) if ph.key == "7c")
+    x = seq.half.copy()
+    p = np.zeros((seq.n, 2))
+    p[seq.legs, 0] = 5e6
+    seq.start(0.0, x, p)
+    seq._begin(k, 1.0, x, p)
+    run = seq.run
+    assert run is not None and run.phase.key == "7c"
+    run.tau = 0.5 * run.duration_s  # halfway along the ramp when it stopped
+    p[seq.legs[MAIN[0]], 0] = 6e6  # main_leg_1 took some load while stopped
+    seq.resume(x, p)
+    f = seq.forces_n(p)
+    assert run.tau == 0.0
+    assert np.allclose(run.start_f[list(MAIN)], f[list(MAIN)])
+    delta = max(abs(run.target_f[j] - f[j]) for j in MAIN)
+    assert run.duration_s == pytest.approx(delta / seq.walk.force_ramp_n_s)

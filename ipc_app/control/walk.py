@@ -411,13 +411,24 @@ class WalkSequencer:
 
     def resume(self, x: FloatArray, p: FloatArray) -> None:
         """Go on after a stop: every controller bumpless at the measurement; the phase
-        goes on from its reference clock."""
+        goes on from its reference clock, a preload's or transfer's force ramp from the
+        receiving legs' forces now."""
         f = self.forces_n(p)
         for i, c in self.pos.items():
             c.reset(float(x[i]))
         for j, i in enumerate(self.legs):
             if i in self.force_mode:
                 self.force[i].reset(float(f[j]))
+        run = self.run
+        if run is not None and (run.phase.key in PRELOAD or run.phase.key in TRANSFER):
+            # the receiving legs' ramp restarts from their forces now (while stopped they
+            # held what they had, the ramp's reference stood where the clock stopped;
+            # a loop reset at the one and driven to the other takes the step at once)
+            receiving = SUB if run.phase.key in ("3", "4") else MAIN
+            for j in receiving:
+                run.start_f[j] = f[j]
+            delta = max(abs(float(run.target_f[j] - f[j])) for j in receiving)
+            run.tau, run.duration_s = 0.0, delta / self.walk.force_ramp_n_s
 
     # ----------------------------------------------------------------- the cycle
 
