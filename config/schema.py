@@ -703,6 +703,10 @@ class Walking(Strict):
     #: force loop (touch-down, preload, transfer): LADRC bandwidths on the cap-side force
     force_wc_rad_s: Annotated[Finite, Field(gt=0, le=1000)] = 4.0
     force_wo_rad_s: Annotated[Finite, Field(gt=0, le=1000)] = 16.0
+    #: the twist-mode controller of a frame standing in position control (travel,
+    #: the other frame's lowering and preload): its loop's crossover; the references'
+    #: gain in the twist mode is this over ``contact.stiffness_n_m`` (m per N s)
+    twist_bandwidth_rad_s: Annotated[Finite, Field(gt=0, le=100)] = 6.0
 
     @property
     def step_length_m(self) -> float:

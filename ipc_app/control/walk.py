@@ -252,8 +252,12 @@ class WalkSequencer:
         self.leg_force_n = np.zeros(8)
         #: force references of the legs in force control this cycle (NaN: not), N
         self.force_ref_n = np.full(8, math.nan)
-        #: the standing frame's load equalization: reference offsets in its twist mode
+        #: the twist-mode controller: reference offsets of a standing frame, m
         self.twist_offset = np.zeros(8)
+        self.twist_ki_m_per_n_s = self.walk.twist_bandwidth_rad_s / self.k_contact
+        self.twist_kp_m_per_n = self.twist_ki_m_per_n_s / ctl.ladrc.wc_rad_s
+        self._twist_frame_now: tuple[int, ...] = ()
+        self._twist_int_m = 0.0
         #: each leg's last two pressure samples: cap-side force, N, and sample time, s
         self._f_last = np.zeros(8)
         self._f_prev = np.zeros(8)
@@ -320,10 +324,16 @@ class WalkSequencer:
         f = self.forces_n(p)
         for i in self.legs + self.travel:
             self.hold_ref[i] = float(x[i])
-        self.twist_offset[:] = 0.0
         self.point_cache.clear()
         run = _PhaseRun(k, ph, now, start_x=np.array(x, dtype=float), start_f=f)
         key = ph.key
+        if self._twist_frame(ph) == self._twist_frame_now:
+            # the twist controller goes on: the new references are the measured rods
+            # less its offsets, which it adds again
+            for j in self._twist_frame_now:
+                i = self.legs[j]
+                self.hold_ref[i] -= self.twist_offset[j]
+                run.start_x[i] -= self.twist_offset[j]
         x_s = self.x_s(x)
         if k == 0 or ph.step != self.plan.phases[k - 1].step:
             self.steps.append(StepFigures(ph.step, started_s=now))
@@ -401,13 +411,24 @@ class WalkSequencer:
 
     def resume(self, x: FloatArray, p: FloatArray) -> None:
         """Go on after a stop: every controller bumpless at the measurement; the phase
-        goes on from its reference clock."""
+        goes on from its reference clock, a preload's or transfer's force ramp from the
+        receiving legs' forces now."""
         f = self.forces_n(p)
         for i, c in self.pos.items():
             c.reset(float(x[i]))
         for j, i in enumerate(self.legs):
             if i in self.force_mode:
                 self.force[i].reset(float(f[j]))
+        run = self.run
+        if run is not None and (run.phase.key in PRELOAD or run.phase.key in TRANSFER):
+            # the receiving legs' ramp restarts from their forces now (while stopped they
+            # held what they had, the ramp's reference stood where the clock stopped;
+            # a loop reset at the one and driven to the other takes the step at once)
+            receiving = SUB if run.phase.key in ("3", "4") else MAIN
+            for j in receiving:
+                run.start_f[j] = f[j]
+            delta = max(abs(float(run.target_f[j] - f[j])) for j in receiving)
+            run.tau, run.duration_s = 0.0, delta / self.walk.force_ramp_n_s
 
     # ----------------------------------------------------------------- the cycle
 
@@ -455,8 +476,6 @@ class WalkSequencer:
         k0 = int(kk)
         k1 = min(k0 + 1, len(ph.leg_forces_n) - 1)
         plan_f = ph.leg_forces_n[k0] * (1 - (kk - k0)) + ph.leg_forces_n[k1] * (kk - k0)
-        if key in TRAVEL:  # one frame alone on the invert while the COG moves
-            self._equalize(refs, f, plan_f, self._frame(ph.standing, self.leg_ids))
         if key in TRAVEL:
             move = Move(ph.end_m[0] - (float(np.mean(run.start_x[self.travel])) - self.e0),
                         *self._travel_move())  # fmt: skip
@@ -539,9 +558,14 @@ class WalkSequencer:
                 f0, f1 = float(run.start_f[j]), float(run.target_f[j])
                 rate = 0.0 if lam >= 1.0 else (f1 - f0) / run.duration_s
                 f_ref[i] = (f0 + lam * (f1 - f0), rate)
-            for j in releasing:  # the body held: follow the foot's unloading
+            # the body held: follow the feet's unloading, not in the twist mode (there
+            # following a force's change would feed it back: the twist controller's)
+            follow = (f[list(releasing)] - run.start_f[list(releasing)]) / self.k_contact
+            tw = np.asarray(self._TWIST)
+            follow -= tw * float(tw @ follow) / 4
+            for j, d in zip(releasing, follow, strict=True):
                 i = self.legs[j]
-                refs[i] = run.start_x[i] + (f[j] - run.start_f[j]) / self.k_contact
+                refs[i] = run.start_x[i] + float(d)
             band = self.leg_band
             tf = run.target_f
             if key in PRELOAD:
@@ -559,6 +583,7 @@ class WalkSequencer:
                 finished = lam >= 1.0 and released and abs(ratio - 1.0) <= tol
             overdue = now - run.t0 - self.walk.transfer_timeout_s
             fig.overdue_s = max(0.0, overdue)
+        self._twist_control(refs, f_check, plan_f, self._twist_frame(ph))
 
         # synchronization of the moving group, its band: hold and continue
         sync = 0.0
@@ -632,24 +657,49 @@ class WalkSequencer:
             self._next(now, x, p)
         return u
 
-    #: load equalization gain of the standing frame, m per N s (time constant about
-    #: 1 / (gain * leg stiffness), 2 s at 5e7 N/m)
-    EQUALIZE_M_PER_N_S = 1e-8
     #: the twist mode of four legs at (s_i a, t_i b): legs 1 and 3 against 2 and 4
     _TWIST = (1.0, -1.0, 1.0, -1.0)
 
-    def _equalize(
-        self, refs: FloatArray, f: FloatArray, plan_f: FloatArray, standing: tuple[int, ...]
+    def _twist_frame(self, ph: Phase) -> tuple[int, ...]:
+        """The frame whose twist mode is controlled in phase ``ph``: the one that stands
+        in position control while the travel pair moves (alone on the invert) or while
+        the other frame lowers and preloads; none in a lift or a transfer."""
+        key = ph.key
+        if key in TRAVEL:
+            return self._frame(ph.standing, self.leg_ids)
+        if key in LOWER or key in PRELOAD:
+            return SUB if key in ("7a", "7b") else MAIN
+        return ()
+
+    def _twist_control(
+        self, refs: FloatArray, f: FloatArray, plan_f: FloatArray, frame: tuple[int, ...]
     ) -> None:
-        """Four legs standing in position control share the load as their heights make
-        them (statically indeterminate in the twist mode): their references move slowly
-        in that mode until the twist of their forces is the plan's (minimum norm)."""
-        if len(standing) != 4 or any(self.legs[j] in self.force_mode for j in standing):
+        """The twist-mode controller of a frame standing in position control.
+
+        Four legs standing in position control share the load as their heights make
+        them: three of their four force patterns follow from the body's equilibrium,
+        the fourth, the twist (legs 1 and 3 against 2 and 4, self-equilibrated on the
+        rectangle), only from the heights, which position control does not hold to the
+        micrometre: a twist of 30 um in the rods is 6 kN in the feet
+        (``contact.stiffness_n_m``). The frame's references move in that mode by a PI
+        law on the twist of the legs' forces (``f``, the checks' forces on the body)
+        against the plan's (minimum norm: none): integral gain ``twist_bandwidth_rad_s``,
+        proportional gain that over the position loop's ``control.ladrc.wc_rad_s`` (its
+        zero cancels the position loop's pole, so the twist loop is an integrator with
+        that crossover), both over the contact stiffness (m per N, m per N s). The
+        other three patterns, and so the body's height and attitude, are the position
+        loops'. The state carries over from one phase to the next while the same frame
+        stays controlled (:meth:`_begin`)."""
+        if frame != self._twist_frame_now:
+            self._twist_frame_now, self._twist_int_m = frame, 0.0
+            self.twist_offset[:] = 0.0
+        if len(frame) != 4 or any(self.legs[j] in self.force_mode for j in frame):
             return
-        err = sum(w * (f[j] - plan_f[j]) for w, j in zip(self._TWIST, standing, strict=True)) / 4
-        step = self.EQUALIZE_M_PER_N_S * err * self.period_s
-        for w, j in zip(self._TWIST, standing, strict=True):
-            self.twist_offset[j] -= w * step
+        err = sum(w * (f[j] - plan_f[j]) for w, j in zip(self._TWIST, frame, strict=True)) / 4
+        self._twist_int_m += self.twist_ki_m_per_n_s * err * self.period_s
+        amplitude = self._twist_int_m + self.twist_kp_m_per_n * err
+        for w, j in zip(self._TWIST, frame, strict=True):
+            self.twist_offset[j] = -w * amplitude
             refs[self.legs[j]] += self.twist_offset[j]
 
     def _residual_share(
