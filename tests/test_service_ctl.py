@@ -8,6 +8,7 @@ import os
 import socket
 import stat
 import threading
+import time
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -15,6 +16,7 @@ from typing import Any
 import pytest
 from structlog.testing import capture_logs
 
+from config import load_project
 from ipc_app.service.app import CtlWatch, service_handlers, watched_step
 from ipc_app.service.ctl import (
     CtlError,
@@ -23,9 +25,11 @@ from ipc_app.service.ctl import (
     CtlUnavailable,
     default_socket_path,
     dispatch,
+    parse,
     request,
 )
 from ipc_app.service.interlocks import Cause, Interlock
+from ipc_app.service.loop import ChangeGate
 from ipc_app.service.modes import Mode, ModeMachine, UnitMode
 from ipc_app.service.sdnotify import SystemdNotifier
 from wara.cli import main
@@ -530,6 +534,7 @@ def test_the_service_handlers_answer_refusals_as_refused(short_tmp: Path) -> Non
 
     class Core:
         modes = svc.modes
+        state_changes = ChangeGate()
 
         def request_reset(self, wait_s: float = 0.0) -> dict[str, Any]:
             return self.modes.reset().to_dict()
@@ -598,3 +603,86 @@ def test_a_service_without_the_packml_commands_says_so() -> None:
         "code": "bad_request",
         "error": "hold is not supported by this service",
     }
+
+
+def test_a_status_that_waits_returns_at_the_next_change_of_state(short_tmp: Path) -> None:
+    """What the OPC UA server asks: a status once ``state_seq`` has moved past the one it
+    saw, at most ``wait_ms`` later; it waits in the worker pool, so the I/O thread goes on
+    answering other clients meanwhile."""
+    svc = FakeService()
+    gate = ChangeGate()
+
+    class Core:
+        state_changes = gate
+        period_s = 0.005
+
+        def snapshot(self) -> dict[str, Any]:
+            return svc.modes.snapshot()
+
+    core: Any = Core()
+    with (
+        capture_logs(),
+        CtlServer(service_handlers(lambda: core, lambda: server), short_tmp / "w.sock") as server,
+    ):
+        first = request("status", socket_path=server.path)
+        assert first["state_seq"] == 0 and "waited_ms" not in first
+        # no change: back after the wait, with the same count
+        t0 = time.monotonic()
+        same = request("status", socket_path=server.path, after=0, wait_ms=200)
+        assert time.monotonic() - t0 >= 0.2 and same["state_seq"] == 0
+        assert same["waited_ms"] >= 200
+        # a change while it waits: back at the change, long before the wait's end
+        out: list[dict[str, Any]] = []
+        waiter = threading.Thread(
+            target=lambda: out.append(
+                request("status", socket_path=server.path, after=0, wait_ms=1000)
+            )
+        )
+        t0 = time.monotonic()
+        waiter.start()
+        time.sleep(0.1)
+        assert request("status", socket_path=server.path)["ok"] is True  # I/O thread free
+        gate.changed()
+        waiter.join(5.0)
+        assert out[0]["state_seq"] == 1 and time.monotonic() - t0 < 0.9
+        # already past: at once
+        assert request("status", socket_path=server.path, after=0, wait_ms=1000)["state_seq"] == 1
+
+
+@pytest.mark.parametrize(
+    ("args", "error"),
+    [
+        ({"after": -1, "wait_ms": 10}, "'after' must be a count"),
+        ({"after": True, "wait_ms": 10}, "'after' must be a count"),
+        ({"after": 3}, "'wait_ms' must be a finite number in ms"),
+        ({"after": 3, "wait_ms": 1001}, "'wait_ms' must be within 0..1000"),
+        ({"after": 3, "wait_ms": float("nan")}, "'wait_ms' must be a finite number"),
+        ({"wait_ms": 10}, "'after' must be a count"),
+    ],
+)
+def test_a_status_wait_is_checked(args: dict[str, Any], error: str) -> None:
+    line = json.dumps({"cmd": "status", **args}).encode()
+    got = parse(line)
+    assert isinstance(got, dict) and got["code"] == "bad_request", got
+    assert got["error"].startswith(error), got["error"]
+
+
+def test_the_core_counts_its_changes_of_mode(tmp_path: Path) -> None:
+    """The loop's side: each cycle whose step changed the mode counts one (the first
+    cycle counts the start-up mode)."""
+    from wara.harness import Harness
+
+    h = Harness(load_project(None), None, mode="lockstep")
+    try:
+        h.start()
+        assert h.wait_for(Mode.IDLE, 20.0), h.fault_note()
+        seen = h.core.state_changes.seq
+        assert seen >= 2  # STOPPED (the first cycle), IDLE
+        h.advance(0.5)
+        assert h.core.state_changes.seq == seen  # no change, no count
+        h.core.stop("test")
+        h.core.request_adjust(1.0, 0.5)
+        h.advance(0.5)
+        assert h.core.state_changes.seq > seen
+    finally:
+        h.close()

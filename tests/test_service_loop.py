@@ -10,7 +10,13 @@ import pytest
 from structlog.testing import capture_logs
 
 from config.schema import Realtime
-from ipc_app.service.loop import FixedRateLoop, RealtimeReport, SlackGate, apply_realtime
+from ipc_app.service.loop import (
+    ChangeGate,
+    FixedRateLoop,
+    RealtimeReport,
+    SlackGate,
+    apply_realtime,
+)
 
 
 class FakeTime:
@@ -352,6 +358,7 @@ def test_service_status_is_built_in_the_loops_slack() -> None:
 
     class Core:
         period_s = 10.0  # the wait's bound is 2 periods: longer than this test
+        state_changes = ChangeGate()
 
         def snapshot(self) -> dict[str, object]:
             built.append("snapshot")

@@ -29,7 +29,7 @@ from typing import Any
 import numpy as np
 import structlog
 
-from config import ProjectConfig, load_project
+from config import ProjectConfig, load_project, units
 from ipc_app.model.placement import POSE_DICT_KEYS, Pose, sheet_deviation
 from ipc_app.planner.survey import SurveyPoint
 from ipc_app.service.core import ServiceCore
@@ -71,11 +71,16 @@ def service_handlers(
     a loop cycle's step, in the loop's slack, not during its compute. ``records``: where
     ``cycle`` writes the rings' acceptance records (None: a cycle is refused)."""
 
-    def status() -> dict[str, Any]:
+    def status(after: int | None = None, wait_s: float = 0.0) -> dict[str, Any]:
         c = core()
+        waited: dict[str, float] = {}
+        if after is not None:  # until the next change of state, at most wait_s
+            t0 = time.monotonic()
+            c.state_changes.wait(after, wait_s)
+            waited["waited_ms"] = units.to_ms(time.monotonic() - t0)
         if slack is not None:
             slack.wait(SLACK_WAIT_PERIODS * c.period_s)
-        return c.snapshot() | {"ctl": ctl().health()}
+        return c.snapshot() | {"ctl": ctl().health(), "state_seq": c.state_changes.seq} | waited
 
     return CtlHandlers(
         adjust=lambda r, p: _reply(core().request_adjust(r, p, wait_s=wait_s)),

@@ -65,6 +65,7 @@ from ipc_app.service.interlocks import (
     present_causes,
     resume_cause,
 )
+from ipc_app.service.loop import ChangeGate
 from ipc_app.service.machine_io import (
     Handshake,
     JogPath,
@@ -224,6 +225,9 @@ class ServiceCore:
         # What the last cycle published; the status dict is built from it on request,
         # in the caller's thread (see snapshot()), not every cycle in the loop.
         self._published: _Published | None = None
+        #: the mode's changes, for a status that waits for the next one (ChangeGate)
+        self.state_changes = ChangeGate()
+        self._seen_mode: Mode | None = None
         self.loop_stats: dict[str, Any] = {}
         self.cycles = 0
         # the walk: its sequencer while one runs (and holds after it), its limits
@@ -1346,6 +1350,9 @@ class ServiceCore:
         ref_now: np.ndarray | None = None,
     ) -> None:
         enabled = self.modes.valves_enabled
+        if self.modes.mode is not self._seen_mode:
+            self._seen_mode = self.modes.mode
+            self.state_changes.changed()
         # Copies of what the loop goes on mutating; x is a new array every cycle.
         self._published = _Published(
             modes=self.modes.snapshot(),

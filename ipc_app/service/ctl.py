@@ -10,7 +10,9 @@ command    request                                      reply (besides ``"ok": t
 =========  ===========================================  =====================================
 adjust     ``{"cmd": "adjust", "roll_deg": R,           what the service's handler returns,
            "pitch_deg": P}``                            e.g. ``mode``, ``request_id``
-status     ``{"cmd": "status"}``                        the service's status (``mode``, ...)
+status     ``{"cmd": "status"}``; with ``"after": N,       the service's status (``mode``, ...,
+           "wait_ms": W``: once ``state_seq`` is no     ``state_seq``: its count of mode
+           longer N, at most W ms (0..1000) later       changes)
 stop       ``{"cmd": "stop"}``                          ``mode``
 reset      ``{"cmd": "reset"}``                         ``mode``
 clear      ``{"cmd": "clear"}``                         ``mode``
@@ -163,7 +165,8 @@ class CtlHandlers:
     """
 
     adjust: Callable[[float, float], Reply]
-    status: Callable[[], Reply]
+    #: ``status()``, or ``status(after, wait_s)``: once the state count is past ``after``
+    status: Callable[..., Reply]
     stop: Callable[[], Reply]
     reset: Callable[[], Reply]
     #: the PackML commands beyond these four (None: refused as not supported)
@@ -308,6 +311,11 @@ def parse(line: bytes) -> Request | Reply:
             return _cycle_request(cmd, req)
         except ValueError as exc:
             return _error("bad_request", str(exc))
+    if cmd == "status" and ("after" in req or "wait_ms" in req):
+        try:
+            return Request(cmd, _status_wait(req))
+        except ValueError as exc:
+            return _error("bad_request", str(exc))
     if cmd != "adjust":
         return Request(cmd)
     try:
@@ -317,6 +325,22 @@ def parse(line: bytes) -> Request | Reply:
     if abs(roll) >= 90 or abs(pitch) >= 90:
         return _error("bad_request", "roll_deg and pitch_deg must be within ±90 deg")
     return Request(cmd, (roll, pitch))
+
+
+#: The longest a status may wait for the next change of state (``wait_ms``).
+MAX_STATUS_WAIT_MS = 1000
+
+
+def _status_wait(req: Mapping[str, Any]) -> tuple[int, float]:
+    """A status that waits: ``after`` (the ``state_seq`` the client has seen) and
+    ``wait_ms``, both given; ``(after, wait_s)``."""
+    after = req.get("after")
+    if isinstance(after, bool) or not isinstance(after, int) or after < 0:
+        raise ValueError(f"'after' must be a count (an integer >= 0), got {_brief(after)}")
+    wait_ms = _number(req, "wait_ms", "ms")
+    if not 0 <= wait_ms <= MAX_STATUS_WAIT_MS:
+        raise ValueError(f"'wait_ms' must be within 0..{MAX_STATUS_WAIT_MS}, got {wait_ms:g}")
+    return after, wait_ms / 1000.0
 
 
 #: The most survey points one request carries.
@@ -375,7 +399,7 @@ def call(handlers: CtlHandlers, req: Request) -> Reply:
         if req.cmd == "adjust":
             reply = handlers.adjust(*req.args)
         elif req.cmd == "status":
-            reply = handlers.status()
+            reply = handlers.status(*req.args)
         elif req.cmd == "stop":
             reply = handlers.stop()
         elif req.cmd == "reset":
@@ -843,7 +867,7 @@ class CtlServer:
         if not isinstance(req, Request):
             self.counters["bad_request"] += 1
             self._answer(conn, req, line)
-        elif req.cmd in INLINE_COMMANDS:
+        elif req.cmd in INLINE_COMMANDS and not req.args:  # a waiting status: the pool
             self._answer(conn, call(self.handlers, req), line)
         elif self._in_flight >= self.max_workers:
             self.counters["busy"] += 1

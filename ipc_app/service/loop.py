@@ -285,6 +285,41 @@ class SlackGate:
                 self._waiting -= 1
 
 
+class ChangeGate:
+    """Lets another thread wait for the next change of the service's state (its mode, so
+    its PackML state) instead of asking again and again: the OPC UA server's status
+    request then returns at the change, not at its next period.
+
+    The loop's side is bounded: :meth:`changed` increments :attr:`seq` and notifies only
+    while a thread waits (the loop calls it in the cycle whose step changed the mode).
+    """
+
+    def __init__(self) -> None:
+        self._cv = threading.Condition()
+        self._waiting = 0
+        #: how many changes so far (a status carries it as ``state_seq``)
+        self.seq = 0
+
+    def changed(self) -> None:
+        """The loop thread: the state changed in this cycle."""
+        self.seq += 1
+        if self._waiting:
+            with self._cv:
+                self._cv.notify_all()
+
+    def wait(self, after: int, timeout_s: float) -> bool:
+        """Return once :attr:`seq` differs from ``after`` (at once if it does already);
+        False when it did not change within ``timeout_s``."""
+        if self.seq != after:
+            return True
+        with self._cv:
+            self._waiting += 1
+            try:
+                return self._cv.wait_for(lambda: self.seq != after, timeout_s)
+            finally:
+                self._waiting -= 1
+
+
 class FixedRateLoop:
     """Run ``step(cycle_index, t_now)`` every ``period_s`` on absolute deadlines.
 
