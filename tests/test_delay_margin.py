@@ -3,7 +3,9 @@
 The shipped tuning must hold Example 1 with 20 ms of extra rod-position delay on the
 wire (more than two processes or the machine's PLC add). A fast tuning (wc 12,
 wo 25 rad/s without feed-forward) rocks the loaded lower platform into the
-sync-error interlock with a few ms: the study must say so.
+sync-error interlock with a few ms: the study must say so. The slowed project of the
+kernel VM's HIL (tests/kernel/test_hil_vcan.py) must hold a simulator at half the
+service's clock (``sim_speed``) with 100 ms of delay, which the shipped bandwidths do not.
 """
 
 from __future__ import annotations
