@@ -60,10 +60,12 @@ STRANGER_ID = 0x191  # no node of the DBC sends it (PLC_HmiTarget is 0x190)
 #: loaded lower layer rocks in its roll mode, legs 1-2 against 3-4, until the sync-error
 #: interlock trips, docs/kernel-tests.md); the trajectory at 5 mm/s and 5 mm/s^2 instead
 #: of 20 (a rig slower than the wall clock the trajectory runs on still follows it);
-#: supervision timeouts of 10 s instead of 100 ms (sensor, PLC heartbeat, command; with
-#: 3 s the service latched ABORTED ``plc heartbeat: 4298.23 ms`` 20 s into a stable hold,
-#: no frame of the simulator's for as long; a message stale after 100 cycles, 2 s; a
-#: suspended motion may wait 10 s); the
+#: supervision timeouts of 10 s instead of 100 ms (sensor, PLC heartbeat; with 3 s the
+#: service latched ABORTED ``plc heartbeat: 4298.23 ms`` 20 s into a stable hold, no frame
+#: of the simulator's for as long) and 3 s for the PLC's command timeout (with 10 s the
+#: rig ran on at the last commands through a 4 s stall of the service: ABORTED ``sync
+#: error: upper 16.63 mm``); a message stale after 100 cycles, 2 s; a suspended motion
+#: may wait 10 s; the
 #: tracking-error interlock at 30 mm instead of 10 mm and the sync-error interlock at
 #: 10 mm instead of 2 mm (the simulator at 0.4x real time behind the service's 50 Hz
 #: commands: ABORTED ``sync error: upper 2.17 mm``); the start-up limit at 900 s and the
@@ -80,7 +82,7 @@ SLOW: dict[str, dict[str, Any]] = {
     "safety": {
         "sensor_timeout_ms": 10000.0,
         "plc_heartbeat_timeout_ms": 10000.0,
-        "command_timeout_ms": 10000.0,
+        "command_timeout_ms": 3000.0,
         "max_suspend_ms": 10000.0,
         "max_tracking_error_mm": 30.0,
         "max_sync_error_mm": 10.0,
