@@ -205,7 +205,7 @@ def test_every_safety_key_has_a_case() -> None:
 def test_every_interlock_key_is_a_config_key() -> None:
     keys = {s.key for s in SPECS.values() if s.key is not None}
     walking = {f"walking.{k}" for k in Walking.model_fields}  # tests/test_walk_interlocks.py
-    planner = {"planner.request_timeout_s"}  # tests/test_e2e.py: a planner that times out
+    planner = {"planner.request_timeout_s"}  # tests/test_service_worker.py: the timeout
     assert keys <= {f"safety.{k}" for k in Safety.model_fields} | walking | planner
     assert all(k in Planner.model_fields for k in (p.split(".")[1] for p in planner))
 

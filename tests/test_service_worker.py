@@ -12,8 +12,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from config import ConfigError, ProjectConfig
+from config import ConfigError, ProjectConfig, load_project
 from ipc_app.planner import plan
+from ipc_app.service.app import planner_worker
 from ipc_app.service.worker import PlannerCallError, PlannerWorker, PlanResult
 from tests.service_helpers import CRASH_ROLL_DEG, HANG_ROLL_DEG, RAISE_ROLL_DEG
 
@@ -105,6 +106,27 @@ def test_timeout_kills_and_restarts_the_worker(impatient: PlannerWorker) -> None
     r = wait_result(worker)
     assert r.request_id == 7 and r.ok and r.feasible
     assert worker.restarts == restarts + 1 and worker.pid != pid
+
+
+@pytest.mark.parametrize("timeout_s", [0.5, 1.0])
+def test_the_services_worker_times_out_after_planner_request_timeout_s(timeout_s: float) -> None:
+    """``planner.request_timeout_s`` is the service's limit per request: a plan that hangs
+    fails with that limit, not before it (0.5 s and 1 s: not the 10 s shipped)."""
+    cfg = load_project()
+    cfg = cfg.model_copy(
+        update={"planner": cfg.planner.model_copy(update={"request_timeout_s": timeout_s})}
+    )
+    w = planner_worker(cfg, None, plan_fn="tests.service_helpers:misbehaving_plan")
+    w.start()
+    try:
+        t0 = time.monotonic()
+        assert w.submit(5, HANG_ROLL_DEG, 0.0)
+        r = wait_result(w)
+        elapsed = time.monotonic() - t0
+    finally:
+        w.close()
+    assert not r.ok and f"planner timeout: no result after {timeout_s:g} s" in (r.error or "")
+    assert elapsed >= timeout_s
 
 
 def test_crash_is_detected_and_the_worker_restarted(worker: PlannerWorker) -> None:

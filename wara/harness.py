@@ -158,13 +158,21 @@ class Harness:
         os_api: OsApi | None = None,
         sim_cfg: ProjectConfig | None = None,
         trace: bool = True,
+        sim_speed: float = 1.0,
     ) -> None:
         """``planner``: a running worker to share (tests); else one is started and owned.
         ``os_api``: the real-time system calls (a fake in tests). ``sim_cfg``: the
         simulated machine when it differs from the project the service runs on (a
-        campaign's dispersions); default ``cfg``. ``trace``: keep the plots' samples."""
+        campaign's dispersions); default ``cfg``. ``trace``: keep the plots' samples.
+        ``sim_speed`` (lockstep only): simulated seconds per second of the service's
+        clock; below 1 the simulator runs slower than the clock the service's loop,
+        trajectory and observers assume, as ``wara hil --realtime`` does on an emulated
+        CPU (docs/kernel-tests.md). Each control period then advances the simulator by
+        ``period * sim_speed``, which must be a whole number of its PLC scans."""
         if mode not in ("realtime", "lockstep"):
             raise ValueError(f"mode must be 'realtime' or 'lockstep', got {mode!r}")
+        if not 0 < sim_speed <= 1 or (mode == "realtime" and sim_speed != 1):
+            raise ValueError(f"sim_speed must be in (0, 1], and 1 in real time; got {sim_speed}")
         self.cfg = cfg
         self.mode = mode
         self.progress = progress or (lambda _s: None)
@@ -181,7 +189,19 @@ class Harness:
         self.sim = HilSimulator(
             sim_cfg if sim_cfg is not None else cfg, plc_bus, scenario=scenario, seed=seed
         )
-        clock = self.sim.clock if mode == "lockstep" else time.monotonic
+        self.sim_speed = float(sim_speed)
+        self.period = cfg.control.period_s
+        #: simulated time per control period (lockstep)
+        self._sim_period = self.period * self.sim_speed
+        scans = self._sim_period / self.sim.cycle_s
+        if mode == "lockstep" and (abs(scans - round(scans)) > 1e-9 or round(scans) < 1):
+            self.sim.close()
+            raise ValueError(
+                f"sim_speed {sim_speed:g}: {units.to_ms(self._sim_period):g} ms of simulated "
+                f"time per control period is not a whole number of PLC scans of "
+                f"{units.to_ms(self.sim.cycle_s):g} ms"
+            )
+        clock = self.service_clock if mode == "lockstep" else time.monotonic
         self.link = IpcLink(cfg, ipc_bus, clock=clock)
         self._own_worker = planner is None
         self.worker = planner if planner is not None else PlannerWorker(config_path)
@@ -190,7 +210,6 @@ class Harness:
         self.core = ServiceCore(cfg, self.link, self.worker, record=record)
         self.trace = Trace(self.core.active)
         self._tracing = trace
-        self.period = cfg.control.period_s
         self._k = 0
         self._switch_interval: float | None = None
         self._os_api = os_api
@@ -276,8 +295,12 @@ class Harness:
             self.trace.add(sim, self.core)
         sim.wire.set_arrival_horizon(None)
 
+    def service_clock(self) -> float:
+        """Lockstep: the service's clock (s), the simulator's over :attr:`sim_speed`."""
+        return self.sim.t_s / self.sim_speed
+
     def advance(self, seconds: float) -> None:
-        """Let ``seconds`` of machine time pass."""
+        """Let ``seconds`` of machine time pass (of the service's clock in lockstep)."""
         if self.mode == "realtime":
             time.sleep(seconds)
             if self.loop is not None and self.loop.error is not None:
@@ -285,9 +308,9 @@ class Harness:
             return
         n = max(1, round(seconds / self.period))
         for _ in range(n):
-            self.sim.step(self.period)
+            self.sim.step(self._sim_period)
             self._k += 1
-            self.core.step(self._k, self.sim.t_s)
+            self.core.step(self._k, self.service_clock())
             if self._tracing:
                 self.trace.add(self.sim, self.core)
             if self.core.modes.mode == Mode.STARTING:

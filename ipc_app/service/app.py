@@ -213,6 +213,15 @@ def ctl_server(
     return CtlServer(handlers, socket_path, stall_s=cfg.safety.ctl_stall_timeout_s)
 
 
+def planner_worker(
+    cfg: ProjectConfig, config_path: str | Path | None, **kwargs: Any
+) -> PlannerWorker:
+    """The service's planner process (not started): a request without a result after
+    ``planner.request_timeout_s`` fails (the PLANNER interlock). ``kwargs``: the
+    worker's other arguments (tests: ``plan_fn``)."""
+    return PlannerWorker(config_path, timeout_s=cfg.planner.request_timeout_s, **kwargs)
+
+
 def run_service(
     config_path: str | Path | None,
     *,
@@ -267,7 +276,7 @@ def run_service(
                 "(--record-dir, or $STATE_DIRECTORY under systemd)"
             ) from None
         undo.pop_all()
-    worker = PlannerWorker(config_path, timeout_s=cfg.planner.request_timeout_s)
+    worker = planner_worker(cfg, config_path)
     worker.start()
     core = ServiceCore(cfg, link, worker, record=recorder)
     notifier = SystemdNotifier.from_env()

@@ -69,6 +69,14 @@ def register(sub: argparse._SubParsersAction) -> None:
     m.add_argument("--target", default="2,1", help="roll,pitch in deg (default: Example 1)")
     m.add_argument("--hold-s", type=float, default=20.0, help="hold after the motion, s")
     m.add_argument(
+        "--sim-speed",
+        type=float,
+        default=1.0,
+        help="simulated seconds per second of the service's clock, (0, 1]: a simulator "
+        "slower than the service (an emulated CPU); the delays are the simulator's "
+        "(default: %(default)g)",
+    )
+    m.add_argument(
         "--required-ms",
         type=float,
         default=REQUIRED_MS,
@@ -101,6 +109,8 @@ def _delay_margin(args: argparse.Namespace) -> int:
     roll, pitch = _floats(args.target, "--target", 2)
     if not args.hold_s > 0:
         raise UsageError(f"--hold-s must be > 0, got {args.hold_s}")
+    if not 0 < args.sim_speed <= 1:
+        raise UsageError(f"--sim-speed must be in (0, 1], got {args.sim_speed}")
     cfg = load_project(args.config)
 
     def say(text: str) -> None:
@@ -119,6 +129,7 @@ def _delay_margin(args: argparse.Namespace) -> int:
             hold_s=args.hold_s,
             required_ms=args.required_ms,
             progress=say,
+            sim_speed=args.sim_speed,
         )
     finally:
         logs.stop()
