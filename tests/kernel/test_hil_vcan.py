@@ -38,6 +38,7 @@ from config.loader import default_project_path
 from ipc_app.service.ctl import CtlError, request
 from plc_bridge import FrameCodec, load_catalog
 from plc_bridge.e2e import crc8_p01
+from plc_bridge.link.side import FAULT_HOLD_S
 from tests.kernel import VM_COMMAND, vcan_skip_reason
 
 REPO = Path(__file__).resolve().parents[2]
@@ -166,24 +167,25 @@ def _cansend(frame_id: int, data: bytes) -> None:
     subprocess.run(["cansend", "vcan0", f"{frame_id:03X}#{data.hex().upper()}"], check=True)
 
 
-def _frames_to_inject() -> tuple[list[tuple[int, bytes]], dict[str, int]]:
-    """Wrong CRC and invalid counter on PLC_Status (E-stop set), and a stranger's frame."""
+def _frames_to_inject() -> tuple[list[tuple[int, bytes, str]], dict[str, int]]:
+    """Wrong CRC and invalid counter on PLC_Status (E-stop set), and a stranger's frame;
+    each frame with its kind."""
     status = FrameCodec(CAT.by_name("PLC_Status"))
     # ModeActual ATTITUDE_ADJUST, EStop 1, pump, drives, no timeout, no fault, 16 MPa
     estop = [2, 1, 1, 1, 0, 0, 16.0]
-    frames: list[tuple[int, bytes]] = []
+    frames: list[tuple[int, bytes, str]] = []
     for counter in (3, 4, 5):
         bad = bytearray(status.encode(counter, estop))
         bad[0] ^= 0x5A  # the CRC no longer matches
-        frames.append((status.frame_id, bytes(bad)))
-    for _ in range(2):
-        frames.append((status.frame_id, status.encode(15, estop)))  # 15 is never sent
+        frames.append((status.frame_id, bytes(bad), "crc_error"))
+    for _ in range(2):  # 15 is never sent
+        frames.append((status.frame_id, status.encode(15, estop), "counter_invalid"))
     hmi = FrameCodec(CAT.by_name("PLC_HmiTarget"))
     body = bytearray(hmi.encode(0, [8.0, -3.0, 1, 77, 0]))
     for counter in range(3):
         body[1] = (body[1] & 0xF0) | counter
         body[0] = crc8_p01(0xA000 | STRANGER_ID, bytes(body[1:]))  # valid for its own id
-        frames.append((STRANGER_ID, bytes(body)))
+        frames.append((STRANGER_ID, bytes(body), "stranger"))
     return frames, {"crc_error": 3, "counter_invalid": 2, "stranger": 3}
 
 
@@ -295,7 +297,11 @@ def hil_run(tmp_path_factory: pytest.TempPathFactory) -> Iterator[HilRun]:
             holding = _wait(holding_target, 900.0, "COMPLETE at Example 1's target", poll_s=2.0)
         rx_before = dict((_status(sock) or {}).get("link_rx") or {})
         frames, injected = _frames_to_inject()
-        for fid, data in frames:
+        kind = ""
+        for fid, data, k in frames:
+            if k != kind:  # the link logs one rejection per message and FAULT_HOLD_S
+                time.sleep(2 * FAULT_HOLD_S)
+                kind = k
             _cansend(fid, data)
             time.sleep(0.05)
 
@@ -372,7 +378,9 @@ def test_frame_from_a_stranger_id_moves_nothing(hil_run: HilRun) -> None:
     after = r.after["positions_mm"]
     assert before.keys() == after.keys()
     moved = {k: abs(after[k] - before[k]) for k in before}
-    assert max(moved.values()) < 0.05, moved  # holding: sensor noise and creep only
+    # holding: its own wander only (a few tenths of a mm here, with the slowed simulator
+    # behind the quarter bandwidths); the stranger's target, 8 deg of roll, is tens of mm
+    assert max(moved.values()) < 1.0, moved
     assert r.after["motion"]["target_deg"] == list(TARGET)
 
 
