@@ -318,7 +318,7 @@ def _waiter(gate: SlackGate, timeout_s: float, out: list[bool]) -> threading.Thr
 
 def _until_waiting(gate: SlackGate) -> None:
     for _ in range(2000):
-        if gate._waiting:
+        if gate._waiters._waiting:
             return
         threading.Event().wait(0.001)
     raise AssertionError("the waiter never waited")
@@ -337,7 +337,7 @@ def test_slack_gate_holds_a_waiter_until_the_step_has_ended() -> None:
     gate.cycle_done()
     t.join(5.0)
     assert out == [True]
-    assert gate._waiting == 0
+    assert gate._waiters._waiting == 0
 
 
 def test_slack_gate_gives_up_after_its_timeout() -> None:

@@ -231,6 +231,28 @@ class _Counters:
 SWITCH_INTERVAL_S = 0.0005
 
 
+class _Waiters:
+    """Threads waiting for a condition the loop thread changes: the loop's side is a
+    check of a count and a notify only while some thread waits (no lock otherwise)."""
+
+    def __init__(self) -> None:
+        self._cv = threading.Condition()
+        self._waiting = 0
+
+    def notify(self) -> None:
+        if self._waiting:
+            with self._cv:
+                self._cv.notify_all()
+
+    def wait_for(self, predicate: Callable[[], bool], timeout_s: float) -> bool:
+        with self._cv:
+            self._waiting += 1
+            try:
+                return self._cv.wait_for(predicate, timeout_s)
+            finally:
+                self._waiting -= 1
+
+
 class SlackGate:
     """Lets another thread of the loop's process do its work in the loop's slack.
 
@@ -248,8 +270,7 @@ class SlackGate:
     """
 
     def __init__(self) -> None:
-        self._cv = threading.Condition()
-        self._waiting = 0
+        self._waiters = _Waiters()
         self._cycles = 0
         #: set by the loop while it runs
         self.active = False
@@ -265,9 +286,7 @@ class SlackGate:
         waiting, if any)."""
         self.in_step = False
         self._cycles += 1
-        if self._waiting:
-            with self._cv:
-                self._cv.notify_all()
+        self._waiters.notify()
 
     def wait(self, timeout_s: float) -> bool:
         """Return once no step runs: at once between steps, else when the running one
@@ -277,12 +296,7 @@ class SlackGate:
             return False
         if not self.in_step:
             return True
-        with self._cv:
-            self._waiting += 1
-            try:
-                return self._cv.wait_for(lambda: self._cycles != start, timeout_s)
-            finally:
-                self._waiting -= 1
+        return self._waiters.wait_for(lambda: self._cycles != start, timeout_s)
 
 
 class ChangeGate:
@@ -295,29 +309,21 @@ class ChangeGate:
     """
 
     def __init__(self) -> None:
-        self._cv = threading.Condition()
-        self._waiting = 0
+        self._waiters = _Waiters()
         #: how many changes so far (a status carries it as ``state_seq``)
         self.seq = 0
 
     def changed(self) -> None:
         """The loop thread: the state changed in this cycle."""
         self.seq += 1
-        if self._waiting:
-            with self._cv:
-                self._cv.notify_all()
+        self._waiters.notify()
 
     def wait(self, after: int, timeout_s: float) -> bool:
         """Return once :attr:`seq` differs from ``after`` (at once if it does already);
         False when it did not change within ``timeout_s``."""
         if self.seq != after:
             return True
-        with self._cv:
-            self._waiting += 1
-            try:
-                return self._cv.wait_for(lambda: self.seq != after, timeout_s)
-            finally:
-                self._waiting -= 1
+        return self._waiters.wait_for(lambda: self.seq != after, timeout_s)
 
 
 class FixedRateLoop:
