@@ -80,6 +80,8 @@ def test_cli_rejects_bad_arguments(
 
 
 class _NoPlanner:
+    calling = False
+
     def submit(self, *a: object, **k: object) -> bool:
         return False
 

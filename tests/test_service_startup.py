@@ -134,7 +134,7 @@ class _NoPlanner:
     """BOOT needs no planner: nothing is submitted before IDLE."""
 
     timeout_s = 1.0
-    busy = False
+    busy = calling = False
 
     def submit(self, *args: Any, **kwargs: Any) -> bool:
         raise AssertionError("nothing is planned in these tests")

@@ -354,6 +354,11 @@ class PlannerWorker:
         return self._pending is not None
 
     @property
+    def calling(self) -> bool:
+        """A :meth:`call` is in flight (asked, its value not yet back)."""
+        return self._job is not None
+
+    @property
     def ready(self) -> bool:
         """A planner process is up, its config loaded, waiting for requests."""
         return self._ready
