@@ -80,7 +80,7 @@ def test_cli_rejects_bad_arguments(
 
 
 class _NoPlanner:
-    calling = False
+    busy = calling = False
 
     def submit(self, *a: object, **k: object) -> bool:
         return False

@@ -313,16 +313,19 @@ class Harness:
             self.core.step(self._k, self.service_clock())
             if self._tracing:
                 self.trace.add(self.sim, self.core)
-            if self.core.modes.mode == Mode.STARTING or self.worker.calling:
+            if self.core.modes.mode == Mode.STARTING or self._planning():
                 self._await_planner()
+
+    def _planning(self) -> bool:
+        return self.worker.busy or self.worker.calling or self.core.preparing
 
     def _await_planner(self) -> None:
         """Lockstep: hold simulated time until the planner's answer is in (or its own
         timeout, on the wall clock, has turned the request into a failure): the loop's
-        attitude request, or a call from another thread (the HMI's walk, planned on a
-        thread of its own)."""
+        attitude request, or the HMI's walk, planned on a thread of its own from the
+        HMI's frame until its request is back with the loop."""
         deadline = time.monotonic() + self.worker.timeout_s + 5.0
-        while (self.worker.busy or self.worker.calling) and time.monotonic() < deadline:
+        while self._planning() and time.monotonic() < deadline:
             time.sleep(0.0005)
 
     def wait_for(self, mode: Mode, timeout_s: float, *, stop_on_fault: bool = True) -> bool:

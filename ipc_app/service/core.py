@@ -228,6 +228,8 @@ class ServiceCore:
         #: the mode's changes, for a status that waits for the next one (ChangeGate)
         self.state_changes = ChangeGate()
         self._seen_mode: Mode | None = None
+        self._preparing = 0  # the HMI's walks being planned off the loop (preparing)
+        self._preparing_lock = threading.Lock()
         self.loop_stats: dict[str, Any] = {}
         self.cycles = 0
         # the walk: its sequencer while one runs (and holds after it), its limits
@@ -534,13 +536,25 @@ class ServiceCore:
             )
             self._hmi_refused(now, hmi.seq, reason)
             return
+        with self._preparing_lock:
+            self._preparing += 1
         threading.Thread(
-            target=self.request_walk,
-            args=(hmi.walk_steps,),
-            kwargs={"hmi_seq": hmi.seq},
-            name="wara-hmi-walk",
-            daemon=True,
+            target=self._prepare_hmi_walk, args=(hmi,), name="wara-hmi-walk", daemon=True
         ).start()
+
+    def _prepare_hmi_walk(self, hmi: HmiTarget) -> None:
+        try:
+            self.request_walk(hmi.walk_steps, hmi_seq=hmi.seq)
+        finally:
+            with self._preparing_lock:
+                self._preparing -= 1
+
+    @property
+    def preparing(self) -> bool:
+        """A request of the loop's (the HMI's walk) is being planned on a thread of its
+        own and not yet handed back to the loop (the lockstep harness holds machine time
+        meanwhile, as it does for the planner)."""
+        return self._preparing > 0
 
     def _do_walk(self, inp: MachineInputs, plan: WalkPlan, hmi_seq: int = 0) -> dict[str, Any]:
         if not inp.positions_valid:
