@@ -156,3 +156,59 @@ def test_a_hold_resumes_with_the_commands_it_held(project: ProjectConfig) -> Non
     _, cold = _hold_through_a_loss(project, warm=False)
     assert held > 0.01  # the hold needs the valves open
     assert warm < 0.5 * cold, (warm, cold)
+
+
+def _move_through_a_loss(project: ProjectConfig, resume: str) -> float:
+    """Example 1's motion with the valves closed for 25 ms half-way (SUSPENDED: the
+    trajectory clock stands still), then resumed. The largest sync error from 0.1 s
+    after the resume on (m)."""
+    p = plan(project, 2.0, 1.0)
+    assert p.feasible and p.trajectory is not None
+    period = project.control.period_s
+    ac = AttitudeController(project, period)
+    idx = ac.layers["lower"] + ac.layers["upper"]
+    cyls = [project.cylinders_by_can_index[i] for i in idx]
+    bank = CylinderBank(CylinderParams.from_config(cyls, project.hydraulics), step_s=0.5e-3)
+    loads = np.concatenate([np.array(p.lower.force_n), np.array(p.upper.force_n)])
+    bank.hold_at(np.array([c.stroke_m / 2 for c in cyls]), loads)
+    x = np.zeros(len(project.cylinders))
+    x[:] = ac.half_stroke
+    x[idx] = bank.x_m
+    ac.engage(x, 0.0, p.trajectory)
+    steps = round(period / bank.step_s)
+    stop = round(0.5 * p.trajectory.duration_s / period)
+    for k in range(stop):
+        x[idx] = bank.x_m
+        bank.advance_steps(ac.update(k * period, x)[idx], loads, steps)
+    for _ in range(5):
+        bank.advance_steps(np.zeros(len(idx)), loads, steps)
+    x[idx] = bank.x_m
+    shift = 5 * period
+    if resume == "resume":
+        ac.resume(x, shift)
+    else:  # "cold": from a zero command; "whole": with the whole last command
+        ac.t_start += shift
+        for name, li in ac.layers.items():
+            g = ac.groups[name]
+            g.reset(x[li], [c.command for c in g.controllers] if resume == "whole" else None)
+    worst = 0.0
+    for n, k in enumerate(range(stop + 5, stop + 5 + round(2.0 / period))):
+        x[idx] = bank.x_m
+        bank.advance_steps(ac.update(k * period, x)[idx], loads, steps)
+        if n * period >= 0.1:  # the closure's own error left behind
+            worst = max(worst, *(m.sync_error_m for m in ac.metrics.values()))
+    return worst
+
+
+@pytest.mark.slow
+def test_a_motion_resumes_without_its_speed_counted_twice(project: ProjectConfig) -> None:
+    """The command a motion resumes with is the observers' holding share only: the
+    trajectory's speed comes again from the feed-forward (resumed with the whole last
+    command, a loaded layer runs ahead by the speed twice: in the campaign, 2 mm sync
+    faults). Against a cold restart (zero command) it is 0.11 against 0.08 mm here: the
+    observers' estimate mid-motion also holds the valves' gain mismatch at speed."""
+    resumed = _move_through_a_loss(project, "resume")
+    cold = _move_through_a_loss(project, "cold")
+    whole = _move_through_a_loss(project, "whole")
+    assert resumed < 0.15e-3 and cold < 0.15e-3, (resumed, cold)  # 2 mm: the interlock
+    assert whole > 4 * resumed, (whole, resumed)

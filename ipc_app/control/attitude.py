@@ -112,14 +112,15 @@ class AttitudeController:
     def resume(self, x_rod_m: FloatArray, shift_s: float) -> None:
         """Go on after a suspension or a hold: the trajectory shifted ``shift_s`` later in
         time (it continues from the reference where it stopped) and every controller reset
-        at its measurement holding the command it gave before the stop (its observer's
-        disturbance estimate kept: a layer holding its load against leakage needs the
-        valves open, and would sink while the observer learned that again from zero)."""
+        at its measurement holding its :attr:`holding_command` from before the stop (the
+        observer's disturbance estimate kept, the motion's share of the command left out:
+        a layer holding its load against leakage needs the valves open, and would sink
+        while the observer learned that again from zero)."""
         self.t_start += shift_s
         x = np.asarray(x_rod_m, dtype=float)
         for name, idx in self.layers.items():
             g = self.groups[name]
-            g.reset(x[idx], [c.command for c in g.controllers])
+            g.reset(x[idx], [c.holding_command for c in g.controllers])
 
     def motion_done(self, t_now: float) -> bool:
         return self.trajectory is None or t_now - self.t_start >= self.trajectory.duration_s

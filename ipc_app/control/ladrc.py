@@ -171,6 +171,12 @@ class LADRC:
         """The latest command (after rate limit and saturation)."""
         return self._u
 
+    @property
+    def holding_command(self) -> float:
+        """The command that holds the plant at rest against the disturbance the observer
+        has learned (``-f / b0``): the motion's share of :attr:`command` left out."""
+        return -self._z[-1] / self.b0
+
     def reset(self, measurement: float, command: float = 0.0) -> None:
         """Bumpless (re)start: observer at ``y``, at rest, holding ``command``."""
         u = min(max(float(command), self.u_min), self.u_max)

@@ -85,6 +85,11 @@ class PID:
     def command(self) -> float:
         return self._u
 
+    @property
+    def holding_command(self) -> float:
+        """The command that holds the plant at rest: the integrator's part."""
+        return self.integral
+
     def reset(self, measurement: float, command: float = 0.0) -> None:
         """Bumpless (re)start: the integrator holds ``command``, the derivative is at rest."""
         u = min(max(float(command), self.u_min), self.u_max)

@@ -37,6 +37,9 @@ class Controller(Protocol):
 
     def reset(self, measurement: float, command: float = 0.0) -> None: ...
 
+    @property
+    def holding_command(self) -> float: ...
+
 
 def ring_neighbours(n: int) -> list[tuple[int, ...]]:
     """Neighbours of each of ``n`` cylinders around the ring (``n`` >= 2)."""
