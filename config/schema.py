@@ -701,11 +701,12 @@ class Walking(Strict):
     #: resume check: leg forces within this of the values at the stop (of the leg's share)
     resume_force_tolerance_percent: Annotated[Finite, Field(gt=0, le=100)] = 10.0
     #: force loop (touch-down, preload, transfer): LADRC bandwidths on the cap-side force
+    #: (``force_wo_rad_s`` also the twist-mode loop's observer)
     force_wc_rad_s: Annotated[Finite, Field(gt=0, le=1000)] = 4.0
     force_wo_rad_s: Annotated[Finite, Field(gt=0, le=1000)] = 16.0
     #: the twist-mode controller of a frame standing in position control (travel,
-    #: the other frame's lowering and preload): its loop's crossover; the references'
-    #: gain in the twist mode is this over ``contact.stiffness_n_m`` (m per N s)
+    #: the other frame's lowering and preload): the crossover of its force loop on the
+    #: legs' twist, which sets the twist mode's share of their valve commands
     twist_bandwidth_rad_s: Annotated[Finite, Field(gt=0, le=100)] = 6.0
 
     @property

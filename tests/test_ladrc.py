@@ -211,3 +211,20 @@ def test_b0_from_valve_flow_gain_and_cap_area(project: ProjectConfig) -> None:
     assert cylinder_b0(cyl, hyd) == pytest.approx(kq / (math.pi * 0.08**2))
     assert 0.04 < cylinder_b0(cyl, hyd) < 0.07  # m/s at full command
     assert cylinder_b0(cyl, hyd, order=2) > 10 * cylinder_b0(cyl, hyd)
+
+
+@pytest.mark.parametrize("order", [1, 2])
+@pytest.mark.parametrize("discretization", ["zoh", "euler"])
+def test_apply_feeds_the_observer_the_command_applied(order: int, discretization: str) -> None:
+    """A command set after ``update`` (a modal controller's) leaves the loop as if it had
+    computed that command itself: its observer's next estimate is that of a loop that
+    saturated at it."""
+    free = LADRC(order, 2.0, 5.0, 20.0, 0.01, discretization=discretization)  # type: ignore[arg-type]
+    u = free.update(1.0, 0.0)
+    v = 0.4 * u
+    capped = LADRC(order, 2.0, 5.0, 20.0, 0.01, u_max=v, discretization=discretization)  # type: ignore[arg-type]
+    assert capped.update(1.0, 0.0) == v
+    assert free.apply(v) == v and free.command == v
+    free.update(1.0, 0.01)
+    capped.update(1.0, 0.01)
+    assert free.z == pytest.approx(capped.z, rel=1e-12)  # the same estimate

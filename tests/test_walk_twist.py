@@ -1,6 +1,7 @@
 """The walk's twist-mode controller (ipc_app/control/walk.py, docs/walking.md): a frame
-standing in position control has its references moved in the twist mode only, by a PI
-law whose gains ``walking.twist_bandwidth_rad_s`` sets."""
+standing in position control has its commands set modally, the twist's share by a force
+loop whose crossover ``walking.twist_bandwidth_rad_s`` sets, the rest by the position
+loops, which do not see the twist."""
 
 from __future__ import annotations
 
@@ -25,49 +26,86 @@ def sequencer(bandwidth_rad_s: float | None = None) -> WalkSequencer:
     return WalkSequencer(cfg, PERIOD_S, plan_walk(cfg, 1))
 
 
-def offsets_after(seq: WalkSequencer, twist_n: float, cycles: int) -> np.ndarray:
-    """The sub frame's reference offsets (4,) after ``cycles`` with its legs' forces
-    carrying ``twist_n`` of twist over a twist-free plan."""
+#: the sub frame's position loops' commands: heave and pitch, no twist
+U_POS = np.array([0.02, 0.01, 0.01, 0.02])
+
+
+def commands_after(seq: WalkSequencer, twist_n: float, cycles: int) -> np.ndarray:
+    """The sub frame's valve commands (4,) after ``cycles`` with its legs' forces
+    carrying ``twist_n`` of twist over a twist-free plan, its position loops asking
+    :data:`U_POS`."""
     plan_f = np.full(8, 150e3)
     f = plan_f.copy()
     f[list(SUB)] += twist_n * TWIST
-    refs = np.zeros(seq.n)
+    u = np.zeros(seq.n)
     for _ in range(cycles):
-        refs = np.zeros(seq.n)
-        seq._twist_control(refs, f, plan_f, SUB)
-    return np.array([refs[seq.legs[j]] for j in SUB])
+        u = np.zeros(seq.n)
+        u[[seq.legs[j] for j in SUB]] = U_POS
+        seq._twist_control(u, f, plan_f, SUB)
+    return np.array([u[seq.legs[j]] for j in SUB])
 
 
-def test_a_twist_moves_the_references_against_it_in_the_twist_mode_only() -> None:
+def test_a_twist_drives_the_commands_against_it_in_the_twist_mode_only() -> None:
     seq = sequencer()
     cfg = seq.cfg
     assert cfg.walking is not None
-    n, twist_n = 200, 5e3  # 1 s, 5 kN
-    off = offsets_after(seq, twist_n, n)
-    k = cfg.walking.contact.stiffness_n_m
-    ki = cfg.walking.twist_bandwidth_rad_s / k
-    kp = ki / cfg.control.ladrc.wc_rad_s
-    amplitude = ki * twist_n * n * PERIOD_S + kp * twist_n
-    # legs 1 and 3 (the ones carrying too much) retract, 2 and 4 extend, by the same
-    assert off == pytest.approx(-amplitude * TWIST, rel=1e-9)
-    # nothing in the body's three patterns: the height and the attitude are untouched
+    twist_n = 5e3
+    u = commands_after(seq, twist_n, 1)
+    # the first command of a first-order LADRC started at the measured twist: -wc T / b0,
+    # b0 the force loops' (a leg's stiffness in series with the contact)
+    b0 = float(np.mean([seq.force[seq.legs[j]].b0 for j in SUB]))
+    u_t = -cfg.walking.twist_bandwidth_rad_s * twist_n / b0
+    assert u == pytest.approx(U_POS + u_t * TWIST, rel=1e-9)
+    # legs 1 and 3 (the ones carrying too much) retract against the others
+    assert u_t < 0
+    # the position loops' three patterns (the body's height and attitude) untouched
     pts = seq.machine.legs_xy(0.0)[list(SUB)]
-    assert abs(off.sum()) < 1e-12
-    assert abs(off @ pts[:, 0]) < 1e-12 and abs(off @ pts[:, 1]) < 1e-12
+    d = u - U_POS
+    assert abs(d.sum()) < 1e-12
+    assert abs(d @ pts[:, 1]) < 1e-12 and abs(d @ (pts[:, 0] - pts[:, 0].mean())) < 1e-12
+    # the position loops' observers are told the command applied
+    assert [seq.pos[seq.legs[j]].command for j in SUB] == pytest.approx(u.tolist(), rel=1e-12)
+
+
+def test_the_twist_is_driven_out_and_the_command_rests() -> None:
+    """Closed on a model of the mode (the twist force's rate the loop's ``b0`` times its
+    command): from 5 kN to within 1 % in 1 s at 6 rad/s."""
+    seq = sequencer()
+    b0 = seq.twist.b0
+    plan_f = np.full(8, 150e3)
+    t = 5e3
+    for _ in range(200):
+        f = plan_f.copy()
+        f[list(SUB)] += t * TWIST
+        u = np.zeros(seq.n)
+        seq._twist_control(u, f, plan_f, SUB)
+        u_t = float(TWIST @ u[[seq.legs[j] for j in SUB]]) / 4
+        t += b0 * u_t * PERIOD_S
+    assert abs(t) < 50.0
 
 
 def test_the_bandwidth_key_governs_the_twist_loop() -> None:
-    slow = offsets_after(sequencer(2.0), 5e3, 200)
-    fast = offsets_after(sequencer(4.0), 5e3, 200)
-    assert fast == pytest.approx(2.0 * slow, rel=1e-9)  # both gains scale with the key
+    slow = commands_after(sequencer(2.0), 5e3, 1) - U_POS
+    fast = commands_after(sequencer(4.0), 5e3, 1) - U_POS
+    assert fast == pytest.approx(2.0 * slow, rel=1e-9)  # the first command is -wc T / b0
 
 
-def test_no_twist_no_motion_and_a_frame_in_force_control_is_left_alone() -> None:
+def test_the_position_loops_do_not_see_the_twist_and_a_frame_in_force_control_is_left_alone() -> (
+    None
+):
     seq = sequencer()
-    assert np.all(offsets_after(seq, 0.0, 50) == 0.0)
-    seq = sequencer()
+    assert commands_after(seq, 0.0, 50) == pytest.approx(U_POS, abs=1e-15)
+    x = np.zeros(seq.n)
+    x[[seq.legs[j] for j in SUB]] = [1e-5, 0.0, 0.0, 0.0]  # heave, roll, pitch and twist
+    refs = np.zeros(seq.n)
+    active = set(range(seq.n))
+    assert seq._twist_position(refs, x, SUB, active) == SUB
+    r = np.array([refs[seq.legs[j]] for j in SUB])
+    assert r == pytest.approx(2.5e-6 * TWIST, abs=1e-18)  # the rods' twist, nothing else
     seq.force_mode.add(seq.legs[SUB[0]])
-    assert np.all(offsets_after(seq, 5e3, 50) == 0.0)
+    refs = np.zeros(seq.n)
+    assert seq._twist_position(refs, x, SUB, active) == ()
+    assert np.all(refs == 0.0)
 
 
 def test_the_controlled_frame_by_phase() -> None:

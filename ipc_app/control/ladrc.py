@@ -187,6 +187,17 @@ class LADRC:
         self._u = u
         self._started = True
 
+    def apply(self, command: float) -> float:
+        """The command actually applied this period instead of the latest ``update``'s
+        (a modal controller that sets one mode of several loops' commands itself):
+        saturated, fed to the observer's prediction in its place (the prediction is
+        linear in the command) and taken as the latest command for the rate limit."""
+        u = min(max(float(command), self.u_min), self.u_max)
+        du = u - self._u
+        self._zp = [zp + gm * du for zp, gm in zip(self._zp, self._gamma, strict=True)]
+        self._u = u
+        return u
+
     def update(self, reference: float, measurement: float, reference_rate: float = 0.0) -> float:
         """One sample: read ``measurement``, return the command for this period.
 

@@ -252,12 +252,15 @@ class WalkSequencer:
         self.leg_force_n = np.zeros(8)
         #: force references of the legs in force control this cycle (NaN: not), N
         self.force_ref_n = np.full(8, math.nan)
-        #: the twist-mode controller: reference offsets of a standing frame, m
-        self.twist_offset = np.zeros(8)
-        self.twist_ki_m_per_n_s = self.walk.twist_bandwidth_rad_s / self.k_contact
-        self.twist_kp_m_per_n = self.twist_ki_m_per_n_s / ctl.ladrc.wc_rad_s
+        #: the twist-mode controller of a standing frame: a force loop on its legs'
+        #: twist, the mode's share of their valve commands (:meth:`_twist_control`)
+        b0_f = float(np.mean([self.force[self.legs[j]].b0 for j in SUB]))
+        self.twist = LADRC(
+            1, b0_f, self.walk.twist_bandwidth_rad_s, self.walk.force_wo_rad_s, period_s,
+            rate_limit=ctl.ladrc.rate_limit_per_s,
+        )  # fmt: skip
         self._twist_frame_now: tuple[int, ...] = ()
-        self._twist_int_m = 0.0
+        self._twist_started = False
         #: each leg's last two pressure samples: cap-side force, N, and sample time, s
         self._f_last = np.zeros(8)
         self._f_prev = np.zeros(8)
@@ -327,13 +330,6 @@ class WalkSequencer:
         self.point_cache.clear()
         run = _PhaseRun(k, ph, now, start_x=np.array(x, dtype=float), start_f=f)
         key = ph.key
-        if self._twist_frame(ph) == self._twist_frame_now:
-            # the twist controller goes on: the new references are the measured rods
-            # less its offsets, which it adds again
-            for j in self._twist_frame_now:
-                i = self.legs[j]
-                self.hold_ref[i] -= self.twist_offset[j]
-                run.start_x[i] -= self.twist_offset[j]
         x_s = self.x_s(x)
         if k == 0 or ph.step != self.plan.phases[k - 1].step:
             self.steps.append(StepFigures(ph.step, started_s=now))
@@ -416,6 +412,7 @@ class WalkSequencer:
         f = self.forces_n(p)
         for i, c in self.pos.items():
             c.reset(float(x[i]))
+        self._twist_started = False  # the twist loop too, at the forces now
         for j, i in enumerate(self.legs):
             if i in self.force_mode:
                 self.force[i].reset(float(f[j]))
@@ -583,7 +580,7 @@ class WalkSequencer:
                 finished = lam >= 1.0 and released and abs(ratio - 1.0) <= tol
             overdue = now - run.t0 - self.walk.transfer_timeout_s
             fig.overdue_s = max(0.0, overdue)
-        self._twist_control(refs, f_check, plan_f, self._twist_frame(ph))
+        twist_frame = self._twist_position(refs, x, self._twist_frame(ph), active)
 
         # synchronization of the moving group, its band: hold and continue
         sync = 0.0
@@ -617,6 +614,7 @@ class WalkSequencer:
             u[i] = self.force[i].update(fr, float(f[j]), rate if self.feedforward else 0.0)
             refs[i] = float(x[i])
         self._hold(u, refs, rates, x, active, skip=set(f_ref))
+        self._twist_control(u, f_check, plan_f, twist_frame)
 
         # the figures of the checks
         x_s = self.x_s(x)
@@ -671,36 +669,59 @@ class WalkSequencer:
             return SUB if key in ("7a", "7b") else MAIN
         return ()
 
+    def _twist_position(
+        self, refs: FloatArray, x: FloatArray, frame: tuple[int, ...], active: set[int]
+    ) -> tuple[int, ...]:
+        """The frame whose twist this cycle's :meth:`_twist_control` sets (``()``: none):
+        ``frame`` when its four legs stand in position control in the active group. Its
+        position references take the measured rods' twist: its position loops see no
+        error in that mode (the twist loop's, in force)."""
+        if frame != self._twist_frame_now:
+            self._twist_frame_now = frame
+            self._twist_started = False
+        idx = [self.legs[j] for j in frame]
+        if len(frame) != 4 or any(i in self.force_mode or i not in active for i in idx):
+            self._twist_started = False
+            return ()
+        tw = np.asarray(self._TWIST)
+        refs[idx] += tw * float(tw @ (x[idx] - refs[idx])) / 4
+        return frame
+
     def _twist_control(
-        self, refs: FloatArray, f: FloatArray, plan_f: FloatArray, frame: tuple[int, ...]
+        self, u: FloatArray, f: FloatArray, plan_f: FloatArray, frame: tuple[int, ...]
     ) -> None:
         """The twist-mode controller of a frame standing in position control.
 
-        Four legs standing in position control share the load as their heights make
-        them: three of their four force patterns follow from the body's equilibrium,
-        the fourth, the twist (legs 1 and 3 against 2 and 4, self-equilibrated on the
-        rectangle), only from the heights, which position control does not hold to the
-        micrometre: a twist of 30 um in the rods is 6 kN in the feet
-        (``contact.stiffness_n_m``). The frame's references move in that mode by a PI
-        law on the twist of the legs' forces (``f``, the checks' forces on the body)
-        against the plan's (minimum norm: none): integral gain ``twist_bandwidth_rad_s``,
-        proportional gain that over the position loop's ``control.ladrc.wc_rad_s`` (its
-        zero cancels the position loop's pole, so the twist loop is an integrator with
-        that crossover), both over the contact stiffness (m per N, m per N s). The
-        other three patterns, and so the body's height and attitude, are the position
-        loops'. The state carries over from one phase to the next while the same frame
-        stays controlled (:meth:`_begin`)."""
-        if frame != self._twist_frame_now:
-            self._twist_frame_now, self._twist_int_m = frame, 0.0
-            self.twist_offset[:] = 0.0
-        if len(frame) != 4 or any(self.legs[j] in self.force_mode for j in frame):
+        Four legs standing on four feet are statically indeterminate: three of their
+        four force patterns (heave, roll, pitch) follow from the body's equilibrium, the
+        fourth, the twist (legs 1 and 3 against 2 and 4, ``T = (F1 - F2 + F3 - F4) / 4``,
+        self-equilibrated on the rectangle), only from the legs' heights, where the body
+        does not move: the oil columns and the feet's contacts in series take all of it
+        (30 um of twist in the rods is 6 kN in the feet), and a position loop tuned on the
+        free rod has a quarter of its gain there. So the frame's commands are modal: the
+        position loops (blind to the twist, :meth:`_twist_position`) set heave, roll and
+        pitch, and the twist's share of the four commands is a first-order LADRC on ``T``
+        of the legs' forces (``f``, the checks' forces on the body) against the plan's
+        (minimum norm: none), with the force loops' ``b0`` (the legs' stiffness in series
+        with the contact), crossover ``walking.twist_bandwidth_rad_s`` and the force
+        loops' observer bandwidth ``walking.force_wo_rad_s``. Each position loop's
+        observer is told the command applied (:meth:`LADRC.apply`). The state carries
+        over from one phase to the next while the same frame stays controlled."""
+        if len(frame) != 4:
             return
-        err = sum(w * (f[j] - plan_f[j]) for w, j in zip(self._TWIST, frame, strict=True)) / 4
-        self._twist_int_m += self.twist_ki_m_per_n_s * err * self.period_s
-        amplitude = self._twist_int_m + self.twist_kp_m_per_n * err
-        for w, j in zip(self._TWIST, frame, strict=True):
-            self.twist_offset[j] = -w * amplitude
-            refs[self.legs[j]] += self.twist_offset[j]
+        idx = [self.legs[j] for j in frame]
+        tw = np.asarray(self._TWIST)
+        t_now = float(tw @ f[list(frame)]) / 4
+        t_ref = float(tw @ plan_f[list(frame)]) / 4
+        u_pos = u[idx]
+        u_twist_pos = float(tw @ u_pos) / 4
+        if not self._twist_started:
+            self.twist.reset(t_now, u_twist_pos)
+            self._twist_started = True
+        u_t = self.twist.update(t_ref, t_now)
+        u_all = u_pos + tw * (u_t - u_twist_pos)
+        for k, i in enumerate(idx):
+            u[i] = self.pos[i].apply(float(u_all[k]))
 
     def _residual_share(
         self, x_s: float, share8: FloatArray, f: FloatArray, plan_f: FloatArray, held: list[int]
