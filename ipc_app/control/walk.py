@@ -189,6 +189,8 @@ class WalkSequencer:
     FREE_BAND = 0.1
     #: a rod's Coulomb friction is full above this speed, m/s
     COULOMB_SPEED_M_S = 1e-4
+    #: the transfers whose releasing loops are told their oil columns' decompression
+    DECOMPRESSION_FEEDFORWARD = frozenset({"7c"})
 
     def __init__(self, cfg: ProjectConfig, period_s: float, plan: WalkPlan) -> None:
         if cfg.walking is None or cfg.frames is None:
@@ -591,7 +593,11 @@ class WalkSequencer:
             follow = (f[list(releasing)] - run.start_f[list(releasing)]) / self.k_contact
             tw = np.asarray(self._TWIST)
             follow -= tw * float(tw @ follow) / 4
-            f_dot = run.release_rate_n_s[list(releasing)] * (1.0 if lam < 1.0 else 0.0)
+            # the releasing loops told their oil columns' decompression: in 7c (in phase 4
+            # it changed the state M's touch-downs meet in 7a: at 5 mm/s 7b's trip went
+            # from 110.26 to 110.75 %)
+            on = lam < 1.0 and key in self.DECOMPRESSION_FEEDFORWARD
+            f_dot = run.release_rate_n_s[list(releasing)] * (1.0 if on else 0.0)
             follow_rate = f_dot / self.k_contact
             follow_rate -= tw * float(tw @ follow_rate) / 4
             for k, (j, d) in enumerate(zip(releasing, follow, strict=True)):
