@@ -691,7 +691,7 @@ class Walking(Strict):
     #: a foot not touched down this far below the expected ground: stop (hole, obstacle)
     touchdown_travel_mm: Annotated[Finite, Field(gt=0, le=1000)] = 10.0
     #: lowering speed from touchdown_travel_mm above the expected ground on
-    touchdown_speed_mm_s: Annotated[Finite, Field(gt=0, le=1000)] = 5.0
+    touchdown_speed_mm_s: Annotated[Finite, Field(gt=0, le=1000)] = 2.5
     #: preload or transfer not done within this: stop
     transfer_timeout_s: Annotated[Finite, Field(gt=0, le=600)] = 30.0
     #: a receiving leg off its expected share by more than this at the transfer's end: stop

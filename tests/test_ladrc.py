@@ -228,3 +228,31 @@ def test_apply_feeds_the_observer_the_command_applied(order: int, discretization
     free.update(1.0, 0.01)
     capped.update(1.0, 0.01)
     assert free.z == pytest.approx(capped.z, rel=1e-12)  # the same estimate
+
+
+@pytest.mark.parametrize("order", [1, 2])
+def test_a_known_disturbance_is_rejected_before_the_observer_sees_it(order: int) -> None:
+    """A disturbance ``f`` that switches on (a rod's decompression as its leg unloads):
+    told to the loop as ``known_disturbance``, the observer's model carries it, its last
+    state stays at the unknown rest (none here) and the error stays far below the plain
+    loop's, which has to estimate ``f`` first; 0 leaves the loop as it was."""
+    dt, wc, b0, f = 5e-3, 6.0, 0.05, 2e-3  # 2 mm/s
+    worst = {}
+    for told in (False, True):
+        plant = ChainPlant(order, b0)
+        ctrl = LADRC(order, b0=b0, wc=wc, wo=2 * wc, dt=dt, u_min=-1e3, u_max=1e3)
+        ctrl.reset(0.0)
+        worst[told] = 0.0
+        for k in range(600):
+            plant.f = f if k >= 100 else 0.0
+            u = ctrl.update(0.0, plant.y, 0.0, plant.f if told else 0.0)
+            plant.step(u, dt)
+            worst[told] = max(worst[told], abs(plant.y))
+        assert plant.y == pytest.approx(0.0, abs=1e-4 * f)
+        assert ctrl.z[-1] == pytest.approx(0.0 if told else f, abs=1e-3 * f)
+    assert worst[False] > 0.01 * f  # some 0.1 s of f before the plain loop caught it
+    assert worst[True] < 1e-6 * worst[False]
+    plain, zero = (LADRC(order, b0=b0, wc=wc, wo=2 * wc, dt=dt) for _ in range(2))
+    for k in range(50):
+        y = 1e-3 * math.sin(0.3 * k)
+        assert plain.update(0.01, y, 0.1) == zero.update(0.01, y, 0.1, 0.0)

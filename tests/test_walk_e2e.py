@@ -308,9 +308,9 @@ def test_a_malformed_hmi_walk_request_is_refused_with_its_reason_and_nothing_mov
 
 @pytest.mark.xfail(
     strict=True,
-    reason="known: the shipped 2 m step trips the overload in phase 7c (main_leg_1 at "
-    "111.38 % of its expected share: M's front legs swing about their force ramp while S's "
-    "front legs unload in position control; docs/walking.md)",
+    reason="known: the three shipped 2 m steps complete (no interlock, 6.0023 m, largest "
+    "force ratio 1.086, <= 117.2 s a step), but step 2's transfer changes the workpiece's "
+    "attitude by 0.0105 deg (goal 0.01; docs/walking.md)",
 )
 def test_three_shipped_steps_as_the_user_runs_them() -> None:
     """`wara walk --steps 3 --lockstep --json` with the shipped project (2 m steps): the
@@ -334,12 +334,13 @@ def test_three_shipped_steps_as_the_user_runs_them() -> None:
         assert st["duration_s"] <= 120.0
 
 
-def test_the_shipped_step_preloads_m_below_the_overload() -> None:
-    """The shipped 2 m step through M's touch-down (7a) and preload (7b), lockstep: S
-    stands in position control while M's feet take their preload, its twist held by the
-    twist-mode force loop (docs/walking.md). Measured: the largest force ratio 1.036 in
-    7a, 1.076 in 7b (it tripped at 1.1026 with the twist set through S's position
-    references)."""
+def test_the_shipped_step_completes_below_the_overload() -> None:
+    """The shipped 2 m step, lockstep: through M's touch-down (7a) and preload (7b) S
+    stands in position control, its twist held by the twist-mode force loop; in the
+    transfer to M (7c) S's releasing loops are told their oil columns' decompression
+    (docs/walking.md). Measured: the largest force ratio 1.061 in 7a, 1.067 in 7b, 1.068
+    in 7c (7b tripped at 1.1026 with the twist set through S's position references, 7c at
+    1.1088 with the touch-down at 5 mm/s)."""
     worst: dict[str, float] = {}
 
     def on_cycle(h: Any) -> None:
@@ -352,6 +353,6 @@ def test_the_shipped_step_preloads_m_below_the_overload() -> None:
         worst[key] = max(worst.get(key, 0.0), ratio)
 
     out = run_walk(None, 1, on_cycle=on_cycle)
-    assert "7c" in worst, out["fault_reasons"]  # 7b ended, the transfer began
-    assert not any("phase 7a" in r or "phase 7b" in r for r in out["fault_reasons"])
-    assert worst["7a"] < 1.06 and worst["7b"] < 1.09, worst
+    assert out["passed"] and out["final_mode"] == "COMPLETE", out["fault_reasons"]
+    assert max(worst.values()) < 1.08 and len(worst) == 3, worst
+    assert out["steps"][0]["max_leg_force_ratio"] <= 1.10

@@ -198,10 +198,19 @@ class LADRC:
         self._u = u
         return u
 
-    def update(self, reference: float, measurement: float, reference_rate: float = 0.0) -> float:
+    def update(
+        self,
+        reference: float,
+        measurement: float,
+        reference_rate: float = 0.0,
+        known_disturbance: float = 0.0,
+    ) -> float:
         """One sample: read ``measurement``, return the command for this period.
 
         ``reference_rate``: ``d reference / dt`` (feed-forward; 0: the plain law).
+        ``known_disturbance``: the part of ``f`` known from elsewhere (units of
+        ``y^(n)``, held over the period): the observer's model carries it, so its last
+        state estimates only the rest, and the control law cancels both (0: none).
         """
         if not self._started:
             self.reset(measurement)
@@ -213,10 +222,16 @@ class LADRC:
         now, later = (innovation, 0.0) if self._current else (0.0, innovation)
         if self.order == 1:
             z = [zp[0] + g[0] * now, zp[1] + g[1] * now]
-            u0 = (self.kp * (reference - z[0]) + reference_rate - z[1]) / self.b0
+            f_all = z[1] + known_disturbance
+            u0 = (self.kp * (reference - z[0]) + reference_rate - f_all) / self.b0
         else:
             z = [zp[0] + g[0] * now, zp[1] + g[1] * now, zp[2] + g[2] * now]
-            u0 = (self.kp * (reference - z[0]) + self.kd * (reference_rate - z[1]) - z[2]) / self.b0
+            u0 = (
+                self.kp * (reference - z[0])
+                + self.kd * (reference_rate - z[1])
+                - z[2]
+                - known_disturbance
+            ) / self.b0
         last = self._u
         if u0 > last + self._du_max:
             u0 = last + self._du_max
@@ -230,11 +245,16 @@ class LADRC:
                 phi[0][0] * z[0] + phi[0][1] * z[1] + gamma[0] * u + g[0] * later,
                 phi[1][0] * z[0] + phi[1][1] * z[1] + gamma[1] * u + g[1] * later,
             ]
+            if known_disturbance:
+                nxt[0] += self.dt * known_disturbance
         else:
             nxt = [
                 phi[i][0] * z[0] + phi[i][1] * z[1] + phi[i][2] * z[2] + gamma[i] * u + g[i] * later
                 for i in range(3)
             ]
+            if known_disturbance:
+                nxt[0] += 0.5 * self.dt * self.dt * known_disturbance
+                nxt[1] += self.dt * known_disturbance
         self._z = z
         self._zp = nxt
         self._u = u

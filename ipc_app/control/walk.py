@@ -162,6 +162,13 @@ class _PhaseRun:
     touch_f: list[float] = field(default_factory=list)
     band_since: float | None = None
     standing_share_n: FloatArray = field(default_factory=lambda: np.zeros(8))
+    #: each leg's oil-column stiffness at its rod's position at the phase's start, N/m
+    k_oil_n_m: FloatArray = field(default_factory=lambda: np.full(8, math.inf))
+    #: a transfer's releasing legs: their force rate while the receiving legs ramp, N/s
+    release_rate_n_s: FloatArray = field(default_factory=lambda: np.zeros(8))
+    #: a transfer's plan line starts here (the plan's preload; after a resume, where
+    #: the line stood at the stop) and runs to ``target_f`` with the ramp, N
+    plan_start_f: FloatArray = field(default_factory=lambda: np.zeros(8))
 
 
 class WalkSequencer:
@@ -182,6 +189,8 @@ class WalkSequencer:
     FREE_BAND = 0.1
     #: a rod's Coulomb friction is full above this speed, m/s
     COULOMB_SPEED_M_S = 1e-4
+    #: the transfers whose releasing loops are told their oil columns' decompression
+    DECOMPRESSION_FEEDFORWARD = frozenset({"7c"})
 
     def __init__(self, cfg: ProjectConfig, period_s: float, plan: WalkPlan) -> None:
         if cfg.walking is None or cfg.frames is None:
@@ -354,9 +363,17 @@ class WalkSequencer:
             else:
                 target = self.share(x_s, receiving)
                 run.standing_share_n = self.share(x_s, releasing)
+                for j in releasing:
+                    cyl = self.cfg.cylinders_by_can_index[self.legs[j]]
+                    plant = cyl.plant or self.cfg.hydraulics.cylinder_defaults
+                    pos = float(x[self.legs[j]])
+                    run.k_oil_n_m[j] = hydraulic_stiffness_n_m(cyl, plant, self.cfg.hydraulics, pos)
             run.target_f = target
             delta = max(abs(float(target[j] - f[j])) for j in receiving)
             run.duration_s = delta / self.walk.force_ramp_n_s
+            if key in TRANSFER:
+                run.plan_start_f = ph.leg_forces_n[0].copy()
+                self._set_release_rate(run, x_s, f)
             for j in receiving:
                 i = self.legs[j]
                 if i not in self.force_mode:
@@ -422,10 +439,15 @@ class WalkSequencer:
             # held what they had, the ramp's reference stood where the clock stopped;
             # a loop reset at the one and driven to the other takes the step at once)
             receiving = SUB if run.phase.key in ("3", "4") else MAIN
+            if run.phase.key in TRANSFER:  # the plan's line goes on from where it stood
+                lam = 1.0 if run.duration_s <= 0 else min(1.0, run.tau / run.duration_s)
+                run.plan_start_f = run.plan_start_f + lam * (run.target_f - run.plan_start_f)
             for j in receiving:
                 run.start_f[j] = f[j]
             delta = max(abs(float(run.target_f[j] - f[j])) for j in receiving)
             run.tau, run.duration_s = 0.0, delta / self.walk.force_ramp_n_s
+            if run.phase.key in TRANSFER:
+                self._set_release_rate(run, self.x_s(x), f)
 
     # ----------------------------------------------------------------- the cycle
 
@@ -466,6 +488,7 @@ class WalkSequencer:
         fig.leg_sync_m = fig.travel_sync_m = 0.0
         fig.no_touchdown, fig.overdue_s, fig.share_off = "", 0.0, ("", 1.0)
         f_ref: dict[int, tuple[float, float]] = {}
+        known: dict[int, float] = {}
         moving: list[int] = []
         finished = False
         progress = 1.0 if run.duration_s <= 0 else min(1.0, run.tau / run.duration_s)
@@ -555,14 +578,32 @@ class WalkSequencer:
                 f0, f1 = float(run.start_f[j]), float(run.target_f[j])
                 rate = 0.0 if lam >= 1.0 else (f1 - f0) / run.duration_s
                 f_ref[i] = (f0 + lam * (f1 - f0), rate)
+            if key in TRANSFER:
+                # the plan's force now: its line from the preload to the standing share
+                # at the ramp's progress (the plan's samples end short of the share, at
+                # the releasing legs' unloaded_percent, and the ramp goes on to it)
+                p0 = run.plan_start_f
+                for j in receiving:
+                    plan_f[j] = p0[j] + lam * (float(run.target_f[j]) - p0[j])
             # the body held: follow the feet's unloading, not in the twist mode (there
             # following a force's change would feed it back: the twist controller's)
             follow = (f[list(releasing)] - run.start_f[list(releasing)]) / self.k_contact
             tw = np.asarray(self._TWIST)
             follow -= tw * float(tw @ follow) / 4
-            for j, d in zip(releasing, follow, strict=True):
+            # the releasing loops told their oil columns' decompression: in 7c (in phase 4
+            # it changed the state M's touch-downs meet in 7a: at 5 mm/s 7b's trip went
+            # from 110.26 to 110.75 %)
+            on = lam < 1.0 and key in self.DECOMPRESSION_FEEDFORWARD
+            f_dot = run.release_rate_n_s[list(releasing)] * (1.0 if on else 0.0)
+            follow_rate = f_dot / self.k_contact
+            follow_rate -= tw * float(tw @ follow_rate) / 4
+            for k, (j, d) in enumerate(zip(releasing, follow, strict=True)):
                 i = self.legs[j]
                 refs[i] = run.start_x[i] + float(d)
+                if self.feedforward:
+                    rates[i] = float(follow_rate[k])
+                # the rod moves by its oil column's decompression as the leg unloads
+                known[i] = -float(f_dot[k]) / float(run.k_oil_n_m[j])
             band = self.leg_band
             tf = run.target_f
             if key in PRELOAD:
@@ -613,7 +654,7 @@ class WalkSequencer:
             self.force_ref_n[j] = fr
             u[i] = self.force[i].update(fr, float(f[j]), rate if self.feedforward else 0.0)
             refs[i] = float(x[i])
-        self._hold(u, refs, rates, x, active, skip=set(f_ref))
+        self._hold(u, refs, rates, x, active, skip=set(f_ref), known=known)
         self._twist_control(u, f_check, plan_f, twist_frame)
 
         # the figures of the checks
@@ -722,6 +763,22 @@ class WalkSequencer:
         u_all = u_pos + tw * (u_t - u_twist_pos)
         for k, i in enumerate(idx):
             u[i] = self.pos[i].apply(float(u_all[k]))
+
+    def _set_release_rate(self, run: _PhaseRun, x_s: float, f: FloatArray) -> None:
+        """A transfer's releasing legs' force rates (``run.release_rate_n_s``, N/s) while
+        the receiving legs' references ramp from ``f`` to ``run.target_f``: the body's
+        equilibrium (heave, roll, pitch) with the load constant, minimum norm over the
+        releasing legs (no twist)."""
+        receiving = SUB if run.phase.key == "4" else MAIN
+        rec, rel = list(receiving), list(MAIN if receiving is SUB else SUB)
+        run.release_rate_n_s = np.zeros(8)
+        if run.duration_s <= 0:
+            return
+        ramp = (run.target_f - f) / run.duration_s
+        pts = self.machine.legs_xy(x_s)
+        a = np.vstack([np.ones(8), pts[:, 1], -pts[:, 0]])
+        a_r = a[:, rel]
+        run.release_rate_n_s[rel] = -a_r.T @ np.linalg.solve(a_r @ a_r.T, a[:, rec] @ ramp[rec])
 
     def _residual_share(
         self, x_s: float, share8: FloatArray, f: FloatArray, plan_f: FloatArray, held: list[int]
@@ -851,14 +908,17 @@ class WalkSequencer:
         x: FloatArray,
         active: set[int],
         skip: set[int] | None = None,
+        known: dict[int, float] | None = None,
     ) -> None:
         """Position control of every walk cylinder not in force control: LADRC in the
-        active group, the slow proportional hold outside it."""
+        active group, the slow proportional hold outside it. ``known``: a rod speed the
+        loop is told of (its oil column's decompression, m/s; :meth:`_set_release_rate`)."""
         for i in self.walk_cylinders:
             if skip and i in skip:
                 continue
             if i in active:
-                u[i] = self.pos[i].update(float(refs[i]), float(x[i]), float(rates[i]))
+                d = known.get(i, 0.0) if known else 0.0
+                u[i] = self.pos[i].update(float(refs[i]), float(x[i]), float(rates[i]), d)
             else:
                 e = float(refs[i] - x[i])
                 u[i] = max(-1.0, min(1.0, self.SLOW_HOLD_RAD_S * e / self.b0[i]))

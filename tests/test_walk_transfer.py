@@ -1,0 +1,117 @@
+"""A transfer's control and checks (ipc_app/control/walk.py, docs/walking.md): the
+releasing legs' position loops are told the decompression of their oil columns, the
+receiving legs are judged against the plan's line to their standing share."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from config import load_project
+from config.derived import hydraulic_stiffness_n_m
+from ipc_app.control.walk import MAIN, SUB, WalkSequencer
+from ipc_app.planner.walk import plan_walk
+
+PERIOD_S = 0.005
+TWIST = np.array([1.0, -1.0, 1.0, -1.0])
+
+
+def in_transfer(key: str = "7c") -> tuple[WalkSequencer, np.ndarray, np.ndarray]:
+    cfg = load_project(None)
+    seq = WalkSequencer(cfg, PERIOD_S, plan_walk(cfg, 1))
+    k = next(i for i, ph in enumerate(seq.plan.phases) if ph.key == key)
+    x = seq.half.copy()
+    p = np.zeros((seq.n, 2))
+    p[seq.legs, 0] = 5e6
+    seq.start(0.0, x, p)
+    seq._begin(k, 1.0, x, p)
+    return seq, x, p
+
+
+@pytest.mark.parametrize("key", ["4", "7c"])
+def test_the_releasing_legs_rates_keep_the_body_in_equilibrium_without_twist(key: str) -> None:
+    seq, x, p = in_transfer(key)
+    run = seq.run
+    assert run is not None and run.phase.key == key
+    receiving, releasing = (SUB, MAIN) if key == "4" else (MAIN, SUB)
+    f = seq.forces_n(p)
+    ramp = np.zeros(8)
+    ramp[list(receiving)] = (run.target_f - f)[list(receiving)] / run.duration_s
+    rate = run.release_rate_n_s
+    assert np.all(rate[list(receiving)] == 0.0)
+    pts = seq.machine.legs_xy(seq.x_s(x))
+    a = np.vstack([np.ones(8), pts[:, 1], -pts[:, 0]])
+    total = ramp + rate
+    assert np.abs(a @ total).max() < 1e-6 * np.abs(ramp).max() * 3  # heave, roll, pitch
+    assert abs(TWIST @ rate[list(releasing)]) < 1e-6 * np.abs(rate).max()
+    assert np.all(rate[list(releasing)] < 0.0)  # they unload, each one
+
+
+@pytest.mark.parametrize("key", ["4", "7c"])
+def test_the_releasing_loops_are_told_their_oil_columns_decompression(key: str) -> None:
+    """In 7c; not in phase 4 (docs/walking.md: there it changed what 7a meets)."""
+    seq, x, p = in_transfer(key)
+    run = seq.run
+    assert run is not None
+    releasing = MAIN if key == "4" else SUB
+    told: dict[int, float] = {}
+    for j in releasing:
+        i = seq.legs[j]
+        ctrl = seq.pos[i]
+
+        def spy(
+            r: float, y: float, rate: float = 0.0, d: float = 0.0, i: int = i, real=ctrl.update
+        ) -> float:
+            told[i] = d
+            return float(real(r, y, rate, d))
+
+        ctrl.update = spy  # type: ignore[method-assign]
+    seq.update(1.0 + PERIOD_S, x, p, set(range(seq.n)))
+    cfg = seq.cfg
+    if key == "4":
+        assert all(told[seq.legs[j]] == 0.0 for j in releasing)
+        return
+    for j in releasing:
+        i = seq.legs[j]
+        cyl = cfg.cylinders_by_can_index[i]
+        plant = cyl.plant or cfg.hydraulics.cylinder_defaults
+        k_oil = hydraulic_stiffness_n_m(cyl, plant, cfg.hydraulics, float(x[i]))
+        # unloading (rate < 0): the rod extends by what its oil column decompresses
+        assert told[i] == pytest.approx(-run.release_rate_n_s[j] / k_oil, rel=1e-12)
+        assert told[i] > 0.0
+
+
+def test_a_receiving_leg_is_judged_against_the_plans_line_to_its_standing_share() -> None:
+    seq, x, p = in_transfer("7c")
+    run = seq.run
+    assert run is not None
+    p0 = run.phase.leg_forces_n[0]
+    assert np.allclose(run.plan_start_f, p0)
+    run.tau = 0.5 * run.duration_s
+    seq.update(2.0, x, p, set(range(seq.n)))
+    line = p0 + 0.5 * (run.target_f - p0)
+    share8 = seq._share8(float(run.phase.x_s_m[0]))
+    for j in MAIN:
+        assert seq.figures.expected_n[j] == pytest.approx(max(line[j], share8[j]), rel=1e-12)
+    # the plan's own samples end short of the share, where the releasing legs are at
+    # unloaded_percent: the line goes on with the ramp, to the share itself
+    end = run.phase.leg_forces_n[-1]
+    assert np.all(end[list(MAIN)] < run.target_f[list(MAIN)])
+
+
+def test_after_a_resume_the_line_goes_on_from_where_it_stood() -> None:
+    seq, x, p = in_transfer("7c")
+    run = seq.run
+    assert run is not None
+    p0 = run.plan_start_f.copy()
+    run.tau = 0.5 * run.duration_s
+    p[seq.legs[MAIN[0]], 0] = 6e6
+    seq.resume(x, p)
+    assert run.tau == 0.0
+    assert np.allclose(run.plan_start_f, p0 + 0.5 * (run.target_f - p0))
+    f = seq.forces_n(p)
+    ramp = np.zeros(8)
+    ramp[list(MAIN)] = (run.target_f - f)[list(MAIN)] / run.duration_s
+    pts = seq.machine.legs_xy(seq.x_s(x))
+    a = np.vstack([np.ones(8), pts[:, 1], -pts[:, 0]])
+    assert np.abs(a @ (ramp + run.release_rate_n_s)).max() < 1e-3
