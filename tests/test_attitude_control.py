@@ -4,19 +4,31 @@ linked groups synchronized, and leaves every other valve closed."""
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import numpy as np
 import pytest
 
 from config import ProjectConfig
 from hil_sim.hydraulics import CylinderBank, CylinderParams
 from ipc_app.control.attitude import AttitudeController
-from ipc_app.planner import plan
+from ipc_app.planner import Plan, plan
 
 
-def _follow_example_1(project: ProjectConfig) -> tuple[float, float, float]:
-    """(worst sync error after 1 s, worst tracking error, final error) in m."""
-    p = plan(project, 2.0, 1.0)
-    assert p.feasible and p.trajectory is not None
+class _Rig(NamedTuple):
+    """The controller and the standalone rods of both layers, at rest at mid-stroke in
+    equilibrium with the plan's loads; ``x``: the 19 measurements the controller reads."""
+
+    ac: AttitudeController
+    idx: list[int]
+    bank: CylinderBank
+    loads: np.ndarray
+    x0: np.ndarray
+    x: np.ndarray
+    steps: int
+
+
+def _at_rest(project: ProjectConfig, p: Plan) -> _Rig:
     period = project.control.period_s
     ac = AttitudeController(project, period)
     idx = ac.layers["lower"] + ac.layers["upper"]
@@ -28,8 +40,16 @@ def _follow_example_1(project: ProjectConfig) -> tuple[float, float, float]:
     x = np.zeros(len(project.cylinders))
     x[:] = ac.half_stroke
     x[idx] = bank.x_m
+    return _Rig(ac, idx, bank, loads, x0, x, round(period / bank.step_s))
+
+
+def _follow_example_1(project: ProjectConfig) -> tuple[float, float, float]:
+    """(worst sync error after 1 s, worst tracking error, final error) in m."""
+    p = plan(project, 2.0, 1.0)
+    assert p.feasible and p.trajectory is not None
+    period = project.control.period_s
+    ac, idx, bank, loads, _x0, x, steps = _at_rest(project, p)
     ac.engage(x, 0.0, p.trajectory)
-    steps = round(period / bank.step_s)
     t = 0.0
     worst_sync = worst_tracking = 0.0
     duration = p.trajectory.duration_s
@@ -111,19 +131,8 @@ def _hold_through_a_loss(project: ProjectConfig, warm: bool) -> tuple[float, flo
     data["hydraulics"]["cylinder_defaults"]["internal_leakage_m3_s_pa"] *= 3  # worn seals
     leaky = ProjectConfig.model_validate(data)
     period = leaky.control.period_s
-    ac = AttitudeController(leaky, period)
-    idx = ac.layers["lower"] + ac.layers["upper"]
-    cyls = [leaky.cylinders_by_can_index[i] for i in idx]
-    bank = CylinderBank(CylinderParams.from_config(cyls, leaky.hydraulics), step_s=0.5e-3)
-    p = plan(leaky, 0.0, 0.0)
-    loads = np.concatenate([np.array(p.lower.force_n), np.array(p.upper.force_n)])
-    x0 = np.array([c.stroke_m / 2 for c in cyls])
-    bank.hold_at(x0, loads)
-    x = np.zeros(len(leaky.cylinders))
-    x[:] = ac.half_stroke
-    x[idx] = bank.x_m
+    ac, idx, bank, loads, x0, x, steps = _at_rest(leaky, plan(leaky, 0.0, 0.0))
     ac.engage(x, 0.0, None)
-    steps = round(period / bank.step_s)
     u = np.zeros(len(leaky.cylinders))
     for _ in range(round(6.0 / period)):  # the observers learn the leakage
         x[idx] = bank.x_m
@@ -165,17 +174,8 @@ def _move_through_a_loss(project: ProjectConfig, resume: str) -> float:
     p = plan(project, 2.0, 1.0)
     assert p.feasible and p.trajectory is not None
     period = project.control.period_s
-    ac = AttitudeController(project, period)
-    idx = ac.layers["lower"] + ac.layers["upper"]
-    cyls = [project.cylinders_by_can_index[i] for i in idx]
-    bank = CylinderBank(CylinderParams.from_config(cyls, project.hydraulics), step_s=0.5e-3)
-    loads = np.concatenate([np.array(p.lower.force_n), np.array(p.upper.force_n)])
-    bank.hold_at(np.array([c.stroke_m / 2 for c in cyls]), loads)
-    x = np.zeros(len(project.cylinders))
-    x[:] = ac.half_stroke
-    x[idx] = bank.x_m
+    ac, idx, bank, loads, _x0, x, steps = _at_rest(project, p)
     ac.engage(x, 0.0, p.trajectory)
-    steps = round(period / bank.step_s)
     stop = round(0.5 * p.trajectory.duration_s / period)
     for k in range(stop):
         x[idx] = bank.x_m
