@@ -220,8 +220,7 @@ class WalkSequencer:
             self.pos[i] = LADRC.from_config(ctl.ladrc, float(self.b0[i]), period_s)
         self.k_contact = self.walk.contact.stiffness_n_m
         #: each leg's rod friction (its plant's): Coulomb, N, and viscous, N s/m
-        plants = [(by_index[i], by_index[i].plant or cfg.hydraulics.cylinder_defaults)
-                  for i in self.legs]  # fmt: skip
+        plants = [(by_index[i], cfg.plant_of(by_index[i])) for i in self.legs]
         self.coulomb_n = np.array([pl.coulomb_friction_n for _c, pl in plants])
         self.viscous_n_s_m = np.array(
             [viscous_damping_n_s_m(c, pl, cfg.hydraulics) for c, pl in plants]
@@ -229,8 +228,7 @@ class WalkSequencer:
         self.force: dict[int, LADRC] = {}
         for i in self.legs:
             cyl = by_index[i]
-            plant = cyl.plant or cfg.hydraulics.cylinder_defaults
-            k_h = hydraulic_stiffness_n_m(cyl, plant, cfg.hydraulics)
+            k_h = hydraulic_stiffness_n_m(cyl, cfg.plant_of(cyl), cfg.hydraulics)
             k = 1.0 / (1.0 / k_h + 1.0 / self.k_contact)
             b0 = cylinder_b0(cyl, cfg.hydraulics, order=1) * k
             self.force[i] = LADRC(
@@ -365,9 +363,9 @@ class WalkSequencer:
                 run.standing_share_n = self.share(x_s, releasing)
                 for j in releasing:
                     cyl = self.cfg.cylinders_by_can_index[self.legs[j]]
-                    plant = cyl.plant or self.cfg.hydraulics.cylinder_defaults
-                    pos = float(x[self.legs[j]])
-                    run.k_oil_n_m[j] = hydraulic_stiffness_n_m(cyl, plant, self.cfg.hydraulics, pos)
+                    run.k_oil_n_m[j] = hydraulic_stiffness_n_m(
+                        cyl, self.cfg.plant_of(cyl), self.cfg.hydraulics, float(x[self.legs[j]])
+                    )
             run.target_f = target
             delta = max(abs(float(target[j] - f[j])) for j in receiving)
             run.duration_s = delta / self.walk.force_ramp_n_s
@@ -775,10 +773,20 @@ class WalkSequencer:
         if run.duration_s <= 0:
             return
         ramp = (run.target_f - f) / run.duration_s
+        a = self._equilibrium(x_s)
+        run.release_rate_n_s[rel] = -self._min_norm(a, rel, a[:, rec] @ ramp[rec])
+
+    def _equilibrium(self, x_s: float) -> FloatArray:
+        """(3, 8): what each leg's vertical force adds to the body's vertical force and
+        to its moments about x and y (its position's y and -x)."""
         pts = self.machine.legs_xy(x_s)
-        a = np.vstack([np.ones(8), pts[:, 1], -pts[:, 0]])
-        a_r = a[:, rel]
-        run.release_rate_n_s[rel] = -a_r.T @ np.linalg.solve(a_r @ a_r.T, a[:, rec] @ ramp[rec])
+        return np.vstack([np.ones(8), pts[:, 1], -pts[:, 0]])
+
+    @staticmethod
+    def _min_norm(a: FloatArray, legs: list[int], rhs: FloatArray) -> FloatArray:
+        """The minimum-norm forces of ``legs`` whose sum through ``a`` is ``rhs``."""
+        a_r = a[:, legs]
+        return a_r.T @ np.linalg.solve(a_r @ a_r.T, rhs)
 
     def _residual_share(
         self, x_s: float, share8: FloatArray, f: FloatArray, plan_f: FloatArray, held: list[int]
@@ -787,14 +795,12 @@ class WalkSequencer:
         the other legs leave of the load (the body's equilibrium with their contact
         forces, :meth:`contact_n`); the others the plan's force."""
         others = [j for j in range(8) if j not in held]
-        pts = self.machine.legs_xy(x_s)
-        a = np.vstack([np.ones(8), pts[:, 1], -pts[:, 0]])
+        a = self._equilibrium(x_s)
         rhs = a @ share8  # the load (any equilibrium gives it)
         contact = self.contact_n(f)
         rest = rhs - a[:, others] @ contact[others]
-        a_r = a[:, held]
         out = plan_f.copy()
-        out[held] = a_r.T @ np.linalg.solve(a_r @ a_r.T, rest)
+        out[held] = self._min_norm(a, held, rest)
         return out
 
     def contact_n(self, f: FloatArray) -> FloatArray:
