@@ -115,3 +115,41 @@ def test_after_a_resume_the_line_goes_on_from_where_it_stood() -> None:
     pts = seq.machine.legs_xy(seq.x_s(x))
     a = np.vstack([np.ones(8), pts[:, 1], -pts[:, 0]])
     assert np.abs(a @ (ramp + run.release_rate_n_s)).max() < 1e-3
+
+
+@pytest.mark.parametrize("key", ["4", "7c"])
+def test_the_releasing_references_follow_the_plans_release_not_the_measured_forces(
+    key: str,
+) -> None:
+    """Each releasing reference: its start + (its force at the plan's release rate - its
+    start force) / k_contact; a measured force's swing does not move it (docs/walking.md:
+    following those rang in 7c). After a resume the release goes on from the forces then."""
+    seq, x, p = in_transfer(key)
+    run = seq.run
+    assert run is not None
+    releasing = MAIN if key == "4" else SUB
+    run.tau = 0.4 * run.duration_s
+    p_swing = p.copy()
+    p_swing[seq.legs[releasing[0]], 0] = 4e6  # that leg's force measured 20 % lower
+    for pp in (p, p_swing):
+        seq.update(2.0, x, pp, set(range(seq.n)))
+        refs = seq.last_refs
+        tau = run.tau - PERIOD_S  # the clock went on after the references were set
+        for j in releasing:
+            i = seq.legs[j]
+            follow = run.release_rate_n_s[j] * tau / seq.k_contact
+            assert refs[i] == pytest.approx(x[i] + follow, abs=1e-12)
+        run.tau = 0.4 * run.duration_s
+    seq.resume(x, p_swing)
+    assert np.allclose(run.release_from_f, seq.forces_n(p_swing))
+    seq.update(3.0, x, p_swing, set(range(seq.n)))
+    rel = list(releasing)
+    want = run.release_from_f[rel] - run.start_f[rel]
+    want = (want + run.release_rate_n_s[rel] * (run.tau - PERIOD_S)) / seq.k_contact
+    want -= TWIST * float(TWIST @ want) / 4  # not in the twist mode
+    assert np.allclose(
+        seq.last_refs[[seq.legs[j] for j in rel]],
+        x[[seq.legs[j] for j in rel]] + want,
+        rtol=0,
+        atol=1e-12,
+    )

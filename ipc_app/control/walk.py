@@ -20,9 +20,11 @@ Control (the choices are in docs/walking.md, "The step sequencer"):
   against the invert (oil column in series with the contact), bandwidths
   ``walking.force_wc_rad_s`` and ``force_wo_rad_s``.
 - **The attitude held during transfer**: the releasing frame's legs stay in position
-  control; each reference follows its foot's unloading (``+ (F - F_0) / k_contact``:
-  the foot rises by what its contact decompresses), so the body keeps its height at
-  those legs while the receiving legs' forces ramp up.
+  control; each reference follows its foot's unloading as the plan releases it
+  (``+ (F_plan - F_0) / k_contact``, ``F_plan`` the force at the release rate the body's
+  equilibrium gives with the receiving legs' ramp: the foot rises by what its contact
+  decompresses), so the body keeps its height at those legs while the receiving legs'
+  forces ramp up.
 - Every other walk cylinder holds its position: in the active group (the phase's moving
   and standing legs, the travel pair while it moves) with its group's LADRC; outside it
   (frames at the slow cycle) with a slow proportional hold (:attr:`WalkSequencer.SLOW_HOLD_RAD_S`).
@@ -166,6 +168,9 @@ class _PhaseRun:
     k_oil_n_m: FloatArray = field(default_factory=lambda: np.full(8, math.inf))
     #: a transfer's releasing legs: their force rate while the receiving legs ramp, N/s
     release_rate_n_s: FloatArray = field(default_factory=lambda: np.zeros(8))
+    #: a transfer's releasing legs' forces where their rates start (the phase's start;
+    #: after a resume, the forces then), N
+    release_from_f: FloatArray = field(default_factory=lambda: np.zeros(8))
     #: a transfer's plan line starts here (the plan's preload; after a resume, where
     #: the line stood at the stop) and runs to ``target_f`` with the ramp, N
     plan_start_f: FloatArray = field(default_factory=lambda: np.zeros(8))
@@ -583,9 +588,13 @@ class WalkSequencer:
                 p0 = run.plan_start_f
                 for j in receiving:
                     plan_f[j] = p0[j] + lam * (float(run.target_f[j]) - p0[j])
-            # the body held: follow the feet's unloading, not in the twist mode (there
-            # following a force's change would feed it back: the twist controller's)
-            follow = (f[list(releasing)] - run.start_f[list(releasing)]) / self.k_contact
+            # the body held: follow the feet's unloading as the plan releases them (their
+            # rates from the body's equilibrium, not the measured forces: following those
+            # closes a loop through the receiving legs' force loops that rang in the pitch
+            # pattern, some 1.2 s a period), not in the twist mode
+            rel = list(releasing)
+            released_n = run.release_rate_n_s[rel] * min(run.tau, run.duration_s)
+            follow = (run.release_from_f[rel] + released_n - run.start_f[rel]) / self.k_contact
             tw = np.asarray(self._TWIST)
             follow -= tw * float(tw @ follow) / 4
             # the releasing loops told their oil columns' decompression: in 7c (in phase 4
@@ -770,6 +779,7 @@ class WalkSequencer:
         receiving = SUB if run.phase.key == "4" else MAIN
         rec, rel = list(receiving), list(MAIN if receiving is SUB else SUB)
         run.release_rate_n_s = np.zeros(8)
+        run.release_from_f = np.array(f, dtype=float)
         if run.duration_s <= 0:
             return
         ramp = (run.target_f - f) / run.duration_s
