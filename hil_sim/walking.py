@@ -18,8 +18,12 @@ Model (what :class:`hil_sim.rig.Rig` has, and how this differs)
   ``N = max(0, k pen - c h')`` (``walking.contact``: stiffness ``k``; ``c = 2 zeta
   sqrt(k m_foot)``, the damping ratio of the foot's own mode, ``m_foot`` the foot's inertia
   :attr:`WalkingRig.foot_inertia_kg`); in the air ``N = 0``. The
-  invert is the base plane plus the scenario's ground offsets (a step at a ring joint, a
-  hole), evaluated at the foot's world position.
+  invert is the base plane raised by :attr:`WalkingRig.invert_height_m`, plus the
+  scenario's ground offsets (a step at a ring joint, a hole), evaluated at the foot's
+  world position. ``invert_height_m`` is M's feet's compression in the start state (the
+  machine standing on M with its part, about 0.9 mm): the body starts where the attitude
+  rig's does (``q = 0`` in heave, the rods at mid-stroke: the part at its home pose), so a
+  placement after a walk sets the part where it does without one.
 - Along x each frame is a body of its own: world positions ``X_M`` and ``X_S = X_M +
   x_S``, the simulator's truth. The two travel cylinders join them (rod position ``e_0 +
   x_S``, ``e_0`` mid-stroke; their force pushes S forward and M back) and gravity along
@@ -287,7 +291,9 @@ class WalkingRig(Rig):
         self._n_rig_bodies = len(self._body_m)
         extra_m = [b.mass_kg for b in frames.main.bodies] + [b.mass_kg for b in frames.sub.bodies]
         extra_c = [b.cog_m for b in frames.main.bodies] + [b.cog_m for b in frames.sub.bodies]
-        self._sub_bodies = np.arange(
+        # S's bodies: one slice (moved along the rails every scan; a slice, not an index
+        # array: numpy's fancy indexing costs about three times as much per scan)
+        self._sub_bodies = slice(
             self._n_rig_bodies + len(frames.main.bodies), self._n_rig_bodies + len(extra_m)
         )
         self._body_m = np.concatenate([self._body_m, np.array(extra_m, dtype=np.float64)])
@@ -306,7 +312,10 @@ class WalkingRig(Rig):
         self._k_c = k_c
         self._c_c = 2.0 * walk.contact.damping_ratio * math.sqrt(k_c * self.foot_inertia_kg)
         self._c_t = 2.0 * 0.7 * np.sqrt(self.shear_stiffness_n_m * self._mass_x)
-        self.ground = np.zeros((N_GROUND, 5))
+        # row 0: the invert's height over the whole base plane (set by _settle_walking);
+        # rows 1..N_GROUND: the scenario's offsets
+        self.ground = np.zeros((N_GROUND + 1, 5))
+        self.ground[0, :4] = (-math.inf, math.inf, -math.inf, math.inf)
         self.friction = np.full(2, walk.foot_friction_coefficient)
         self._anchor = np.zeros(2)
         #: distance each frame's feet have slipped while touching (main, sub), m
@@ -352,11 +361,14 @@ class WalkingRig(Rig):
         forces[self._leg_idx[4:]] = f_sub
         forces[self.upper_index] = upper
         forces[self._travel_idx] = -self._mass_x[1] * self.g_base[0] / 2
-        # main feet pressed into the invert by their load; the body plane through them
+        # main feet pressed into the invert by their load; the body plane through them,
+        # the invert raised by that plane's sinking (the body at the rigid rig's height)
+        press = (f_main - self.rod_mass_kg * g_z) / self._k_c
+        self.ground[0, 4] = 0.0
+        self.ground[0, 4] = np.linalg.lstsq(jac[:4], press, rcond=None)[0][0]
         h = np.array(
             [
-                ground_height(self._leg_xy[j, 0], self._leg_xy[j, 1], self.ground)
-                - (f_main[j] - self.rod_mass_kg * g_z) / self._k_c
+                ground_height(self._leg_xy[j, 0], self._leg_xy[j, 1], self.ground) - press[j]
                 for j in range(4)
             ]
         )
@@ -381,9 +393,9 @@ class WalkingRig(Rig):
         """Ground offsets ``(x_from_m, x_to_m, y_from_m, y_to_m, dz_m)`` (world, base frame)."""
         if len(offsets) > N_GROUND:
             raise ValueError(f"at most {N_GROUND} ground offsets at a time, got {len(offsets)}")
-        self.ground[:] = 0.0
+        self.ground[1:] = 0.0
         for k, row in enumerate(offsets):
-            self.ground[k] = row
+            self.ground[1 + k] = row
 
     def set_friction(self, frame: int, coefficient: float | None) -> None:
         """Foot friction of frame 0 (main) or 1 (sub); ``None`` restores the YAML's."""
@@ -418,6 +430,12 @@ class WalkingRig(Rig):
     def world_x_m(self) -> tuple[float, float]:
         """``(X_M, X_S)``: both frames' positions in world x (m), the simulator's truth."""
         return float(self.y[_XW]), float(self.y[_XW + 2])
+
+    @property
+    def invert_height_m(self) -> float:
+        """The invert's height above the base plane, offsets aside (m): M's feet's
+        compression in the start state."""
+        return float(self.ground[0, 4])
 
     @property
     def foot_heights_m(self) -> FloatArray:

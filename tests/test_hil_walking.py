@@ -39,10 +39,15 @@ def test_start_state_is_main_frame_standing_sub_frame_lifted(project: ProjectCon
     assert forces[:4].sum() == pytest.approx(weight_n(rig), rel=1e-4)
     assert np.all(forces[:4] > 100e3)
     assert np.all(forces[4:] == 0.0)
-    assert heights[4:] == pytest.approx(np.full(4, project.walking.clearance_m), abs=2e-3)
-    # pressed into the invert by load / stiffness (about 0.9 mm)
-    pen = -heights[:4]
+    invert = rig.invert_height_m
+    assert heights[4:] == pytest.approx(np.full(4, invert + project.walking.clearance_m), abs=5e-4)
+    # pressed into the invert by load / stiffness (about 0.9 mm), the invert raised by as
+    # much: the body where the rigid rig's is, the part at its home pose
+    pen = invert - heights[:4]
     assert pen == pytest.approx(forces[:4] / project.walking.contact.stiffness_n_m, rel=1e-3)
+    assert invert == pytest.approx(pen.mean(), rel=1e-4)
+    assert 0.5e-3 < invert < 1.5e-3
+    assert rig.q[0] == pytest.approx(0.0, abs=1e-6)  # the body at the rigid rig's height
     x_m, x_s = rig.world_x_m
     assert x_m == pytest.approx(0.0, abs=1e-4)
     assert rig.x_s_m == pytest.approx(-project.walking.step_length_m / 2, abs=1e-3)

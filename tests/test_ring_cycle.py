@@ -308,4 +308,7 @@ def test_a_cycle_that_walks_goes_to_the_ring_and_back(tmp_path: Path) -> None:
     assert out["error"] is None, out["error"]
     (row,) = out["rings"]
     assert row["phase_times_s"]["walk"] > 10 and row["phase_times_s"]["walk_back"] > 10
+    # placed after a walk as without one: at its target height, not by the feet's
+    # compression (0.9 mm) below it
+    assert abs(row["error_from_target"]["z_mm"]) < 0.1
     assert out["passed"]
