@@ -502,8 +502,8 @@ class WalkSequencer:
         if key in TRAVEL:
             move = Move(ph.end_m[0] - (float(np.mean(run.start_x[self.travel])) - self.e0),
                         *self._travel_move())  # fmt: skip
-            s = float(move.position(np.array([run.tau]))[0])
-            s1 = float(move.position(np.array([run.tau + dt]))[0])
+            s = move.position_at(run.tau)
+            s1 = move.position_at(run.tau + dt)
             for i in self.travel:
                 refs[i] = run.start_x[i] + s
                 rates[i] = (s1 - s) / dt if self.feedforward else 0.0
@@ -519,8 +519,8 @@ class WalkSequencer:
                 s, v = self._lowering(run.tau)
             else:
                 move = Move(-self.walk.clearance_m, self.leg_v, self.leg_a)
-                s = float(move.position(np.array([run.tau]))[0])
-                s1 = float(move.position(np.array([run.tau + dt]))[0])
+                s = move.position_at(run.tau)
+                s1 = move.position_at(run.tau + dt)
                 v = (s1 - s) / dt
             for k, j in enumerate(frame):
                 i = self.legs[j]
@@ -595,7 +595,7 @@ class WalkSequencer:
             rel = list(releasing)
             released_n = run.release_rate_n_s[rel] * min(run.tau, run.duration_s)
             follow = (run.release_from_f[rel] + released_n - run.start_f[rel]) / self.k_contact
-            tw = np.asarray(self._TWIST)
+            tw = self._TWIST_A
             follow -= tw * float(tw @ follow) / 4
             # the releasing loops told their oil columns' decompression: in 7c (in phase 4
             # it changed the state M's touch-downs meet in 7a: at 5 mm/s 7b's trip went
@@ -705,6 +705,7 @@ class WalkSequencer:
 
     #: the twist mode of four legs at (s_i a, t_i b): legs 1 and 3 against 2 and 4
     _TWIST = (1.0, -1.0, 1.0, -1.0)
+    _TWIST_A = np.array(_TWIST)
 
     def _twist_frame(self, ph: Phase) -> tuple[int, ...]:
         """The frame whose twist mode is controlled in phase ``ph``: the one that stands
@@ -731,7 +732,7 @@ class WalkSequencer:
         if len(frame) != 4 or any(i in self.force_mode or i not in active for i in idx):
             self._twist_started = False
             return ()
-        tw = np.asarray(self._TWIST)
+        tw = self._TWIST_A
         refs[idx] += tw * float(tw @ (x[idx] - refs[idx])) / 4
         return frame
 
@@ -758,7 +759,7 @@ class WalkSequencer:
         if len(frame) != 4:
             return
         idx = [self.legs[j] for j in frame]
-        tw = np.asarray(self._TWIST)
+        tw = self._TWIST_A
         t_now = float(tw @ f[list(frame)]) / 4
         t_ref = float(tw @ plan_f[list(frame)]) / 4
         u_pos = u[idx]
@@ -911,8 +912,8 @@ class WalkSequencer:
         above the expected ground, then the touch-down speed to as far below it."""
         fast = Move(self.walk.clearance_m - self.td_travel, self.leg_v, self.leg_a)
         if tau < fast.duration_s:
-            s = float(fast.position(np.array([tau]))[0])
-            s1 = float(fast.position(np.array([tau + self.period_s]))[0])
+            s = fast.position_at(tau)
+            s1 = fast.position_at(tau + self.period_s)
             return s, (s1 - s) / self.period_s
         return fast.distance_m + self.td_speed * (tau - fast.duration_s), self.td_speed
 

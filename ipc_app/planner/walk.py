@@ -109,6 +109,22 @@ class Move:
         )
         return np.asarray(math.copysign(1.0, self.distance_m) * s, dtype=np.float64)
 
+    def position_at(self, t: float) -> float:
+        """:meth:`position` at one instant, in scalar arithmetic (the same operations)."""
+        d, T = abs(self.distance_m), self.duration_s
+        if T == 0.0:
+            return 0.0
+        v = min(self.v_max, math.sqrt(d * self.a_max))
+        ta = v / self.a_max
+        t = min(max(t, 0.0), T)
+        if t < ta:
+            s = 0.5 * self.a_max * (t * t)
+        elif t <= T - ta:
+            s = 0.5 * self.a_max * ta**2 + v * (t - ta)
+        else:
+            s = d - 0.5 * self.a_max * ((T - t) * (T - t))
+        return math.copysign(1.0, self.distance_m) * s
+
 
 @dataclass(frozen=True)
 class Violation:
