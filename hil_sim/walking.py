@@ -364,7 +364,6 @@ class WalkingRig(Rig):
         # main feet pressed into the invert by their load; the body plane through them,
         # the invert raised by that plane's sinking (the body at the rigid rig's height)
         press = (f_main - self.rod_mass_kg * g_z) / self._k_c
-        self.ground[0, 4] = 0.0
         self.ground[0, 4] = np.linalg.lstsq(jac[:4], press, rcond=None)[0][0]
         h = np.array(
             [

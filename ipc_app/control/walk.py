@@ -595,7 +595,7 @@ class WalkSequencer:
             rel = list(releasing)
             released_n = run.release_rate_n_s[rel] * min(run.tau, run.duration_s)
             follow = (run.release_from_f[rel] + released_n - run.start_f[rel]) / self.k_contact
-            tw = self._TWIST_A
+            tw = self._TWIST
             follow -= tw * float(tw @ follow) / 4
             # the releasing loops told their oil columns' decompression: in 7c (in phase 4
             # it changed the state M's touch-downs meet in 7a: at 5 mm/s 7b's trip went
@@ -704,8 +704,7 @@ class WalkSequencer:
         return u
 
     #: the twist mode of four legs at (s_i a, t_i b): legs 1 and 3 against 2 and 4
-    _TWIST = (1.0, -1.0, 1.0, -1.0)
-    _TWIST_A = np.array(_TWIST)
+    _TWIST = np.array((1.0, -1.0, 1.0, -1.0))
 
     def _twist_frame(self, ph: Phase) -> tuple[int, ...]:
         """The frame whose twist mode is controlled in phase ``ph``: the one that stands
@@ -732,7 +731,7 @@ class WalkSequencer:
         if len(frame) != 4 or any(i in self.force_mode or i not in active for i in idx):
             self._twist_started = False
             return ()
-        tw = self._TWIST_A
+        tw = self._TWIST
         refs[idx] += tw * float(tw @ (x[idx] - refs[idx])) / 4
         return frame
 
@@ -759,7 +758,7 @@ class WalkSequencer:
         if len(frame) != 4:
             return
         idx = [self.legs[j] for j in frame]
-        tw = self._TWIST_A
+        tw = self._TWIST
         t_now = float(tw @ f[list(frame)]) / 4
         t_ref = float(tw @ plan_f[list(frame)]) / 4
         u_pos = u[idx]

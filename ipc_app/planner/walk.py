@@ -90,13 +90,18 @@ class Move:
             return 2.0 * math.sqrt(d / self.a_max)
         return d / self.v_max + self.v_max / self.a_max
 
+    def _profile(self) -> tuple[float, float, float, float]:
+        """``(d, T, v, t_a)``: the distance's size, the duration, the cruise speed and the
+        acceleration time."""
+        d, T = abs(self.distance_m), self.duration_s
+        v = min(self.v_max, math.sqrt(d * self.a_max))
+        return d, T, v, v / self.a_max
+
     def position(self, t: Array) -> Array:
         """Distance covered at ``t`` (signed like ``distance_m``)."""
-        d, T = abs(self.distance_m), self.duration_s
+        d, T, v, ta = self._profile()
         if T == 0.0:
             return np.zeros_like(t)
-        v = min(self.v_max, math.sqrt(d * self.a_max))
-        ta = v / self.a_max
         t = np.clip(t, 0.0, T)
         s = np.where(
             t < ta,
@@ -111,11 +116,9 @@ class Move:
 
     def position_at(self, t: float) -> float:
         """:meth:`position` at one instant, in scalar arithmetic (the same operations)."""
-        d, T = abs(self.distance_m), self.duration_s
+        d, T, v, ta = self._profile()
         if T == 0.0:
             return 0.0
-        v = min(self.v_max, math.sqrt(d * self.a_max))
-        ta = v / self.a_max
         t = min(max(t, 0.0), T)
         if t < ta:
             s = 0.5 * self.a_max * (t * t)
