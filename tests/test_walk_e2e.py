@@ -180,6 +180,24 @@ def test_stop_and_resume_mid_phase(tmp_path: Path) -> None:
     assert abs(out["distance_m"] - 0.2) <= 0.005
 
 
+def test_a_link_loss_while_travelling_is_ridden_through(tmp_path: Path) -> None:
+    """Both directions of the wire stalled for 60 ms while the travel pair moves at full
+    speed (phase 1): the service suspends, the PLC hears nothing and the pair coasts on
+    its last command (about 3 mm past where the service stopped it); once the frames are
+    fresh the walk's resume check passes (the travel pair's coasting allowance: the
+    travel speed times the PLC's command timeout, plus the height tolerance) and the same
+    phase goes on. The generic check (every rod within the 2 mm sync band of its stop
+    reference) latched this (`travel_1 2.78 mm`) in a real-time walk."""
+    stall = {"kind": "wire_stall", "start_s": 3.0, "end_s": 3.06, "direction": "both"}
+    out, evs = walk(tmp_path, project(tmp_path), {"events": [stall]})
+    assert out["final_mode"] == "COMPLETE", out["fault_reasons"]
+    kinds = [e["kind"] for e in evs]
+    assert kinds.count("suspended") >= 1 and kinds.count("resumed") == kinds.count("suspended")
+    phases = [e["phase"] for e in evs if e["kind"] == "walk_phase"]
+    assert phases.count("1") == 1
+    assert abs(out["distance_m"] - 0.2) <= 0.005
+
+
 def test_resume_refused_when_a_leg_sank_while_stopped(tmp_path: Path) -> None:
     state: dict[str, Any] = {}
 

@@ -106,15 +106,32 @@ def test_resume_check_heights_and_forces(lim: WalkLimits) -> None:
     x = [0.4] * 19
     f = [100e3] * 8
     share = [90e3] * 8
-    assert walk_resume_cause(x, x, range(14), ids, f, f, share, LEGS, lim) is None
+    assert walk_resume_cause(x, x, range(14), (), ids, f, f, share, LEGS, lim) is None
     moved = list(x)
     moved[3] += lim.resume_height_m * 1.5
-    c = walk_resume_cause(moved, x, range(14), ids, f, f, share, LEGS, lim)
+    c = walk_resume_cause(moved, x, range(14), (), ids, f, f, share, LEGS, lim)
     assert c is not None and c.interlock is Interlock.WALK_RESUME and c.where == "c3"
     f2 = list(f)
     f2[6] += 0.2 * 90e3
-    c = walk_resume_cause(x, x, range(14), ids, f2, f, share, LEGS, lim)
+    c = walk_resume_cause(x, x, range(14), (), ids, f2, f, share, LEGS, lim)
     assert c is not None and c.where == "sub_leg_3"
+
+
+def test_resume_check_allows_the_travel_pair_its_coasting(lim: WalkLimits) -> None:
+    """The shipped allowance: 50 mm/s for the 100 ms command timeout plus 1 mm."""
+    assert lim.resume_travel_m == pytest.approx(0.006)
+    ids = tuple(f"c{i}" for i in range(19))
+    x = [0.4] * 19
+    f = [100e3] * 8
+    share = [90e3] * 8
+    coasted = list(x)
+    coasted[14] += 0.9 * lim.resume_travel_m  # a travel rod ran on into the stop
+    assert walk_resume_cause(coasted, x, range(14), (14, 15), ids, f, f, share, LEGS, lim) is None
+    # the same distance on a leg is refused: heights keep their tolerance
+    assert walk_resume_cause(coasted, x, range(15), (), ids, f, f, share, LEGS, lim) is not None
+    coasted[15] = x[15] - 1.1 * lim.resume_travel_m
+    c = walk_resume_cause(coasted, x, range(14), (14, 15), ids, f, f, share, LEGS, lim)
+    assert c is not None and c.where == "c15" and c.limit == pytest.approx(6.0)
 
 
 def test_ctl_walk_request_is_checked() -> None:

@@ -237,6 +237,8 @@ class ServiceCore:
         self.walk_limits = WalkLimits.from_config(cfg) if cfg.walking is not None else None
         self._walk_phase = -1
         self._walk_stop: tuple[np.ndarray, np.ndarray] | None = None
+        #: the rods and pressures of the walk's last driven cycle (its stop state)
+        self._walk_driven: tuple[np.ndarray, np.ndarray] | None = None
         self._attitude_limits = self.limits
         # the placement move: its sequencer while one runs (and holds after it)
         self.placer: PlacementSequencer | None = None
@@ -369,9 +371,6 @@ class ServiceCore:
         out = self.modes.hold()
         if out.accepted:
             self._stopped_here(inp.t)
-            if self.walker is not None:
-                self._walk_stop = (inp.positions.value.copy(), self.walker.forces_n(
-                    inp.pressures.value))  # fmt: skip
         return out.to_dict()
 
     def _do_unhold(self, inp: MachineInputs) -> dict[str, Any]:
@@ -577,6 +576,7 @@ class ServiceCore:
         walker.start(inp.t, inp.positions.value, inp.pressures.value)
         self.walker = walker
         self._walk_phase = -1
+        self._walk_driven = self._walk_stop = None
         self.motion = MotionStats(started_s=inp.t)
         self._walk_group(inp.t)
         if self.record is not None:
@@ -628,6 +628,7 @@ class ServiceCore:
             return
         self.walker = None
         self._walk_phase = -1
+        self._walk_driven = self._walk_stop = None
         self._attitude_group()
 
     def _walk_resume_cause(self, inp: MachineInputs) -> Cause | None:
@@ -638,9 +639,9 @@ class ServiceCore:
         x_stop, f_stop = self._walk_stop
         x = inp.positions.value
         share = w.figures.expected_n or tuple([1.0] * 8)
-        heights = w.legs + w.upper  # the travel pair's clock goes on from where it stood
+        heights = w.legs + w.upper
         return walk_resume_cause(
-            x.tolist(), x_stop.tolist(), heights, self.limits.ids,
+            x.tolist(), x_stop.tolist(), heights, w.travel, self.limits.ids,
             w.forces_n(inp.pressures.value).tolist(), f_stop.tolist(), share, w.leg_ids, lim,
         )  # fmt: skip
 
@@ -1154,6 +1155,7 @@ class ServiceCore:
         was_done = walker.done
         band_was = walker.figures.out_of_band
         u = walker.update(now, x, p, set(self.limits.active), inp.pressures.age_s)
+        self._walk_driven = (x, p)
         band = walker.figures.out_of_band
         if band != band_was and self.record is not None:  # the sync band: hold, go on
             fig = walker.figures
@@ -1210,8 +1212,13 @@ class ServiceCore:
         self._fresh_cycles += 1
         if self._fresh_cycles < self.RESUME_FRESH_CYCLES:
             return
-        stop_ref = self._stop_ref.tolist() if self._stop_ref is not None else None
-        cause = resume_cause(inp, stop_ref, self.limits)
+        if self.walker is not None:  # walking.md's resume check, as after a hold
+            cause = self._walk_resume_cause(inp)
+            if cause is None and not bool(inp.pressures.valid[list(self.limits.active)].all()):
+                cause = Cause(Interlock.RESUME_CHECK, where="pressures", detail="not valid")
+        else:
+            stop_ref = self._stop_ref.tolist() if self._stop_ref is not None else None
+            cause = resume_cause(inp, stop_ref, self.limits)
         if cause is not None:
             self.modes.fault(cause)
         else:
@@ -1229,7 +1236,15 @@ class ServiceCore:
             self.record.event(now, "suspended", reason=reason, from_mode=str(mode))
 
     def _stopped_here(self, now: float) -> None:
-        """A motion stops (suspended or held): where the references were, and when."""
+        """A motion stops (suspended or held): where the references were, and when; in a
+        walk, where the rods stood and the legs' forces in its last driven cycle (the
+        walk's resume check compares with them)."""
+        if self.walker is not None:
+            driven = self._walk_driven
+            if driven is None and self._inputs is not None:  # stopped before its first
+                driven = (self._inputs.positions.value, self._inputs.pressures.value)
+            if driven is not None:
+                self._walk_stop = (driven[0].copy(), self.walker.forces_n(driven[1]))
         ref = self.attitude.last_references if self.walker is None else self.walker.last_refs
         if self.placer is not None and self.placer.last_refs is not None:
             ref = self.placer.last_refs

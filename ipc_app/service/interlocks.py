@@ -151,7 +151,8 @@ SPECS: dict[Interlock, Spec] = {
         Applies.SUSPENDED,
         "mm",
         "fresh frames are back, but an active rod is further than the limit from where "
-        "the motion stopped, or an active pressure is not valid",
+        "the motion stopped, or an active pressure is not valid (in a walk: the walk resume "
+        "check instead)",
     ),
     Interlock.PLANNER: Spec(
         "planner.request_timeout_s",
@@ -224,10 +225,12 @@ SPECS: dict[Interlock, Spec] = {
         "walking.resume_height_tolerance_mm",
         Applies.WALK,
         "",
-        "resume (unhold) of a stopped walk: a leg or upper cylinder moved more than the "
-        "tolerance, or a leg's force changed more than `walking.resume_force_tolerance_percent` "
-        "of its share, "
-        "since the stop: refused, `wara ctl stop` and a new walk re-plan from the measured state",
+        "resume of a stopped walk (unhold, or the end of a suspension): a leg or upper "
+        "cylinder moved more than the tolerance, a travel rod more than its coasting allowance "
+        "(`walking.travel_speed_mm_s` times `safety.command_timeout_ms`, plus the tolerance), "
+        "or a leg's force changed more than `walking.resume_force_tolerance_percent` of its "
+        "share, since the stop: the unhold refused (after a suspension: stop, latched); "
+        "`wara ctl stop` and a new walk re-plan from the measured state",
     ),
 }
 

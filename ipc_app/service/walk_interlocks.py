@@ -40,6 +40,10 @@ class WalkLimits:
     min_margin_m: float
     share_tolerance: float
     resume_height_m: float
+    #: how far a travel rod may stand from where it stopped when the walk resumes: it
+    #: coasts on its last command until the PLC closes the valves, at most the travel
+    #: speed times ``safety.command_timeout_ms``, plus the height tolerance
+    resume_travel_m: float
     resume_force: float
     touchdown_travel_mm: float
 
@@ -55,6 +59,8 @@ class WalkLimits:
             min_margin_m=w.min_stability_margin_m,
             share_tolerance=w.share_tolerance_percent / 100.0,
             resume_height_m=units.mm(w.resume_height_tolerance_mm),
+            resume_travel_m=units.mm(w.resume_height_tolerance_mm)
+            + w.travel_speed_m_s * units.ms(cfg.safety.command_timeout_ms),
             resume_force=w.resume_force_tolerance_percent / 100.0,
             touchdown_travel_mm=w.touchdown_travel_mm,
         )
@@ -144,6 +150,7 @@ def walk_resume_cause(
     x_now: Sequence[float],
     x_stop: Sequence[float],
     cylinders: Sequence[int],
+    travel: Sequence[int],
     ids: Sequence[str],
     f_now: Sequence[float],
     f_stop: Sequence[float],
@@ -151,18 +158,21 @@ def walk_resume_cause(
     leg_ids: Sequence[str],
     lim: WalkLimits,
 ) -> Cause | None:
-    """Resume of a stopped walk: every walk cylinder within the height tolerance of where
-    it stopped, every leg's force within the force tolerance (of its share); else why not."""
-    for i in cylinders:
-        dev = abs(x_now[i] - x_stop[i])
-        if not dev <= lim.resume_height_m:
-            return Cause(
-                Interlock.WALK_RESUME,
-                where=ids[i],
-                value=units.to_mm(dev),
-                limit=units.to_mm(lim.resume_height_m),
-                detail="mm moved since the stop",
-            )
+    """Resume of a stopped walk: every height cylinder (``cylinders``: legs, upper
+    platform) within the height tolerance of where it stopped, each travel rod within
+    its coasting allowance (:attr:`WalkLimits.resume_travel_m`), every leg's force
+    within the force tolerance (of its share); else why not."""
+    for group, tol in ((cylinders, lim.resume_height_m), (travel, lim.resume_travel_m)):
+        for i in group:
+            dev = abs(x_now[i] - x_stop[i])
+            if not dev <= tol:  # NaN too
+                return Cause(
+                    Interlock.WALK_RESUME,
+                    where=ids[i],
+                    value=units.to_mm(dev),
+                    limit=units.to_mm(tol),
+                    detail="mm moved since the stop",
+                )
     for j, cid in enumerate(leg_ids):
         dev = abs(f_now[j] - f_stop[j])
         if not dev <= lim.resume_force * share_n[j]:
