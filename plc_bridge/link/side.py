@@ -159,7 +159,9 @@ class LinkSide:
         #: ``_period`` outside that scan sets it back to -inf.
         self._wake = -math.inf
         #: No received message can go stale before this, nor turn fresh without a frame
-        #: accepted (which sets it back to -inf, as a change of the timeouts does):
+        #: accepted (which sets it back to -inf when its record was not fresh, as a
+        #: change of the timeouts does; a frame accepted on a fresh record only moves
+        #: that record's own edge later, so the time stays a bound):
         #: :meth:`_check_timeouts` skips its records until then.
         self._stale_check_at = -math.inf
         self.rx_outcomes: Counter[str] = Counter()
@@ -388,7 +390,8 @@ class LinkSide:
                 lost_before = rec.lost_frames
                 outcome = rec.on_frame(msg.data, now)
                 if outcome == "accepted":
-                    self._stale_check_at = -math.inf
+                    if not rec.was_fresh:  # it may turn fresh: walk the records again
+                        self._stale_check_at = -math.inf
                     self.bus_health.on_frame_ok()
                     if rec.lost_frames != lost_before:
                         self._last_fault = now
