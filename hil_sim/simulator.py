@@ -212,6 +212,7 @@ class HilSimulator:
         self._cmd_version = 0
         self._u_key: tuple[Any, ...] = ()
         self._u = np.zeros(N_CYLINDERS)
+        self._logic_inputs: tuple[Any, ...] = ()
 
     # ----------------------------------------------------------------- set-up
 
@@ -354,7 +355,7 @@ class HilSimulator:
             frames = self.plc.poll(t)
         self._logic(t, frames)
         if self._deferred_readings:
-            self.plc.defer_readings(None)  # this scan's readings, or none
+            self.plc.defer_readings(None, None)  # this scan's readings, or none
         self.rig.advance(self.steps_per_cycle)
         self._k += 1
         self.t_s = self._k * self.cycle_s
@@ -463,7 +464,7 @@ class HilSimulator:
         if self._deferred_readings:
             self._pos_noise = self._pos_sensor.next_noise()
             self._press_noise = self._press_sensor.next_noise()
-            self.plc.defer_readings(self._take_readings)
+            self.plc.defer_readings(self._take_positions, self._take_pressures)
         else:
             faults = self._sensor_faults
             new_pos = k % self._pos_every == 0
@@ -483,13 +484,16 @@ class HilSimulator:
             self._limits = key
             self.plc.set_limit_switches(self._retracted, self._extended)
 
-    def _take_readings(self) -> None:
-        """This scan's readings, deferred by :meth:`_sample` until a frame needs them."""
-        rig = self.rig
-        self._pos_reading = self._pos_sensor.quantize(rig.x_view, self._pos_noise)
-        press = self._press_sensor.quantize(rig.pressure_view, self._press_noise)
+    def _take_positions(self) -> None:
+        """This scan's positions, deferred by :meth:`_sample` until a frame needs them."""
+        self._pos_reading = self._pos_sensor.quantize(self.rig.x_view, self._pos_noise)
+        self.plc.set_positions_m(self._pos_reading)
+
+    def _take_pressures(self) -> None:
+        """This scan's pressures, deferred by :meth:`_sample` until a frame needs them."""
+        press = self._press_sensor.quantize(self.rig.pressure_view, self._press_noise)
         self._press_reading = press.reshape(2, N_CYLINDERS).T
-        self._hand_over([])
+        self.plc.set_pressures_pa(self._press_reading)
 
     def _hand_over(self, faults: list[int]) -> None:
         """Readings with the sensor faults applied, to the link."""
@@ -539,6 +543,25 @@ class HilSimulator:
             self._cmd_version += 1
         self._fresh_scan = timeout
         ctl = self._ctl
+        # The rest is a function of these inputs and of the latched fault and the
+        # engaged flag it updates: with all of them as at the last scan it would give
+        # the same outputs and state again (most scans: no frame, no timeout edge).
+        inputs = (
+            ctl,
+            timeout,
+            lost,
+            estop,
+            ignore,
+            self._cmd_version,
+            self._limits,
+            self._active_version,
+            self._sensor_fault,
+            self._latched,
+            self._engaged,
+        )
+        if inputs == self._logic_inputs:
+            return
+        self._logic_inputs = inputs
         if estop:
             self._latched = Fault.ESTOP
         elif self._engaged and lost:
