@@ -86,7 +86,15 @@ def run_walk(
     if not directions or any(d not in DIRECTIONS for d in directions):
         raise ValueError(f"directions must be of {', '.join(DIRECTIONS)}, got {directions!r}")
     say = progress or (lambda _s: None)
-    h = Harness(cfg, config_path, mode=mode, scenario=walk_scenario(scenario), record=record)
+    # the walk keeps its own trace (WalkTrace), not the harness's attitude plots
+    h = Harness(
+        cfg,
+        config_path,
+        mode=mode,
+        scenario=walk_scenario(scenario),
+        record=record,
+        trace=False,
+    )
     trace = WalkTrace()
     truths: list[_StepTruth] = []
     walkers: list[WalkSequencer] = []

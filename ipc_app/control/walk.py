@@ -224,11 +224,17 @@ class WalkSequencer:
             self.b0[i] = cylinder_b0(cyl, cfg.hydraulics, order=ctl.ladrc.order)
             self.pos[i] = LADRC.from_config(ctl.ladrc, float(self.b0[i]), period_s)
         self.k_contact = self.walk.contact.stiffness_n_m
+        self._legs_arr = np.array(self.legs, dtype=np.intp)
+        self._cap_legs = self.cap[self._legs_arr]
+        self._rod_legs = self.rod[self._legs_arr]
         #: each leg's rod friction (its plant's): Coulomb, N, and viscous, N s/m
         plants = [(by_index[i], cfg.plant_of(by_index[i])) for i in self.legs]
         self.coulomb_n = np.array([pl.coulomb_friction_n for _c, pl in plants])
         self.viscous_n_s_m = np.array(
             [viscous_damping_n_s_m(c, pl, cfg.hydraulics) for c, pl in plants]
+        )
+        self._friction = list(
+            zip(self.coulomb_n.tolist(), self.viscous_n_s_m.tolist(), strict=True)
         )
         self.force: dict[int, LADRC] = {}
         for i in self.legs:
@@ -246,12 +252,16 @@ class WalkSequencer:
         self.leg_band = units.mm(self.walk.leg_sync_band_mm)
         self.travel_band = units.mm(self.walk.travel_sync_band_mm)
         self.touch_pa = units.mpa(self.walk.touch_mpa)
+        #: a leg's cap-side force above this is a foot touching (walking.touch_mpa), N
+        self._touch_n = [float(v) for v in self.touch_pa * self._cap_legs]
         self.td_travel = units.mm(self.walk.touchdown_travel_mm)
         self.td_speed = units.mm(self.walk.touchdown_speed_mm_s)
         traj = cfg.planner.trajectory
         self.leg_v, self.leg_a = traj.max_rod_speed_m_s, traj.max_rod_accel_m_s2
         self.machine = WalkingMachine(cfg, unloaded=plan.unloaded)
         self.point_cache: dict[int, tuple[float, FloatArray]] = {}
+        #: the parts of :meth:`_residual_share` that stay while S and the legs held do
+        self._residual_parts: tuple[Any, ...] | None = None
         self.hold_ref = np.zeros(self.n)
         self.force_mode: set[int] = set()
         self.run: _PhaseRun | None = None
@@ -274,10 +284,10 @@ class WalkSequencer:
         self._twist_frame_now: tuple[int, ...] = ()
         self._twist_started = False
         #: each leg's last two pressure samples: cap-side force, N, and sample time, s
-        self._f_last = np.zeros(8)
-        self._f_prev = np.zeros(8)
-        self._t_last = np.full(8, -math.inf)
-        self._t_prev = np.full(8, -math.inf)
+        self._f_last = [0.0] * 8
+        self._f_prev = [0.0] * 8
+        self._t_last = [-math.inf] * 8
+        self._t_prev = [-math.inf] * 8
         #: the legs' last rod positions over :attr:`MOTION_WINDOW_S` (a ring), m
         self._x_hist = np.zeros((max(2, round(self.MOTION_WINDOW_S / period_s) + 1), 8))
         self._x_k = 0
@@ -286,12 +296,16 @@ class WalkSequencer:
 
     def forces_n(self, p: FloatArray) -> FloatArray:
         """Cap-side force of each leg (8,), N: ``p_A A_A - p_B A_B``."""
-        idx = self.legs
-        return np.asarray(p[idx, 0] * self.cap[idx] - p[idx, 1] * self.rod[idx])
+        idx = self._legs_arr
+        return np.asarray(p[idx, 0] * self._cap_legs - p[idx, 1] * self._rod_legs)
 
     def x_s(self, x: FloatArray) -> float:
-        """S's position along the rails, measured: the travel pair's mean less ``e_0``."""
-        return float(np.mean(x[self.travel])) - self.e0
+        """S's position along the rails, measured: the travel pair's mean less ``e_0``
+        (summed in order and divided, as ``np.mean`` of so few values does)."""
+        total = 0.0
+        for i in self.travel:
+            total += float(x[i])
+        return total / len(self.travel) - self.e0
 
     def set_upper(self, x: FloatArray) -> None:
         """The upper platform's attitude fixes the workpiece's COG: from its rods."""
@@ -300,6 +314,7 @@ class WalkSequencer:
         self.machine = WalkingMachine(
             self.cfg, float(fit.roll), float(fit.pitch), self.plan.unloaded
         )
+        self._residual_parts = None
 
     def share(self, x_s: float, legs: tuple[int, ...]) -> FloatArray:
         """Expected forces (8,) with ``legs`` standing (minimum norm), N."""
@@ -666,17 +681,20 @@ class WalkSequencer:
 
         # the figures of the checks
         x_s = self.x_s(x)
-        touching = tuple(j for j in range(8) if f[j] > self.touch_pa * self.cap[self.legs[j]])
+        fl = f.tolist()
+        touch = self._touch_n
+        touching = tuple(j for j in range(8) if fl[j] > touch[j])
         fig.margin_m = self.margin(x_s, touching) if len(touching) >= 3 else -math.inf
         standing = self._frame(ph.standing, self.leg_ids)
         idx_t = self.travel
         fig.travel_force_n = float(
             np.sum(p[idx_t, 0] * self.cap[idx_t] - p[idx_t, 1] * self.rod[idx_t])
         )
-        fig.friction_capacity_n = self.walk.foot_friction_coefficient * float(
-            sum(max(0.0, f[j]) for j in standing)
-        )
-        x_s_now = self.x_s(x) if key in TRAVEL else float(ph.x_s_m[0])
+        capacity = 0  # summed in order, as sum() of the standing legs' forces
+        for j in standing:
+            capacity += max(0.0, fl[j])
+        fig.friction_capacity_n = self.walk.foot_friction_coefficient * float(capacity)
+        x_s_now = x_s if key in TRAVEL else float(ph.x_s_m[0])
         share8 = self._share8(x_s_now)
         if key in PRELOAD or key in TRANSFER:
             held = list(MAIN if key in ("3", "4") else SUB)
@@ -804,13 +822,23 @@ class WalkSequencer:
         """Expected forces: a leg held in position carries its minimum-norm share of what
         the other legs leave of the load (the body's equilibrium with their contact
         forces, :meth:`contact_n`); the others the plan's force."""
-        others = [j for j in range(8) if j not in held]
-        a = self._equilibrium(x_s)
-        rhs = a @ share8  # the load (any equilibrium gives it)
+        key = (x_s, tuple(held))
+        c = self._residual_parts
+        if c is None or c[0] != key or c[1] is not share8:
+            # what depends on the legs' positions and the load alone: once while they
+            # stay (every cycle of a phase but a travel), computed as each cycle did
+            others = [j for j in range(8) if j not in held]
+            a = self._equilibrium(x_s)
+            a_r = a[:, held]
+            # (key, share8, the load (any equilibrium gives it), others, a's columns
+            # of the others, of the held legs, and the held legs' normal matrix)
+            c = (key, share8, a @ share8, others, a[:, others], a_r, a_r @ a_r.T)
+            self._residual_parts = c
+        _key, _share8, rhs, others, a_o, a_r, normal = c
         contact = self.contact_n(f)
-        rest = rhs - a[:, others] @ contact[others]
+        rest = rhs - a_o @ contact[others]
         out = plan_f.copy()
-        out[held] = self._min_norm(a, held, rest)
+        out[held] = a_r.T @ np.linalg.solve(normal, rest)  # _min_norm, its parts kept
         return out
 
     def contact_n(self, f: FloatArray) -> FloatArray:
@@ -851,18 +879,19 @@ class WalkSequencer:
         positive): its plant's Coulomb friction (full above :attr:`COULOMB_SPEED_M_S`)
         and viscous damping (``config.derived.viscous_damping_n_s_m``) at the rod's speed
         over :attr:`MOTION_WINDOW_S`. The pressures carry it on top of what the leg
-        puts on the body."""
-        v = np.array([self._rod_speed(j) for j in range(8)])
-        coulomb = self.coulomb_n * np.clip(v / self.COULOMB_SPEED_M_S, -1.0, 1.0)
-        return np.asarray(coulomb + self.viscous_n_s_m * v)
-
-    def _rod_speed(self, j: int) -> float:
-        """Leg ``j``'s rod speed (extending positive) over the last
-        :attr:`MOTION_WINDOW_S`, m/s, from its measured positions."""
+        puts on the body. On plain floats, element by element as numpy would."""
         n = self._x_hist.shape[0]
-        newest = self._x_hist[(self._x_k - 1) % n, j]
-        oldest = self._x_hist[self._x_k % n, j]
-        return float(newest - oldest) / ((n - 1) * self.period_s)
+        newest = self._x_hist[(self._x_k - 1) % n].tolist()
+        oldest = self._x_hist[self._x_k % n].tolist()
+        span = (n - 1) * self.period_s
+        c_speed = self.COULOMB_SPEED_M_S
+        out = [0.0] * 8
+        for j, (coulomb, viscous) in enumerate(self._friction):
+            v = (newest[j] - oldest[j]) / span
+            c = v / c_speed
+            c = -1.0 if c < -1.0 else (1.0 if c > 1.0 else c)
+            out[j] = coulomb * c + viscous * v
+        return np.array(out)
 
     def aligned_forces_n(self, now: float, f: FloatArray, age_s: FloatArray | None) -> FloatArray:
         """The legs' cap-side forces (8,) at one instant, N, for the checks.
@@ -875,28 +904,31 @@ class WalkSequencer:
         while S stands, every leg within 2 % of its share in the simulator's truth).
         So each leg's force is taken at the instant of the oldest latest sample: a leg
         sampled since is interpolated between its last two samples. Constant work: eight
-        legs, two samples each."""
+        legs, two samples each, on plain floats."""
         if age_s is None:
             return f
-        ts = now - np.asarray(age_s, dtype=float)[self.legs]
-        for j in range(8):
-            if not math.isfinite(ts[j]):
+        ages = np.asarray(age_s, dtype=float).tolist()
+        fs = f.tolist()
+        t_last, t_prev = self._t_last, self._t_prev
+        f_last, f_prev = self._f_last, self._f_prev
+        for j, i in enumerate(self.legs):
+            t = now - ages[i]
+            if not math.isfinite(t):
                 continue
-            if ts[j] > self._t_last[j] + 1e-9:
-                self._f_prev[j], self._t_prev[j] = self._f_last[j], self._t_last[j]
-                self._t_last[j] = ts[j]
-            self._f_last[j] = f[j]
-        known = self._t_last[np.isfinite(self._t_last)]
-        if known.size == 0:
+            if t > t_last[j] + 1e-9:
+                f_prev[j], t_prev[j] = f_last[j], t_last[j]
+                t_last[j] = t
+            f_last[j] = fs[j]
+        known = [t for t in t_last if math.isfinite(t)]
+        if not known:
             return f
-        t_c = float(known.min())
-        out = np.array(f, dtype=float)
+        t_c = min(known)
         for j in range(8):
-            t1, t0 = self._t_last[j], self._t_prev[j]
+            t1, t0 = t_last[j], t_prev[j]
             if math.isfinite(t0) and t1 > t_c and t1 > t0:
                 w = min(1.0, max(0.0, (t_c - t0) / (t1 - t0)))
-                out[j] = self._f_prev[j] + w * (self._f_last[j] - self._f_prev[j])
-        return out
+                fs[j] = f_prev[j] + w * (f_last[j] - f_prev[j])
+        return np.array(fs)
 
     def _share8(self, x_s: float) -> FloatArray:
         key = round(x_s * 1e3)  # per mm (the cache is emptied at each phase's start)

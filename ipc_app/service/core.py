@@ -1150,8 +1150,11 @@ class ServiceCore:
         u = np.zeros(len(self.cfg.cylinders))
         if not (self.modes.valves_enabled and inp.positions_valid):
             return u, None
-        x = np.nan_to_num(inp.positions.value, nan=0.0)
-        p = np.nan_to_num(inp.pressures.value, nan=0.0)
+        # a value not usable (NaN) as 0.0; without one the readings as they are (the
+        # walk never writes to them)
+        pos, press = inp.positions, inp.pressures
+        x = pos.value if pos.valid.all() else np.nan_to_num(pos.value, nan=0.0)
+        p = press.value if press.valid.all() else np.nan_to_num(press.value, nan=0.0)
         was_done = walker.done
         band_was = walker.figures.out_of_band
         u = walker.update(now, x, p, set(self.limits.active), inp.pressures.age_s)
