@@ -59,6 +59,7 @@ from config.hil_scenario import (
 )
 from config.schema import N_CYLINDERS, ProjectConfig
 from config.stall import StallTrace
+from hil_sim._jit import jit
 from hil_sim.rig import LayerTruth, Rig
 from hil_sim.sensors import PositionTransducer, PressureTransducer
 from hil_sim.walking import WalkingRig
@@ -200,7 +201,9 @@ class HilSimulator:
         self._fresh_scan = True
         self._status_key: tuple[Any, ...] = ()
         self._sensor_fault = False
-        self._limits: tuple[bytes, bytes] = (b"", b"")
+        #: the limit switches as (retracted, extended) bit masks by can_index
+        self._limits: tuple[int, int] = (-1, -1)
+        self._bit = np.arange(N_CYLINDERS)
         self._stalled = False
         self._retracted = np.zeros(N_CYLINDERS, dtype=bool)
         self._extended = np.zeros(N_CYLINDERS, dtype=bool)
@@ -476,12 +479,11 @@ class HilSimulator:
                 self._press_reading = self._press_sensor.read(p).reshape(2, N_CYLINDERS).T
             if faults or new_pos or new_press or self._sensor_fault:
                 self._hand_over(faults)
-        x = rig.x_view
-        self._retracted = x <= self._limit_m
-        self._extended = x >= self._extended_at
-        key = (self._retracted.tobytes(), self._extended.tobytes())
-        if key != self._limits:
-            self._limits = key
+        bits = _limit_switch_bits(rig.x_view, self._limit_m, self._extended_at)
+        if bits != self._limits:
+            self._limits = bits
+            self._retracted = (bits[0] >> self._bit) & 1 == 1
+            self._extended = (bits[1] >> self._bit) & 1 == 1
             self.plc.set_limit_switches(self._retracted, self._extended)
 
     def _take_positions(self) -> None:
@@ -669,6 +671,23 @@ class HilSimulator:
 
     def close(self) -> None:
         self.plc.close()
+
+
+@jit
+def _limit_switch_bits(
+    x: FloatArray, retracted_at: float, extended_at: FloatArray
+) -> tuple[int, int]:
+    """The rods at their retracted and at their extended limit switches, as bit masks
+    (bit i: ``can_index`` i): ``x <= retracted_at``, ``x >= extended_at``. Compiled: the
+    PLC reads its switches every scan, and they change a few times in a run."""
+    retracted = 0
+    extended = 0
+    for i in range(x.shape[0]):
+        if x[i] <= retracted_at:
+            retracted |= 1 << i
+        if x[i] >= extended_at[i]:
+            extended |= 1 << i
+    return retracted, extended
 
 
 def _is_active(ev: Any, t: float) -> bool:
