@@ -153,6 +153,8 @@ class _PhaseRun:
     t0: float  #: machine time it started
     tau: float = 0.0  #: its reference clock
     start_x: FloatArray = field(default_factory=lambda: np.zeros(0))
+    #: a travel phase's move of the pair (from ``start_x``), made at its first cycle
+    travel_move: Move | None = None
     start_f: FloatArray = field(default_factory=lambda: np.zeros(0))
     target_f: FloatArray = field(default_factory=lambda: np.zeros(0))
     duration_s: float = 0.0
@@ -515,8 +517,12 @@ class WalkSequencer:
         k1 = min(k0 + 1, len(ph.leg_forces_n) - 1)
         plan_f = ph.leg_forces_n[k0] * (1 - (kk - k0)) + ph.leg_forces_n[k1] * (kk - k0)
         if key in TRAVEL:
-            move = Move(ph.end_m[0] - (float(np.mean(run.start_x[self.travel])) - self.e0),
-                        *self._travel_move())  # fmt: skip
+            move = run.travel_move
+            if move is None:  # from the phase's start to its end: the same every cycle
+                move = run.travel_move = Move(
+                    ph.end_m[0] - (float(np.mean(run.start_x[self.travel])) - self.e0),
+                    *self._travel_move(),
+                )
             s = move.position_at(run.tau)
             s1 = move.position_at(run.tau + dt)
             for i in self.travel:
