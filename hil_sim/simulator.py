@@ -174,7 +174,6 @@ class HilSimulator:
             and self._press_every == 1
             and not any(isinstance(ev, SensorFault) for ev in self.scenario.events)
         )
-        self._pos_noise = self._press_noise = np.zeros(0)
         self._stroke = self.rig.params.stroke_m.copy()
         self._limit_m = plant.limit_switch_m
         self._extended_at = self._stroke - self._limit_m
@@ -465,8 +464,8 @@ class HilSimulator:
     def _sample(self, k: int) -> None:
         rig = self.rig
         if self._deferred_readings:
-            self._pos_noise = self._pos_sensor.next_noise()
-            self._press_noise = self._press_sensor.next_noise()
+            self._pos_sensor.skip()  # the noise only if a frame takes the reading
+            self._press_sensor.skip()
             self.plc.defer_readings(self._take_positions, self._take_pressures)
         else:
             faults = self._sensor_faults
@@ -488,12 +487,14 @@ class HilSimulator:
 
     def _take_positions(self) -> None:
         """This scan's positions, deferred by :meth:`_sample` until a frame needs them."""
-        self._pos_reading = self._pos_sensor.quantize(self.rig.x_view, self._pos_noise)
+        sensor = self._pos_sensor
+        self._pos_reading = sensor.quantize(self.rig.x_view, sensor.last_noise())
         self.plc.set_positions_m(self._pos_reading)
 
     def _take_pressures(self) -> None:
         """This scan's pressures, deferred by :meth:`_sample` until a frame needs them."""
-        press = self._press_sensor.quantize(self.rig.pressure_view, self._press_noise)
+        sensor = self._press_sensor
+        press = sensor.quantize(self.rig.pressure_view, sensor.last_noise())
         self._press_reading = press.reshape(2, N_CYLINDERS).T
         self.plc.set_pressures_pa(self._press_reading)
 
