@@ -30,6 +30,7 @@ class Transducer:
         self._rng = np.random.default_rng(seed)
         self._inv_res = 1.0 / resolution if resolution > 0 else 0.0
         self._block: FloatArray = np.zeros((0, n))
+        self._block_len = 0  # rows of _block
         self._next = 0
 
     def read(self, true_value: FloatArray) -> FloatArray:
@@ -45,8 +46,9 @@ class Transducer:
     def skip(self) -> None:
         """Move the stream on by one sample without making its noise (:meth:`last_noise`
         gives it if its reading is taken after all)."""
-        if self._next >= self._block.shape[0]:
+        if self._next >= self._block_len:
             self._block = self._rng.standard_normal((_BLOCK, self.n)) * self.noise_rms
+            self._block_len = _BLOCK
             self._next = 0
         self._next += 1
 

@@ -276,7 +276,8 @@ class LinkSide:
             ):
                 vals[vlo:vhi] = v[: vhi - vlo]
         val = np.array(vals)
-        val *= si_per_unit  # DBC unit -> SI, factor from config.units
+        if si_per_unit != 1.0:  # (times 1.0 changes no value: the valve commands)
+            val *= si_per_unit  # DBC unit -> SI, factor from config.units
         if width > 1:
             val = val.reshape(N_CYLINDERS, width)
         return Reading(value=val, valid=val == val, age_s=np.array(ages))  # == : not NaN
