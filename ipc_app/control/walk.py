@@ -226,6 +226,7 @@ class WalkSequencer:
             self.b0[i] = cylinder_b0(cyl, cfg.hydraulics, order=ctl.ladrc.order)
             self.pos[i] = LADRC.from_config(ctl.ladrc, float(self.b0[i]), period_s)
         self.k_contact = self.walk.contact.stiffness_n_m
+        self._travel_areas = [(i, float(self.cap[i]), float(self.rod[i])) for i in self.travel]
         self._legs_arr = np.array(self.legs, dtype=np.intp)
         self._cap_legs = self.cap[self._legs_arr]
         self._rod_legs = self.rod[self._legs_arr]
@@ -300,6 +301,14 @@ class WalkSequencer:
         """Cap-side force of each leg (8,), N: ``p_A A_A - p_B A_B``."""
         idx = self._legs_arr
         return np.asarray(p[idx, 0] * self._cap_legs - p[idx, 1] * self._rod_legs)
+
+    def _travel_force_n(self, p: FloatArray) -> float:
+        """Both travel rods' cap-side force, N (``p_A A_A - p_B A_B`` summed: a pair, so
+        the sum is the one ``np.sum`` gives)."""
+        total = 0.0
+        for i, cap, rod in self._travel_areas:
+            total += float(p[i, 0]) * cap - float(p[i, 1]) * rod
+        return total
 
     def x_s(self, x: FloatArray) -> float:
         """S's position along the rails, measured: the travel pair's mean less ``e_0``
@@ -692,10 +701,7 @@ class WalkSequencer:
         touching = tuple(j for j in range(8) if fl[j] > touch[j])
         fig.margin_m = self.margin(x_s, touching) if len(touching) >= 3 else -math.inf
         standing = self._frame(ph.standing, self.leg_ids)
-        idx_t = self.travel
-        fig.travel_force_n = float(
-            np.sum(p[idx_t, 0] * self.cap[idx_t] - p[idx_t, 1] * self.rod[idx_t])
-        )
+        fig.travel_force_n = self._travel_force_n(p)
         capacity = 0  # summed in order, as sum() of the standing legs' forces
         for j in standing:
             capacity += max(0.0, fl[j])
@@ -813,8 +819,15 @@ class WalkSequencer:
     def _equilibrium(self, x_s: float) -> FloatArray:
         """(3, 8): what each leg's vertical force adds to the body's vertical force and
         to its moments about x and y (its position's y and -x)."""
-        pts = self.machine.legs_xy(x_s)
-        return np.vstack([np.ones(8), pts[:, 1], -pts[:, 0]])
+        m = self.machine
+        a = np.empty((3, 8))
+        a[0] = 1.0
+        # WalkingMachine.legs_xy(x_s) written out: S's legs shifted by (x_s, 0)
+        a[1, :4] = m.main_legs_xy[:, 1]
+        a[1, 4:] = m.sub_legs_xy[:, 1] + 0.0
+        a[2, :4] = -m.main_legs_xy[:, 0]
+        a[2, 4:] = -(m.sub_legs_xy[:, 0] + x_s)
+        return a
 
     @staticmethod
     def _min_norm(a: FloatArray, legs: list[int], rhs: FloatArray) -> FloatArray:
