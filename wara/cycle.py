@@ -278,7 +278,9 @@ def run_cycle(
     out: dict[str, Any] = {"passed": False, "refused": None, "error": None, "rings": []}
     # the walking rig (feet on the invert) only when the cycle walks
     scenario = walk_scenario() if cfg.cycle.walk_steps > 0 else None
-    h = Harness(cfg, config_path, mode=mode, record=record, seed=seed, scenario=scenario)
+    h = Harness(  # no attitude trace: the cycle plots none
+        cfg, config_path, mode=mode, record=record, seed=seed, scenario=scenario, trace=False
+    )
     rng = np.random.default_rng(seed)
     cyc: _Cycle | None = None
     try:
