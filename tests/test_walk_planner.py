@@ -15,7 +15,12 @@ import yaml
 from config import ProjectConfig, default_project_path
 from ipc_app.model import rod_forces
 from ipc_app.model.kinematics import Vec
-from ipc_app.model.support import WalkingMachine, stability_margin, support_forces
+from ipc_app.model.support import (
+    WalkingMachine,
+    stability_margin,
+    standing_load,
+    support_forces,
+)
 from ipc_app.planner.walk import ORDER, PHASES, Move, WalkStart, plan_walk
 from wara.cli import main
 
@@ -92,6 +97,44 @@ def test_four_leg_shares_are_the_model_statics(project: ProjectConfig) -> None:
         Vec(np.asarray(cog[0]), np.asarray(cog[1]), np.asarray(cog[2])), machine.g_base,
     )  # fmt: skip
     assert ours == pytest.approx(np.asarray(theirs), rel=1e-12)
+
+
+def test_the_statics_are_trimmed_to_the_load_the_standing_legs_measure(
+    project: ProjectConfig,
+) -> None:
+    """The machine carries 900 kg more on M than its YAML says, 0.6 m aside (the part as
+    cast and set down): the standing load read from M's legs gives the true weight and
+    COG back, and the trimmed machine's shares are the true ones wherever S stands,
+    also with S standing alone after the step, where the model's are 2.5 % off."""
+    model = WalkingMachine(project)
+    g = model.g_base
+    (mm, cm), (ms, cs) = model.main, model.sub
+    x0, x1 = -1.0, 1.0
+    extra, at = 900.0, np.array([0.3, 0.6, model.cog(x0)[2]])
+
+    def true_cog(x_s: float) -> np.ndarray:
+        c = np.array(cm) * mm + extra * at + (np.array(cs) + np.array([x_s, 0.0, 0.0])) * ms
+        return c / (mm + extra + ms)
+
+    true_mass = model.mass_kg + extra
+    measured = support_forces(model.legs_xy(x0)[:4], true_mass, true_cog(x0), g)
+    load = standing_load(model.main_legs_xy, measured, x0)
+    assert load.weight_n == pytest.approx(true_mass * -float(g.z))
+    trimmed = WalkingMachine(project, standing=load)
+    assert trimmed.mass_kg == pytest.approx(true_mass)
+    for x_s in (x0, 0.0, x1):
+        assert trimmed.cog(x_s) == pytest.approx(true_cog(x_s), abs=1e-6)
+    assert support_forces(
+        trimmed.legs_xy(x0)[:4], trimmed.mass_kg, trimmed.cog(x0), g
+    ) == pytest.approx(measured, rel=1e-9)
+    # S standing alone at the front end (phase 5): trimmed = truth, the model is off
+    truth = support_forces(model.legs_xy(x1)[4:], true_mass, true_cog(x1), g)
+    s_trim = support_forces(trimmed.legs_xy(x1)[4:], trimmed.mass_kg, trimmed.cog(x1), g)
+    s_model = support_forces(model.legs_xy(x1)[4:], model.mass_kg, model.cog(x1), g)
+    assert s_trim == pytest.approx(truth, rel=1e-5)
+    assert np.abs(s_model / truth - 1).max() > 0.02
+    with pytest.raises(ValueError, match="carry no load"):
+        standing_load(model.main_legs_xy, np.zeros(4), x0)
 
 
 def test_stability_margin_of_a_rectangle() -> None:

@@ -250,7 +250,7 @@ class WalkSequencer:
         self.td_speed = units.mm(self.walk.touchdown_speed_mm_s)
         traj = cfg.planner.trajectory
         self.leg_v, self.leg_a = traj.max_rod_speed_m_s, traj.max_rod_accel_m_s2
-        self.machine = WalkingMachine(cfg, unloaded=plan.unloaded)
+        self.machine = WalkingMachine(cfg, unloaded=plan.unloaded, standing=plan.standing)
         self.point_cache: dict[int, tuple[float, FloatArray]] = {}
         self.hold_ref = np.zeros(self.n)
         self.force_mode: set[int] = set()
@@ -298,7 +298,7 @@ class WalkSequencer:
         up = self.cfg.layers.upper
         fit = fit_layer(x[self.upper] - self.half[self.upper], up.a_m, up.b_m)
         self.machine = WalkingMachine(
-            self.cfg, float(fit.roll), float(fit.pitch), self.plan.unloaded
+            self.cfg, float(fit.roll), float(fit.pitch), self.plan.unloaded, self.plan.standing
         )
 
     def share(self, x_s: float, legs: tuple[int, ...]) -> FloatArray:

@@ -49,6 +49,7 @@ from ipc_app.control.walk import WalkSequencer
 from ipc_app.model.composition import check_attitude
 from ipc_app.model.kinematics import fit_layer
 from ipc_app.model.placement import Pose
+from ipc_app.model.support import WalkingMachine, standing_load
 from ipc_app.planner.placement import PlacementPlan
 from ipc_app.planner.plan import Plan
 from ipc_app.planner.survey import SurveyPoint
@@ -237,7 +238,8 @@ class ServiceCore:
         self.walk_limits = WalkLimits.from_config(cfg) if cfg.walking is not None else None
         self._walk_phase = -1
         self._walk_stop: tuple[np.ndarray, np.ndarray] | None = None
-        #: the rods and pressures of the walk's last driven cycle (its stop state)
+        #: the rods and pressures of the walk's last driven cycle, each at its last valid
+        #: value (the stop state; what a reading not valid this cycle stands at)
         self._walk_driven: tuple[np.ndarray, np.ndarray] | None = None
         self._attitude_limits = self.limits
         # the placement move: its sequencer while one runs (and holds after it)
@@ -438,18 +440,13 @@ class ServiceCore:
 
     # ------------------------------------------------------------------ the walk
 
-    def plan_walk_here(
-        self, steps: int, direction: str = "forward", unloaded: bool = False
-    ) -> WalkPlan | dict[str, Any]:
-        """Plan ``steps`` steps from the last measured state, in the planner process
-        (the caller's thread waits; never the loop's); a dict when the service cannot walk
-        now (why)."""
-        if self.cfg.walking is None or self.cfg.frames is None:
-            msg = "the project has no frames and walking sections: it cannot walk"
-            return {"ok": False, "code": "bad_request", "error": msg}
+    def walk_start(self) -> WalkStart | str:
+        """The measured state a walk would start from now (:class:`WalkStart`: ``x_S``,
+        the layers' extensions, the load M's standing legs measure), or why there is
+        none yet (a refusal's text: a position or a standing leg's pressure not valid)."""
         inp = self._inputs
         if inp is None or not inp.positions_valid:
-            return {"ok": False, "code": "refused", "error": "walk refused: no valid positions"}
+            return "walk refused: no valid positions"
         x = inp.positions.value
         cfg = self.cfg
         travel = [c.can_index for c in cfg.cylinders_by_can_index if c.role == "travel"]
@@ -458,12 +455,36 @@ class ServiceCore:
         half = self.stroke / 2
         lo, up = self.attitude.layers["lower"], self.attitude.layers["upper"]
         if not (np.all(np.isfinite(x[travel])) and np.all(np.isfinite(x[up]))):
-            return {"ok": False, "code": "refused", "error": "walk refused: no valid positions"}
-        start = WalkStart(
+            return "walk refused: no valid positions"
+        press = inp.pressures
+        if not press.all_valid(lo):
+            return "walk refused: the standing legs' pressures not valid (yet)"
+        cyl = cfg.cylinders_by_can_index
+        forces = [press.value[i, 0] * cyl[i].cap_area_m2 - press.value[i, 1] * cyl[i].rod_area_m2
+                  for i in lo]  # fmt: skip
+        try:  # M stands: its legs measure the machine's weight and COG
+            standing = standing_load(WalkingMachine(cfg).main_legs_xy, np.asarray(forces), x_s)
+        except ValueError as exc:
+            return f"walk refused: {exc}"
+        return WalkStart(
             x_s_m=x_s,
             main_extensions_m=tuple((x[lo] - half[lo]).tolist()),
             upper_extensions_m=tuple((x[up] - half[up]).tolist()),
+            standing=standing,
         )
+
+    def plan_walk_here(
+        self, steps: int, direction: str = "forward", unloaded: bool = False
+    ) -> WalkPlan | dict[str, Any]:
+        """Plan ``steps`` steps from the last measured state (:meth:`walk_start`), in the
+        planner process (the caller's thread waits; never the loop's); a dict when the
+        service cannot walk now (why)."""
+        if self.cfg.walking is None or self.cfg.frames is None:
+            msg = "the project has no frames and walking sections: it cannot walk"
+            return {"ok": False, "code": "bad_request", "error": msg}
+        start = self.walk_start()
+        if isinstance(start, str):
+            return {"ok": False, "code": "refused", "error": start}
         try:
             plan: WalkPlan = self.planner.call(
                 PLAN_WALK_FN, steps, start, direction=direction, unloaded=unloaded
@@ -1150,11 +1171,19 @@ class ServiceCore:
         u = np.zeros(len(self.cfg.cylinders))
         if not (self.modes.valves_enabled and inp.positions_valid):
             return u, None
-        x = np.nan_to_num(inp.positions.value, nan=0.0)
-        p = np.nan_to_num(inp.pressures.value, nan=0.0)
+        # each reading that is not valid this cycle (a slow group's frame late or lost)
+        # stands at its last valid value, and a cylinder outside the active group whose
+        # position is not valid is not driven (its valve closed) until one comes again
+        pos, press = inp.positions, inp.pressures
+        last = self._walk_driven
+        if last is None:
+            last = (np.nan_to_num(pos.value, nan=0.0), np.nan_to_num(press.value, nan=0.0))
+        x = np.where(pos.valid, pos.value, last[0])
+        p = np.where(press.valid, press.value, last[1])
         was_done = walker.done
         band_was = walker.figures.out_of_band
-        u = walker.update(now, x, p, set(self.limits.active), inp.pressures.age_s)
+        u = walker.update(now, x, p, set(self.limits.active), press.age_s)
+        u[~pos.valid] = 0.0  # the active group's are valid here (else suspended)
         self._walk_driven = (x, p)
         band = walker.figures.out_of_band
         if band != band_was and self.record is not None:  # the sync band: hold, go on
@@ -1213,6 +1242,9 @@ class ServiceCore:
         if self._fresh_cycles < self.RESUME_FRESH_CYCLES:
             return
         if self.walker is not None:  # walking.md's resume check, as after a hold
+            w = self.walker
+            if not (inp.positions.all_valid(w.walk_cylinders) and inp.pressures.all_valid(w.legs)):
+                return  # a slow group's frame yet to come (the suspend timeout bounds this)
             cause = self._walk_resume_cause(inp)
             if cause is None and not bool(inp.pressures.valid[list(self.limits.active)].all()):
                 cause = Cause(Interlock.RESUME_CHECK, where="pressures", detail="not valid")
