@@ -155,6 +155,16 @@ class Distribution(Strict):
         return float(self.values[int(rng.integers(len(self.values)))])
 
 
+def _check_ranges(run: Strict, names: tuple[str, ...], bound: float, unit: str) -> None:
+    """Each ``[low, high]`` of ``names`` in order and within +-``bound``."""
+    for name in names:
+        lo, hi = getattr(run, name)
+        if not lo <= hi:
+            raise ValueError(f"{name}: [{lo}, {hi}] must be [low, high]")
+        if max(abs(lo), abs(hi)) > bound:
+            raise ValueError(f"{name}: within +-{bound:g} {unit}")
+
+
 class AttitudeTargets(Strict):
     """Each run: ``targets`` attitude adjustments one after another from the level
     start at mid-stroke, each drawn uniformly in the roll/pitch box, each held and
@@ -167,12 +177,7 @@ class AttitudeTargets(Strict):
 
     @model_validator(mode="after")
     def _box(self) -> AttitudeTargets:
-        for name in ("roll_deg", "pitch_deg"):
-            lo, hi = getattr(self, name)
-            if not lo <= hi:
-                raise ValueError(f"{name}: [{lo}, {hi}] must be [low, high]")
-            if max(abs(lo), abs(hi)) > 45:
-                raise ValueError(f"{name}: within +-45 deg")
+        _check_ranges(self, ("roll_deg", "pitch_deg"), 45.0, "deg")
         return self
 
 
@@ -201,12 +206,7 @@ class RingCycleRun(Strict):
 
     @model_validator(mode="after")
     def _box(self) -> RingCycleRun:
-        for name in ("previous_y_mm", "previous_z_mm"):
-            lo, hi = getattr(self, name)
-            if not lo <= hi:
-                raise ValueError(f"{name}: [{lo}, {hi}] must be [low, high]")
-            if max(abs(lo), abs(hi)) > 50:
-                raise ValueError(f"{name}: within +-50 mm")
+        _check_ranges(self, ("previous_y_mm", "previous_z_mm"), 50.0, "mm")
         return self
 
 
