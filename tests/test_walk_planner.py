@@ -52,16 +52,30 @@ def test_three_steps_lay_out_every_phase_in_order(project: ProjectConfig) -> Non
 def test_travel_move_respects_speed_and_acceleration(project: ProjectConfig) -> None:
     walk = project.walking
     assert walk is not None
-    move = Move(2.0, walk.travel_speed_m_s, project.planner.trajectory.max_rod_accel_m_s2)
+    move = Move(2.0, walk.travel_speed_m_s, walk.travel_accel_m_s2)
     t = np.linspace(0.0, move.duration_s, 20001)
     x = move.position(t)
     v = np.gradient(x, t)
     a = np.gradient(v, t)
     assert x[-1] == pytest.approx(2.0)
     assert v.max() == pytest.approx(walk.travel_speed_m_s, rel=1e-3)
-    assert np.abs(a[5:-5]).max() <= project.planner.trajectory.max_rod_accel_m_s2 * 1.01
-    # 2 m at 50 mm/s with 20 mm/s^2: 40 s cruising plus 2.5 s for the ramps
-    assert move.duration_s == pytest.approx(42.5)
+    assert np.abs(a[5:-5]).max() <= walk.travel_accel_m_s2 * 1.01
+    # 2 m at 50 mm/s with 50 mm/s^2: 40 s cruising plus 1 s for the ramps
+    assert move.duration_s == pytest.approx(41.0)
+
+
+def test_the_travel_acceleration_key_sets_the_travel_phases(project: ProjectConfig) -> None:
+    """``walking.travel_accel_mm_s2`` sets the travel pair's ramps (the legs' moves keep
+    the planner's): 2 m at 50 mm/s take 41 s with 50 mm/s^2, 42.5 s with 20."""
+    assert project.walking is not None and project.walking.travel_accel_mm_s2 == 50
+    slow = project.model_copy(
+        update={"walking": project.walking.model_copy(update={"travel_accel_mm_s2": 20.0})}
+    )
+    for cfg, travel_s in ((project, 41.0), (slow, 42.5)):
+        by_key = {p.key: p for p in plan_walk(cfg, 1).phases}
+        assert by_key["1"].duration_s == pytest.approx(travel_s)
+        assert by_key["6"].duration_s == pytest.approx(travel_s)
+        assert by_key["5"].duration_s == pytest.approx(3.5)  # a lift: the legs' trapezoid
 
 
 def test_expected_shares_hold_the_weight_in_every_sample(project: ProjectConfig) -> None:
@@ -214,8 +228,8 @@ def test_a_sub_frame_too_short_for_the_step_is_refused(project: ProjectConfig) -
 
 
 def test_slip_is_refused_where_the_travel_force_exceeds_friction(project: ProjectConfig) -> None:
-    """Moving M (63 t) needs about 2.7 kN (acceleration and the 0.17 deg gradient); S
-    (8 t) 0.34 kN. Friction 0.001 on 71.95 t holds 0.71 kN: S moves, M does not."""
+    """Moving M (63 t) needs about 2.6 kN (acceleration and the 0.17 deg gradient); S
+    (8 t) 0.33 kN. Friction 0.001 on 71.95 t holds 0.71 kN: S moves, M does not."""
     plan = plan_walk(_walking(project, foot_friction_coefficient=0.001), 1)
     ref = plan.refusal
     assert ref is not None

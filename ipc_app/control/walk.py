@@ -397,7 +397,7 @@ class WalkSequencer:
         self.figures.margin_ahead_m = self._margin_ahead(ph, x_s)
 
     def _travel_move(self) -> tuple[float, float]:
-        return self.walk.travel_speed_m_s, self.cfg.planner.trajectory.max_rod_accel_m_s2
+        return self.walk.travel_speed_m_s, self.walk.travel_accel_m_s2
 
     def _margin_ahead(self, ph: Phase, x_s: float) -> float:
         """The least margin along the phase's commanded motion, from the measured start,
@@ -682,8 +682,12 @@ class WalkSequencer:
             held = list(MAIN if key in ("3", "4") else SUB)
         else:
             held = list(self._frame(ph.standing, self.leg_ids))
-        expected = self._residual_share(x_s_now, share8, f_check, plan_f, held)
-        fig.expected_n = tuple(np.maximum(expected, share8).tolist())
+        expected = np.maximum(self._residual_share(x_s_now, share8, f_check, plan_f, held), share8)
+        if key in TRANSFER:
+            # a releasing leg sheds its load: it is overloaded only above what it carried
+            # standing; a lag behind the plan's release is the transfer check's to judge
+            expected = np.maximum(expected, run.standing_share_n)
+        fig.expected_n = tuple(expected.tolist())
         # judged: a leg in force control its cap-side force (what its loop sets against
         # its reference), any other its force on the body (against its statics' share)
         judged = f_check.copy()

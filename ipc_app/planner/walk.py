@@ -12,8 +12,8 @@ Choices where walking.md is silent:
 - The body stays level on the base during a walk; the invert under the feet is the base
   plane (the ground offsets of the simulator are what the touch-down handles).
 - Moves (travel, lifting, lowering) are trapezoids: the travel pair at
-  ``walking.travel_speed_mm_s``, the legs at ``planner.trajectory.max_rod_speed_mm_s``,
-  both at ``planner.trajectory.max_rod_accel_mm_s2``.
+  ``walking.travel_speed_mm_s`` and ``walking.travel_accel_mm_s2``, the legs at
+  ``planner.trajectory.max_rod_speed_mm_s`` and ``max_rod_accel_mm_s2``.
 - Preload and transfer ramp the leg forces at ``walking.force_ramp_kn_s`` (the largest
   change of any leg sets the duration). During a transfer the forces move on the straight
   line from the preloaded to the new standing distribution (every point of it is an
@@ -323,7 +323,7 @@ class _Planner:
         travel = [cfg.cylinder(cid) for cid in self.travel_ids]
         self.x_s_limit = min(c.stroke_m for c in travel) / 2 - self.walk.travel_reserve_m
         traj = cfg.planner.trajectory
-        self.travel_move = (self.walk.travel_speed_m_s, traj.max_rod_accel_m_s2)
+        self.travel_move = (self.walk.travel_speed_m_s, self.walk.travel_accel_m_s2)
         self.leg_move = (traj.max_rod_speed_m_s, traj.max_rod_accel_m_s2)
         self.g = self.machine.g_base
         self.weight_n = self.machine.mass_kg * -float(self.g.z)
