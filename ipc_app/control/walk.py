@@ -56,6 +56,7 @@ from ipc_app.control.sync import sync_errors
 from ipc_app.model.kinematics import fit_layer
 from ipc_app.model.support import (
     WalkingMachine,
+    cap_side_forces_n,
     cog_projection,
     stability_margin,
     support_forces,
@@ -287,7 +288,7 @@ class WalkSequencer:
     def forces_n(self, p: FloatArray) -> FloatArray:
         """Cap-side force of each leg (8,), N: ``p_A A_A - p_B A_B``."""
         idx = self.legs
-        return np.asarray(p[idx, 0] * self.cap[idx] - p[idx, 1] * self.rod[idx])
+        return cap_side_forces_n(p[idx], self.cap[idx], self.rod[idx])
 
     def x_s(self, x: FloatArray) -> float:
         """S's position along the rails, measured: the travel pair's mean less ``e_0``."""
@@ -671,7 +672,7 @@ class WalkSequencer:
         standing = self._frame(ph.standing, self.leg_ids)
         idx_t = self.travel
         fig.travel_force_n = float(
-            np.sum(p[idx_t, 0] * self.cap[idx_t] - p[idx_t, 1] * self.rod[idx_t])
+            np.sum(cap_side_forces_n(p[idx_t], self.cap[idx_t], self.rod[idx_t]))
         )
         fig.friction_capacity_n = self.walk.foot_friction_coefficient * float(
             sum(max(0.0, f[j]) for j in standing)

@@ -46,6 +46,12 @@ def unloaded_upper_bodies(cfg: ProjectConfig) -> tuple[Body, ...]:
     return rest
 
 
+def cap_side_forces_n(p: Array, cap_m2: Array, rod_m2: Array) -> Array:
+    """Each cylinder's push on its load from its chamber pressures ``p`` (n, 2: cap
+    side, rod side; Pa) and its areas (n,): ``p_A A_A - p_B A_B``, N."""
+    return np.asarray(p[:, 0] * cap_m2 - p[:, 1] * rod_m2, dtype=np.float64)
+
+
 class StandingLoad(NamedTuple):
     """What the standing legs measure: the machine's weight along the base z (N) and
     its COG's projection along gravity onto the base plane (x, y m, lower platform

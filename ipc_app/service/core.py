@@ -49,7 +49,7 @@ from ipc_app.control.walk import WalkSequencer
 from ipc_app.model.composition import check_attitude
 from ipc_app.model.kinematics import fit_layer
 from ipc_app.model.placement import Pose
-from ipc_app.model.support import WalkingMachine, standing_load
+from ipc_app.model.support import WalkingMachine, cap_side_forces_n, standing_load
 from ipc_app.planner.placement import PlacementPlan
 from ipc_app.planner.plan import Plan
 from ipc_app.planner.survey import SurveyPoint
@@ -459,11 +459,13 @@ class ServiceCore:
         press = inp.pressures
         if not press.all_valid(lo):
             return "walk refused: the standing legs' pressures not valid (yet)"
-        cyl = cfg.cylinders_by_can_index
-        forces = [press.value[i, 0] * cyl[i].cap_area_m2 - press.value[i, 1] * cyl[i].rod_area_m2
-                  for i in lo]  # fmt: skip
+        legs = [cfg.cylinders_by_can_index[i] for i in lo]
+        forces = cap_side_forces_n(
+            press.value[lo], np.array([c.cap_area_m2 for c in legs]),
+            np.array([c.rod_area_m2 for c in legs]),
+        )  # fmt: skip
         try:  # M stands: its legs measure the machine's weight and COG
-            standing = standing_load(WalkingMachine(cfg).main_legs_xy, np.asarray(forces), x_s)
+            standing = standing_load(WalkingMachine(cfg).main_legs_xy, forces, x_s)
         except ValueError as exc:
             return f"walk refused: {exc}"
         return WalkStart(
@@ -1243,11 +1245,12 @@ class ServiceCore:
             return
         if self.walker is not None:  # walking.md's resume check, as after a hold
             w = self.walker
-            if not (inp.positions.all_valid(w.walk_cylinders) and inp.pressures.all_valid(w.legs)):
+            press_needed = w.legs + list(self.limits.active)
+            if not (
+                inp.positions.all_valid(w.walk_cylinders) and inp.pressures.all_valid(press_needed)
+            ):
                 return  # a slow group's frame yet to come (the suspend timeout bounds this)
             cause = self._walk_resume_cause(inp)
-            if cause is None and not bool(inp.pressures.valid[list(self.limits.active)].all()):
-                cause = Cause(Interlock.RESUME_CHECK, where="pressures", detail="not valid")
         else:
             stop_ref = self._stop_ref.tolist() if self._stop_ref is not None else None
             cause = resume_cause(inp, stop_ref, self.limits)
