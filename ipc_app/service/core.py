@@ -654,7 +654,9 @@ class ServiceCore:
         self._walk_driven = self._walk_stop = None
         self._attitude_group()
 
-    def _walk_resume_cause(self, inp: MachineInputs) -> Cause | None:
+    def _walk_resume_cause(self, inp: MachineInputs, forces: bool = True) -> Cause | None:
+        """The walk's resume check against the stop state; ``forces`` False: the rods
+        only (a ride-through: see :meth:`_ride_through`)."""
         w, lim = self.walker, self.walk_limits
         assert w is not None and lim is not None
         if self._walk_stop is None:
@@ -665,7 +667,8 @@ class ServiceCore:
         heights = w.legs + w.upper
         return walk_resume_cause(
             x.tolist(), x_stop.tolist(), heights, w.travel, self.limits.ids,
-            w.forces_n(inp.pressures.value).tolist(), f_stop.tolist(), share, w.leg_ids, lim,
+            w.forces_n(inp.pressures.value).tolist(), f_stop.tolist(), share,
+            w.leg_ids if forces else (), lim,
         )  # fmt: skip
 
     def walk_status(self) -> dict[str, Any] | None:
@@ -1243,14 +1246,20 @@ class ServiceCore:
         self._fresh_cycles += 1
         if self._fresh_cycles < self.RESUME_FRESH_CYCLES:
             return
-        if self.walker is not None:  # walking.md's resume check, as after a hold
+        if self.walker is not None:
+            # walking.md's resume check on the rods (heights, the travel pair's coast); not
+            # on the legs' forces: in a stop of at most safety.max_suspend_ms what moves
+            # them is the interrupted motion settling as the valves close (up to 20 kN in
+            # the walk campaign), and the overload and transfer checks judge them again
+            # from the first cycle it goes on. A hold's unhold checks them too (its stop
+            # may last long enough for a leg to sink or a foot to give way).
             w = self.walker
             press_needed = w.legs + list(self.limits.active)
             if not (
                 inp.positions.all_valid(w.walk_cylinders) and inp.pressures.all_valid(press_needed)
             ):
                 return  # a slow group's frame yet to come (the suspend timeout bounds this)
-            cause = self._walk_resume_cause(inp)
+            cause = self._walk_resume_cause(inp, forces=False)
         else:
             stop_ref = self._stop_ref.tolist() if self._stop_ref is not None else None
             cause = resume_cause(inp, stop_ref, self.limits)
