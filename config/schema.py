@@ -667,6 +667,9 @@ class Walking(Strict):
     travel_reserve_mm: Annotated[Finite, Field(ge=0, le=10_000)] = 50.0
     #: travel cylinders: speed limit of the pair
     travel_speed_mm_s: Annotated[Finite, Field(gt=0, le=1000)] = 50.0
+    #: travel cylinders: acceleration of the pair's trapezoid (the legs keep
+    #: ``planner.trajectory.max_rod_accel_mm_s2``)
+    travel_accel_mm_s2: Annotated[Finite, Field(gt=0, le=10_000)] = 50.0
     #: touching legs are preloaded to this share of their expected force (phase 3)
     preload_percent: Annotated[Finite, Field(gt=0, le=100)] = 20.0
     #: a releasing leg is unloaded below this share of its standing force (phase 4)
@@ -724,6 +727,10 @@ class Walking(Strict):
     @property
     def travel_speed_m_s(self) -> float:
         return units.mm(self.travel_speed_mm_s)
+
+    @property
+    def travel_accel_m_s2(self) -> float:
+        return units.mm(self.travel_accel_mm_s2)
 
     @property
     def force_ramp_n_s(self) -> float:

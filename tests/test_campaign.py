@@ -140,8 +140,17 @@ def test_bounds_redraw_inside_min_max(tmp_path: Path) -> None:
     ("change", "expected"),
     [
         ({"colour": "red"}, "colour: unknown key"),
-        ({"run": {"kind": "walk"}}, "run.kind: 'walk' campaigns do not exist yet"),
-        ({"run": {"kind": "ring_cycle"}}, "'ring_cycle' campaigns do not exist yet"),
+        ({"run": {"kind": "swim"}}, "run.kind must be attitude_targets, walk or ring_cycle"),
+        ({"run": {"kind": "walk", "steps": 4}}, "run.walk.steps"),
+        ({"run": {"kind": "walk", "targets": 1}}, "run.walk.targets: unknown key"),
+        (
+            {"run": {"kind": "walk"}, "requirement": {"limits": {"sync_error_mm": 0.07}}},
+            "unknown figure 'sync_error_mm' of a walk run",
+        ),
+        (
+            {"run": {"kind": "ring_cycle", "previous_y_mm": [3, -3]}},
+            "previous_y_mm: [3.0, -3.0] must be [low, high]",
+        ),
         (
             {"dispersions": {"hydraulics.bulk_modulus": {"dist": "uniform", "low": 1, "high": 2}}},
             "dispersions.hydraulics.bulk_modulus: hydraulics.bulk_modulus: no such key",
@@ -293,6 +302,97 @@ def test_report_verdict_drivers_and_html(tmp_path: Path) -> None:
     assert "hydraulics.bulk_modulus_mpa" in page and "<img" in page
     code, text, _ = run_main(["campaign", "report", str(out)])
     assert code == 1 and "requirement NOT shown" in text and "Clopper-Pearson" in text
+
+
+def test_walk_and_ring_cycle_runs_are_judged_by_their_goals(tmp_path: Path) -> None:
+    from wara import walk
+    from wara.campaign.run import RunOutcome, row_of
+
+    c = load_campaign(write_spec(tmp_path, _spec(run={"kind": "walk", "steps": 2})))
+    assert c.limits["max_leg_force_ratio"] == walk.FORCE_RATIO == 1.10
+    assert c.limits["min_stability_margin_m"] == walk.MIN_MARGIN_M == 0.25
+    assert c.limits["distance_error_mm"] == pytest.approx(5.0)
+    assert "target0_roll_deg" not in c.draw(0).params  # a walk draws no targets
+    figures = {
+        "distance_error_mm": 0.7,
+        "max_leg_sync_error_mm": 0.08,
+        "max_travel_sync_error_mm": 0.004,
+        "max_transfer_attitude_change_deg": 0.005,
+        "max_leg_force_ratio": 1.075,
+        "min_stability_margin_m": 0.874,
+        "max_step_duration_s": 118.0,
+    }
+    row = row_of(c, c.draw(0), RunOutcome(dict(figures), done=True), wall_s=1.0, worker="w")
+    assert row["passed"] and row["margin"] == pytest.approx(1.0 - 118.0 / 120.0)  # the time
+    # the stability margin is a lower bound: below it fails, named with "<"
+    low = row_of(
+        c, c.draw(0), RunOutcome({**figures, "min_stability_margin_m": 0.2}, done=True),
+        wall_s=1.0, worker="w",
+    )  # fmt: skip
+    assert not low["passed"] and low["status"] == "over_limit"
+    assert low["note"] == "min_stability_margin_m 0.2 < 0.25"
+    assert low["margin"] == pytest.approx(0.2 / 0.25 - 1.0)
+
+    ring = load_campaign(
+        write_spec(tmp_path, _spec(run={"kind": "ring_cycle", "previous_y_mm": [-6, 6]}), "r.yaml")
+    )
+    assert ring.limits["vertical_misalignment_mm"] == 8  # the project's Table 4
+    assert ring.limits["position_error_mm"] == 1.0 and ring.limits["cycle_time_s"] == 900.0
+    d = ring.draw(3)
+    assert -6 <= d.params["previous_y_mm"] <= 6 and d.previous_mm[0] == d.params["previous_y_mm"]
+    assert d.params["previous_z_mm"] == 0.0
+
+
+def _short_walk_project(tmp_path: Path) -> str:
+    """The shipped project with 200 mm steps and a one-step ring cycle (a run in seconds)."""
+    import yaml
+
+    d = yaml.safe_load((REPO / "config/projects/shanghai_airport_link.yaml").read_text())
+    d["walking"]["step_length_mm"] = 200
+    d["cycle"]["walk_steps"] = 1
+    path = tmp_path / "short.yaml"
+    path.write_text(yaml.safe_dump(d))
+    return path.name
+
+
+@pytest.mark.slow
+def test_a_walk_run_and_a_ring_cycle_run_on_a_drawn_machine(tmp_path: Path) -> None:
+    """One run of each kind as a campaign worker runs it (lockstep, the drawn machine,
+    a PLC stall while S travels): every figure measured, within the goals."""
+    from wara.campaign.run import run_one
+
+    stall = {
+        "event": {"kind": "plc_stall"},
+        "start_s": {"dist": "uniform", "low": 2.0, "high": 3.0},
+        "duration_s": {"dist": "uniform", "low": 0.01, "high": 0.03},
+    }
+    project = _short_walk_project(tmp_path)
+    walk = load_campaign(
+        write_spec(tmp_path, _spec(project=project, run={"kind": "walk"}, events=[stall]), "w.yaml")
+    )
+    row = run_one(walk, 1)
+    assert row["status"] == "passed", row["note"]
+    assert 0.0 <= row["distance_error_mm"] <= 5.0 and row["min_stability_margin_m"] > 0.25
+    assert 1.0 < row["max_leg_force_ratio"] <= 1.10 and row["p.event0_plc_stall_start_s"] > 2.0
+    assert row["sim_time_s"] > row["max_step_duration_s"] > 10.0
+
+    ring = load_campaign(
+        write_spec(
+            tmp_path,
+            _spec(project=project, run={"kind": "ring_cycle", "previous_y_mm": [-3, 3]}, events=[]),
+            "r.yaml",
+        )
+    )
+    row = run_one(ring, 0)
+    assert row["status"] == "passed", row["note"]
+    assert row["position_error_mm"] <= 1.0 and row["angle_error_deg"] <= 0.01
+    assert abs(row["p.previous_y_mm"]) <= 3.0 and row["vertical_misalignment_mm"] <= 8.0
+
+
+def test_percentile_of_a_higher_is_better_figure_takes_the_low_tail() -> None:
+    rows = [{"min_stability_margin_m": 0.8}] * 99 + [{"min_stability_margin_m": math.nan}]
+    assert percentile_figure(rows, "min_stability_margin_m", 0.5) == 0.8
+    assert percentile_figure(rows, "min_stability_margin_m", 0.999) == -math.inf
 
 
 def test_percentile_figure_counts_unfinished_runs_as_worst() -> None:

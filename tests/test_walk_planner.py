@@ -15,7 +15,12 @@ import yaml
 from config import ProjectConfig, default_project_path
 from ipc_app.model import rod_forces
 from ipc_app.model.kinematics import Vec
-from ipc_app.model.support import WalkingMachine, stability_margin, support_forces
+from ipc_app.model.support import (
+    WalkingMachine,
+    stability_margin,
+    standing_load,
+    support_forces,
+)
 from ipc_app.planner.walk import ORDER, PHASES, Move, WalkStart, plan_walk
 from wara.cli import main
 
@@ -47,16 +52,30 @@ def test_three_steps_lay_out_every_phase_in_order(project: ProjectConfig) -> Non
 def test_travel_move_respects_speed_and_acceleration(project: ProjectConfig) -> None:
     walk = project.walking
     assert walk is not None
-    move = Move(2.0, walk.travel_speed_m_s, project.planner.trajectory.max_rod_accel_m_s2)
+    move = Move(2.0, walk.travel_speed_m_s, walk.travel_accel_m_s2)
     t = np.linspace(0.0, move.duration_s, 20001)
     x = move.position(t)
     v = np.gradient(x, t)
     a = np.gradient(v, t)
     assert x[-1] == pytest.approx(2.0)
     assert v.max() == pytest.approx(walk.travel_speed_m_s, rel=1e-3)
-    assert np.abs(a[5:-5]).max() <= project.planner.trajectory.max_rod_accel_m_s2 * 1.01
-    # 2 m at 50 mm/s with 20 mm/s^2: 40 s cruising plus 2.5 s for the ramps
-    assert move.duration_s == pytest.approx(42.5)
+    assert np.abs(a[5:-5]).max() <= walk.travel_accel_m_s2 * 1.01
+    # 2 m at 50 mm/s with 50 mm/s^2: 40 s cruising plus 1 s for the ramps
+    assert move.duration_s == pytest.approx(41.0)
+
+
+def test_the_travel_acceleration_key_sets_the_travel_phases(project: ProjectConfig) -> None:
+    """``walking.travel_accel_mm_s2`` sets the travel pair's ramps (the legs' moves keep
+    the planner's): 2 m at 50 mm/s take 41 s with 50 mm/s^2, 42.5 s with 20."""
+    assert project.walking is not None and project.walking.travel_accel_mm_s2 == 50
+    slow = project.model_copy(
+        update={"walking": project.walking.model_copy(update={"travel_accel_mm_s2": 20.0})}
+    )
+    for cfg, travel_s in ((project, 41.0), (slow, 42.5)):
+        by_key = {p.key: p for p in plan_walk(cfg, 1).phases}
+        assert by_key["1"].duration_s == pytest.approx(travel_s)
+        assert by_key["6"].duration_s == pytest.approx(travel_s)
+        assert by_key["5"].duration_s == pytest.approx(3.5)  # a lift: the legs' trapezoid
 
 
 def test_expected_shares_hold_the_weight_in_every_sample(project: ProjectConfig) -> None:
@@ -92,6 +111,44 @@ def test_four_leg_shares_are_the_model_statics(project: ProjectConfig) -> None:
         Vec(np.asarray(cog[0]), np.asarray(cog[1]), np.asarray(cog[2])), machine.g_base,
     )  # fmt: skip
     assert ours == pytest.approx(np.asarray(theirs), rel=1e-12)
+
+
+def test_the_statics_are_trimmed_to_the_load_the_standing_legs_measure(
+    project: ProjectConfig,
+) -> None:
+    """The machine carries 900 kg more on M than its YAML says, 0.6 m aside (the part as
+    cast and set down): the standing load read from M's legs gives the true weight and
+    COG back, and the trimmed machine's shares are the true ones wherever S stands,
+    also with S standing alone after the step, where the model's are 2.5 % off."""
+    model = WalkingMachine(project)
+    g = model.g_base
+    (mm, cm), (ms, cs) = model.main, model.sub
+    x0, x1 = -1.0, 1.0
+    extra, at = 900.0, np.array([0.3, 0.6, model.cog(x0)[2]])
+
+    def true_cog(x_s: float) -> np.ndarray:
+        c = np.array(cm) * mm + extra * at + (np.array(cs) + np.array([x_s, 0.0, 0.0])) * ms
+        return c / (mm + extra + ms)
+
+    true_mass = model.mass_kg + extra
+    measured = support_forces(model.legs_xy(x0)[:4], true_mass, true_cog(x0), g)
+    load = standing_load(model.main_legs_xy, measured, x0)
+    assert load.weight_n == pytest.approx(true_mass * -float(g.z))
+    trimmed = WalkingMachine(project, standing=load)
+    assert trimmed.mass_kg == pytest.approx(true_mass)
+    for x_s in (x0, 0.0, x1):
+        assert trimmed.cog(x_s) == pytest.approx(true_cog(x_s), abs=1e-6)
+    assert support_forces(
+        trimmed.legs_xy(x0)[:4], trimmed.mass_kg, trimmed.cog(x0), g
+    ) == pytest.approx(measured, rel=1e-9)
+    # S standing alone at the front end (phase 5): trimmed = truth, the model is off
+    truth = support_forces(model.legs_xy(x1)[4:], true_mass, true_cog(x1), g)
+    s_trim = support_forces(trimmed.legs_xy(x1)[4:], trimmed.mass_kg, trimmed.cog(x1), g)
+    s_model = support_forces(model.legs_xy(x1)[4:], model.mass_kg, model.cog(x1), g)
+    assert s_trim == pytest.approx(truth, rel=1e-5)
+    assert np.abs(s_model / truth - 1).max() > 0.02
+    with pytest.raises(ValueError, match="carry no load"):
+        standing_load(model.main_legs_xy, np.zeros(4), x0)
 
 
 def test_stability_margin_of_a_rectangle() -> None:
@@ -171,8 +228,8 @@ def test_a_sub_frame_too_short_for_the_step_is_refused(project: ProjectConfig) -
 
 
 def test_slip_is_refused_where_the_travel_force_exceeds_friction(project: ProjectConfig) -> None:
-    """Moving M (63 t) needs about 2.7 kN (acceleration and the 0.17 deg gradient); S
-    (8 t) 0.34 kN. Friction 0.001 on 71.95 t holds 0.71 kN: S moves, M does not."""
+    """Moving M (63 t) needs about 2.6 kN (acceleration and the 0.17 deg gradient); S
+    (8 t) 0.33 kN. Friction 0.001 on 71.95 t holds 0.71 kN: S moves, M does not."""
     plan = plan_walk(_walking(project, foot_friction_coefficient=0.001), 1)
     ref = plan.refusal
     assert ref is not None

@@ -38,6 +38,7 @@ from typing import Any
 import numpy as np
 
 from config import load_project, units
+from config.hil_scenario import HilScenario
 from config.schema import ProjectConfig
 from hil_sim.placement import pose_from_home
 from ipc_app.model.placement import (
@@ -53,6 +54,7 @@ from ipc_app.planner.survey import SurveyPoint
 from ipc_app.service.cycle import RECORD_KEYS, previous_from_deviation
 from ipc_app.service.modes import Mode
 from ipc_app.service.record import RunRecorder
+from ipc_app.service.worker import PlannerWorker
 from wara.harness import Harness
 from wara.placement_run import GOAL_DEG, GOAL_MM
 from wara.ring_records import StoreRecords
@@ -258,11 +260,17 @@ def run_cycle(
     progress: Callable[[str], None] | None = None,
     on_cycle: Callable[[Harness, str], None] | None = None,
     cfg: ProjectConfig | None = None,
+    sim_cfg: ProjectConfig | None = None,
+    planner: PlannerWorker | None = None,
+    scenario: HilScenario | None = None,
 ) -> dict[str, Any]:
     """``rings`` ring cycles from ring ``first_ring``; the part before it (ring
     ``first_ring - 1``) lies ``previous_deviation`` from its design. The JSON-ready
     result: ``passed``, ``refused``, ``rings`` (one object per ring), ``steering``.
-    ``cfg``: the project as loaded from ``config_path`` (tests: a changed one)."""
+    ``cfg``: the project as loaded from ``config_path`` (tests: a changed one).
+    ``sim_cfg``, ``planner``, ``scenario``: the simulated machine when it differs from the
+    project, a running planner worker to share, the HIL scenario (its events, sensors;
+    a campaign's run; :class:`~wara.harness.Harness`)."""
     if cfg is None:
         cfg = load_project(config_path)
     if cfg.cycle is None:
@@ -277,15 +285,18 @@ def run_cycle(
     previous = previous_from_deviation(cfg, first_ring, dev)
     out: dict[str, Any] = {"passed": False, "refused": None, "error": None, "rings": []}
     # the walking rig (feet on the invert) only when the cycle walks
-    scenario = walk_scenario() if cfg.cycle.walk_steps > 0 else None
-    h = Harness(  # no attitude trace: the cycle plots none
-        cfg, config_path, mode=mode, record=record, seed=seed, scenario=scenario, trace=False
-    )
+    if cfg.cycle.walk_steps > 0:
+        scenario = walk_scenario(scenario)
+    h = Harness(
+        cfg, config_path, mode=mode, record=record, seed=seed, scenario=scenario,
+        sim_cfg=sim_cfg, planner=planner, trace=False,
+    )  # fmt: skip
     rng = np.random.default_rng(seed)
     cyc: _Cycle | None = None
     try:
         h.start()
-        if not h.wait_for(Mode.IDLE, 20.0):
+        up = h.wait_for(Mode.IDLE, 20.0)
+        if not (up and (cfg.cycle.walk_steps == 0 or h.wait_walk_ready())):
             out["error"] = f"service did not come up: {h.fault_note()}"
             return out
         cyc = _Cycle(cfg, h, db_path, rng, say, on_cycle)

@@ -292,7 +292,8 @@ class Harness:
                 sim.wire.set_arrival_horizon(start + to_epoch + k * cycle)
                 sim.step(cycle)
                 k += 1
-            self.trace.add(sim, self.core)
+            if self._tracing:
+                self.trace.add(sim, self.core)
         sim.wire.set_arrival_horizon(None)
 
     def service_clock(self) -> float:
@@ -346,6 +347,18 @@ class Harness:
             waited += step
         return self.core.modes.mode == mode
 
+    def wait_walk_ready(self, timeout_s: float = 1.0) -> bool:
+        """Advance until the service could plan a walk from its measured state (the
+        standing legs' pressures come at their own cycle, up to 50 ms after the start-up
+        is complete; :meth:`ServiceCore.walk_start`)."""
+        waited = 0.0
+        while isinstance(self.core.walk_start(), str):
+            if waited >= timeout_s:
+                return False
+            self.advance(self.period)
+            waited += self.period
+        return True
+
     def run_figures(self) -> dict[str, Any]:
         """The run's figures of the loop, the scheduler, the link and the simulator, for
         a demo's summary (``loop``, ``realtime``, ``final_mode``, ``fault_reasons``,
@@ -370,6 +383,7 @@ class Harness:
             "ride_through": ride_through(self.core.snapshot()),
             "bus_load_percent": self.core.bus_load.load_percent,
             "simulator_realtime_factor": self.sim.realtime_factor,
+            "sim_time_s": round(self.sim.t_s, 3),
         }
 
     def faulted(self) -> bool:

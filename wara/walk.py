@@ -23,6 +23,7 @@ from ipc_app.control.walk import LIFT, LOWER, TRANSFER, TRAVEL, WalkSequencer
 from ipc_app.planner.walk import DIRECTIONS
 from ipc_app.service.modes import Mode
 from ipc_app.service.record import RunRecorder
+from ipc_app.service.worker import PlannerWorker
 from wara.harness import Harness
 
 #: the goals of a step (walking.md; the issue's)
@@ -73,6 +74,9 @@ def run_walk(
     on_cycle: Callable[[Harness], None] | None = None,
     directions: tuple[str, ...] = ("forward",),
     cfg: ProjectConfig | None = None,
+    sim_cfg: ProjectConfig | None = None,
+    seed: int = 0,
+    planner: PlannerWorker | None = None,
 ) -> dict[str, Any]:
     """Walk ``steps`` steps in each of ``directions`` in turn (``("forward", "back")``:
     there and back); the JSON-ready result (``passed``, ``refused``...). The simulated
@@ -80,28 +84,26 @@ def run_walk(
     the service's; the simulator without the part diverges, docs/walking.md).
 
     ``on_cycle``: called after each sample with the harness (tests: stop, resume).
-    ``cfg``: the project as loaded from ``config_path`` (tests: a changed one)."""
+    ``cfg``: the project as loaded from ``config_path`` (tests: a changed one).
+    ``sim_cfg``, ``seed``, ``planner``: the simulated machine when it differs from the
+    project, the simulator's seed, a running planner worker to share (a campaign's run;
+    :class:`~wara.harness.Harness`)."""
     if cfg is None:
         cfg = load_project(config_path)
     if not directions or any(d not in DIRECTIONS for d in directions):
         raise ValueError(f"directions must be of {', '.join(DIRECTIONS)}, got {directions!r}")
     say = progress or (lambda _s: None)
-    # the walk keeps its own trace (WalkTrace), not the harness's attitude plots
     h = Harness(
-        cfg,
-        config_path,
-        mode=mode,
-        scenario=walk_scenario(scenario),
-        record=record,
-        trace=False,
-    )
+        cfg, config_path, mode=mode, scenario=walk_scenario(scenario), record=record,
+        sim_cfg=sim_cfg, seed=seed, planner=planner, trace=False,
+    )  # fmt: skip
     trace = WalkTrace()
     truths: list[_StepTruth] = []
     walkers: list[WalkSequencer] = []
     out: dict[str, Any] = {"passed": False, "refused": None, "error": None}
     try:
         h.start()
-        if not h.wait_for(Mode.IDLE, 20.0):
+        if not (h.wait_for(Mode.IDLE, 20.0) and h.wait_walk_ready()):
             out["error"] = f"service did not come up: {h.fault_note()}"
             return _finish(out, h, truths, trace, steps, plot_dir, walkers, directions)
         rig = h.sim.rig
@@ -235,6 +237,7 @@ def _finish(
     }
     out["bus_load_percent"] = round(core.bus_load.load_percent, 2)
     out["simulator_realtime_factor"] = h.sim.realtime_factor
+    out["sim_time_s"] = round(h.sim.t_s, 3)
     step_m = walkers[0].plan.step_length_m if walkers else 2.0
     want = sum(-1.0 if d == "back" else 1.0 for d in directions) * steps * step_m
     out["passed"] = bool(

@@ -56,6 +56,7 @@ from ipc_app.control.sync import sync_errors
 from ipc_app.model.kinematics import fit_layer
 from ipc_app.model.support import (
     WalkingMachine,
+    cap_side_forces_n,
     cog_projection,
     stability_margin,
     support_forces,
@@ -226,10 +227,6 @@ class WalkSequencer:
             self.b0[i] = cylinder_b0(cyl, cfg.hydraulics, order=ctl.ladrc.order)
             self.pos[i] = LADRC.from_config(ctl.ladrc, float(self.b0[i]), period_s)
         self.k_contact = self.walk.contact.stiffness_n_m
-        self._travel_areas = [(i, float(self.cap[i]), float(self.rod[i])) for i in self.travel]
-        self._legs_arr = np.array(self.legs, dtype=np.intp)
-        self._cap_legs = self.cap[self._legs_arr]
-        self._rod_legs = self.rod[self._legs_arr]
         #: each leg's rod friction (its plant's): Coulomb, N, and viscous, N s/m
         plants = [(by_index[i], cfg.plant_of(by_index[i])) for i in self.legs]
         self.coulomb_n = np.array([pl.coulomb_friction_n for _c, pl in plants])
@@ -256,12 +253,12 @@ class WalkSequencer:
         self.travel_band = units.mm(self.walk.travel_sync_band_mm)
         self.touch_pa = units.mpa(self.walk.touch_mpa)
         #: a leg's cap-side force above this is a foot touching (walking.touch_mpa), N
-        self._touch_n = [float(v) for v in self.touch_pa * self._cap_legs]
+        self._touch_n = [float(v) for v in self.touch_pa * self.cap[self.legs]]
         self.td_travel = units.mm(self.walk.touchdown_travel_mm)
         self.td_speed = units.mm(self.walk.touchdown_speed_mm_s)
         traj = cfg.planner.trajectory
         self.leg_v, self.leg_a = traj.max_rod_speed_m_s, traj.max_rod_accel_m_s2
-        self.machine = WalkingMachine(cfg, unloaded=plan.unloaded)
+        self.machine = WalkingMachine(cfg, unloaded=plan.unloaded, standing=plan.standing)
         self.point_cache: dict[int, tuple[float, FloatArray]] = {}
         #: the parts of :meth:`_residual_share` that stay while S and the legs held do
         self._residual_parts: tuple[Any, ...] | None = None
@@ -299,16 +296,8 @@ class WalkSequencer:
 
     def forces_n(self, p: FloatArray) -> FloatArray:
         """Cap-side force of each leg (8,), N: ``p_A A_A - p_B A_B``."""
-        idx = self._legs_arr
-        return np.asarray(p[idx, 0] * self._cap_legs - p[idx, 1] * self._rod_legs)
-
-    def _travel_force_n(self, p: FloatArray) -> float:
-        """Both travel rods' cap-side force, N (``p_A A_A - p_B A_B`` summed: a pair, so
-        the sum is the one ``np.sum`` gives)."""
-        total = 0.0
-        for i, cap, rod in self._travel_areas:
-            total += float(p[i, 0]) * cap - float(p[i, 1]) * rod
-        return total
+        idx = self.legs
+        return cap_side_forces_n(p[idx], self.cap[idx], self.rod[idx])
 
     def x_s(self, x: FloatArray) -> float:
         """S's position along the rails, measured: the travel pair's mean less ``e_0``
@@ -323,7 +312,7 @@ class WalkSequencer:
         up = self.cfg.layers.upper
         fit = fit_layer(x[self.upper] - self.half[self.upper], up.a_m, up.b_m)
         self.machine = WalkingMachine(
-            self.cfg, float(fit.roll), float(fit.pitch), self.plan.unloaded
+            self.cfg, float(fit.roll), float(fit.pitch), self.plan.unloaded, self.plan.standing
         )
         self._residual_parts = None
 
@@ -423,7 +412,7 @@ class WalkSequencer:
         self.figures.margin_ahead_m = self._margin_ahead(ph, x_s)
 
     def _travel_move(self) -> tuple[float, float]:
-        return self.walk.travel_speed_m_s, self.cfg.planner.trajectory.max_rod_accel_m_s2
+        return self.walk.travel_speed_m_s, self.walk.travel_accel_m_s2
 
     def _margin_ahead(self, ph: Phase, x_s: float) -> float:
         """The least margin along the phase's commanded motion, from the measured start,
@@ -701,7 +690,10 @@ class WalkSequencer:
         touching = tuple(j for j in range(8) if fl[j] > touch[j])
         fig.margin_m = self.margin(x_s, touching) if len(touching) >= 3 else -math.inf
         standing = self._frame(ph.standing, self.leg_ids)
-        fig.travel_force_n = self._travel_force_n(p)
+        idx_t = self.travel
+        fig.travel_force_n = float(
+            np.sum(cap_side_forces_n(p[idx_t], self.cap[idx_t], self.rod[idx_t]))
+        )
         capacity = 0  # summed in order, as sum() of the standing legs' forces
         for j in standing:
             capacity += max(0.0, fl[j])
@@ -712,8 +704,12 @@ class WalkSequencer:
             held = list(MAIN if key in ("3", "4") else SUB)
         else:
             held = list(self._frame(ph.standing, self.leg_ids))
-        expected = self._residual_share(x_s_now, share8, f_check, plan_f, held)
-        fig.expected_n = tuple(np.maximum(expected, share8).tolist())
+        expected = np.maximum(self._residual_share(x_s_now, share8, f_check, plan_f, held), share8)
+        if key in TRANSFER:
+            # a releasing leg sheds its load: it is overloaded only above what it carried
+            # standing; a lag behind the plan's release is the transfer check's to judge
+            expected = np.maximum(expected, run.standing_share_n)
+        fig.expected_n = tuple(expected.tolist())
         # judged: a leg in force control its cap-side force (what its loop sets against
         # its reference), any other its force on the body (against its statics' share)
         judged = f_check.copy()

@@ -11,9 +11,17 @@ legs on a rectangle it is :func:`ipc_app.model.statics.rod_forces` at a level pl
 The static stability margin is the distance from the COG's projection along gravity to
 the nearest edge of the standing legs' support polygon (their convex hull), negative
 outside it.
+
+The machine's weight and the projection of its COG are measured where one frame stands
+on its four legs (:class:`StandingLoad`, :func:`standing_load`: the three equilibrium
+equations read backwards from the legs' forces); :class:`WalkingMachine` trims M's
+lumped mass and COG to them, so that the expected shares follow the machine as it is
+(the part as cast, as set down) and not only as its YAML says.
 """
 
 from __future__ import annotations
+
+from typing import NamedTuple
 
 import numpy as np
 
@@ -38,6 +46,34 @@ def unloaded_upper_bodies(cfg: ProjectConfig) -> tuple[Body, ...]:
     return rest
 
 
+def cap_side_forces_n(p: Array, cap_m2: Array, rod_m2: Array) -> Array:
+    """Each cylinder's push on its load from its chamber pressures ``p`` (n, 2: cap
+    side, rod side; Pa) and its areas (n,): ``p_A A_A - p_B A_B``, N."""
+    return np.asarray(p[:, 0] * cap_m2 - p[:, 1] * rod_m2, dtype=np.float64)
+
+
+class StandingLoad(NamedTuple):
+    """What the standing legs measure: the machine's weight along the base z (N) and
+    its COG's projection along gravity onto the base plane (x, y m, lower platform
+    frame), with S at ``x_s_m`` along the rails."""
+
+    weight_n: float
+    cog_projection_m: tuple[float, float]
+    x_s_m: float
+
+
+def standing_load(points_xy: Array, forces_n: Array, x_s_m: float) -> StandingLoad:
+    """The weight and COG projection held by legs at ``points_xy`` (n, 2) pushing with
+    ``forces_n`` (n,) along the base z (:func:`support_forces` read backwards: the
+    force sum and its moments; a twist among the legs does not change them)."""
+    f = np.asarray(forces_n, dtype=float)
+    w = float(f.sum())
+    if not (np.isfinite(w) and w > 0.0):
+        raise ValueError(f"the standing legs carry no load to measure ({w:.0f} N)")
+    p = f @ np.asarray(points_xy, dtype=float) / w
+    return StandingLoad(w, (float(p[0]), float(p[1])), float(x_s_m))
+
+
 class WalkingMachine:
     """Mass, COG and leg positions of the machine as a function of ``x_S``.
 
@@ -50,6 +86,11 @@ class WalkingMachine:
     ``unloaded``: without the workpiece, the upper layer's body named
     :data:`WORKPIECE_BODY` (the ring cycle walks back once the part is fixed to the
     ring and the platform has lowered off it).
+
+    ``standing``: the load measured on M's standing legs; M's lump (everything that
+    moves with M: the lower and upper layers' bodies, the part) then takes the measured
+    weight less S's, and the x and y of its COG that put the total COG's projection
+    where it was measured (its height stays the model's, which the legs cannot see).
     """
 
     def __init__(
@@ -58,6 +99,7 @@ class WalkingMachine:
         upper_roll: float = 0.0,
         upper_pitch: float = 0.0,
         unloaded: bool = False,
+        standing: StandingLoad | None = None,
     ) -> None:
         if cfg.frames is None or cfg.walking is None:
             raise ValueError("the project has no frames and walking sections: it cannot walk")
@@ -88,6 +130,29 @@ class WalkingMachine:
         lo, sub = cfg.layers.lower, cfg.frames.sub
         self.main_legs_xy = np.stack([S * lo.a_m, T * lo.b_m], axis=1)
         self.sub_legs_xy = np.stack([S * sub.a_m, T * sub.b_m], axis=1)
+        #: M's lump as the YAML gives it (before a measured trim)
+        self.main_model = self.main
+        if standing is not None:
+            self.main = self._trimmed_main(standing)
+
+    def _trimmed_main(self, standing: StandingLoad) -> MassProperties:
+        g = self.g_base
+        gx, gy, gz = float(g.x), float(g.y), float(g.z)
+        mass = standing.weight_n / -gz
+        ms, cs = self.sub
+        mm = mass - ms
+        if not mm > 0.0:
+            raise ValueError(
+                f"the standing legs measure {standing.weight_n / 1e3:.1f} kN, less than the "
+                f"sub frame's own weight ({ms * -gz / 1e3:.1f} kN)"
+            )
+        z = self.cog(standing.x_s_m)[2]  # the model's height: the legs cannot see it
+        # the total COG whose projection along gravity is the measured point
+        px, py = standing.cog_projection_m
+        cx, cy = px + z * gx / gz, py + z * gy / gz
+        sx, sy = cs[0] + standing.x_s_m, cs[1]
+        cm_z = (mass * z - ms * cs[2]) / mm
+        return MassProperties(mm, ((mass * cx - ms * sx) / mm, (mass * cy - ms * sy) / mm, cm_z))
 
     @property
     def mass_kg(self) -> float:

@@ -12,8 +12,8 @@ Choices where walking.md is silent:
 - The body stays level on the base during a walk; the invert under the feet is the base
   plane (the ground offsets of the simulator are what the touch-down handles).
 - Moves (travel, lifting, lowering) are trapezoids: the travel pair at
-  ``walking.travel_speed_mm_s``, the legs at ``planner.trajectory.max_rod_speed_mm_s``,
-  both at ``planner.trajectory.max_rod_accel_mm_s2``.
+  ``walking.travel_speed_mm_s`` and ``walking.travel_accel_mm_s2``, the legs at
+  ``planner.trajectory.max_rod_speed_mm_s`` and ``max_rod_accel_mm_s2``.
 - Preload and transfer ramp the leg forces at ``walking.force_ramp_kn_s`` (the largest
   change of any leg sets the duration). During a transfer the forces move on the straight
   line from the preloaded to the new standing distribution (every point of it is an
@@ -35,6 +35,7 @@ from config import units
 from config.schema import ProjectConfig
 from ipc_app.model.kinematics import Array, fit_layer
 from ipc_app.model.support import (
+    StandingLoad,
     WalkingMachine,
     cog_projection,
     stability_margin,
@@ -219,6 +220,8 @@ class WalkPlan:
     direction: str = "forward"
     #: planned without the workpiece (:class:`~ipc_app.model.support.WalkingMachine`)
     unloaded: bool = False
+    #: the load measured on M's legs at the start, which the statics are trimmed to
+    standing: StandingLoad | None = None
 
     @property
     def distance_m(self) -> float:
@@ -262,6 +265,13 @@ class WalkPlan:
             "min_stability_margin_m": round(margin, 4),
             "min_stability_margin_at": {"step": where.step, "phase": where.key},
             "min_stability_margin_limit_m": self.min_margin_limit_m,
+            "standing_load": None
+            if self.standing is None
+            else {
+                "weight_kn": round(self.standing.weight_n / units.KN, 2),
+                "cog_projection_m": [round(v, 4) for v in self.standing.cog_projection_m],
+                "x_s_m": round(self.standing.x_s_m, 4),
+            },
             "refusal": ref.to_dict() if ref is not None else None,
             "violations": [v.to_dict() for v in self.violations[:10]],
             "phases": [p.summary(self.leg_ids) for p in self.phases],
@@ -275,6 +285,8 @@ class WalkStart:
     x_s_m: float
     main_extensions_m: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 0.0)
     upper_extensions_m: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 0.0)
+    #: the load M's standing legs measure (None: the YAML's bodies as they are)
+    standing: StandingLoad | None = None
 
 
 def start_state(cfg: ProjectConfig) -> WalkStart:
@@ -296,7 +308,9 @@ class _Planner:
         self.direction = direction
         up = cfg.layers.upper
         fit = fit_layer(np.asarray(start.upper_extensions_m), up.a_m, up.b_m)
-        self.machine = WalkingMachine(cfg, float(fit.roll), float(fit.pitch), unloaded)
+        self.machine = WalkingMachine(
+            cfg, float(fit.roll), float(fit.pitch), unloaded, start.standing
+        )
         self.start = start
         subs = sorted(
             (c for c in cfg.cylinders if c.role == "sub_leg"), key=lambda c: c.position or 0
@@ -309,13 +323,13 @@ class _Planner:
         travel = [cfg.cylinder(cid) for cid in self.travel_ids]
         self.x_s_limit = min(c.stroke_m for c in travel) / 2 - self.walk.travel_reserve_m
         traj = cfg.planner.trajectory
-        self.travel_move = (self.walk.travel_speed_m_s, traj.max_rod_accel_m_s2)
+        self.travel_move = (self.walk.travel_speed_m_s, self.walk.travel_accel_m_s2)
         self.leg_move = (traj.max_rod_speed_m_s, traj.max_rod_accel_m_s2)
         self.g = self.machine.g_base
         self.weight_n = self.machine.mass_kg * -float(self.g.z)
         self.plan = WalkPlan(
             0, self.walk.step_length_m, self.leg_ids, self.walk.min_stability_margin_m,
-            direction=direction, unloaded=unloaded,
+            direction=direction, unloaded=unloaded, standing=start.standing,
         )  # fmt: skip
         self.t = 0.0
 

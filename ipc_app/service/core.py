@@ -49,6 +49,7 @@ from ipc_app.control.walk import WalkSequencer
 from ipc_app.model.composition import check_attitude
 from ipc_app.model.kinematics import fit_layer
 from ipc_app.model.placement import Pose
+from ipc_app.model.support import WalkingMachine, cap_side_forces_n, standing_load
 from ipc_app.planner.placement import PlacementPlan
 from ipc_app.planner.plan import Plan
 from ipc_app.planner.survey import SurveyPoint
@@ -237,7 +238,8 @@ class ServiceCore:
         self.walk_limits = WalkLimits.from_config(cfg) if cfg.walking is not None else None
         self._walk_phase = -1
         self._walk_stop: tuple[np.ndarray, np.ndarray] | None = None
-        #: the rods and pressures of the walk's last driven cycle (its stop state)
+        #: the rods and pressures of the walk's last driven cycle, each at its last valid
+        #: value (the stop state; what a reading not valid this cycle stands at)
         self._walk_driven: tuple[np.ndarray, np.ndarray] | None = None
         self._attitude_limits = self.limits
         # the placement move: its sequencer while one runs (and holds after it)
@@ -438,18 +440,13 @@ class ServiceCore:
 
     # ------------------------------------------------------------------ the walk
 
-    def plan_walk_here(
-        self, steps: int, direction: str = "forward", unloaded: bool = False
-    ) -> WalkPlan | dict[str, Any]:
-        """Plan ``steps`` steps from the last measured state, in the planner process
-        (the caller's thread waits; never the loop's); a dict when the service cannot walk
-        now (why)."""
-        if self.cfg.walking is None or self.cfg.frames is None:
-            msg = "the project has no frames and walking sections: it cannot walk"
-            return {"ok": False, "code": "bad_request", "error": msg}
+    def walk_start(self) -> WalkStart | str:
+        """The measured state a walk would start from now (:class:`WalkStart`: ``x_S``,
+        the layers' extensions, the load M's standing legs measure), or why there is
+        none yet (a refusal's text: a position or a standing leg's pressure not valid)."""
         inp = self._inputs
         if inp is None or not inp.positions_valid:
-            return {"ok": False, "code": "refused", "error": "walk refused: no valid positions"}
+            return "walk refused: no valid positions"
         x = inp.positions.value
         cfg = self.cfg
         travel = [c.can_index for c in cfg.cylinders_by_can_index if c.role == "travel"]
@@ -458,12 +455,38 @@ class ServiceCore:
         half = self.stroke / 2
         lo, up = self.attitude.layers["lower"], self.attitude.layers["upper"]
         if not (np.all(np.isfinite(x[travel])) and np.all(np.isfinite(x[up]))):
-            return {"ok": False, "code": "refused", "error": "walk refused: no valid positions"}
-        start = WalkStart(
+            return "walk refused: no valid positions"
+        press = inp.pressures
+        if not press.all_valid(lo):
+            return "walk refused: the standing legs' pressures not valid (yet)"
+        legs = [cfg.cylinders_by_can_index[i] for i in lo]
+        forces = cap_side_forces_n(
+            press.value[lo], np.array([c.cap_area_m2 for c in legs]),
+            np.array([c.rod_area_m2 for c in legs]),
+        )  # fmt: skip
+        try:  # M stands: its legs measure the machine's weight and COG
+            standing = standing_load(WalkingMachine(cfg).main_legs_xy, forces, x_s)
+        except ValueError as exc:
+            return f"walk refused: {exc}"
+        return WalkStart(
             x_s_m=x_s,
             main_extensions_m=tuple((x[lo] - half[lo]).tolist()),
             upper_extensions_m=tuple((x[up] - half[up]).tolist()),
+            standing=standing,
         )
+
+    def plan_walk_here(
+        self, steps: int, direction: str = "forward", unloaded: bool = False
+    ) -> WalkPlan | dict[str, Any]:
+        """Plan ``steps`` steps from the last measured state (:meth:`walk_start`), in the
+        planner process (the caller's thread waits; never the loop's); a dict when the
+        service cannot walk now (why)."""
+        if self.cfg.walking is None or self.cfg.frames is None:
+            msg = "the project has no frames and walking sections: it cannot walk"
+            return {"ok": False, "code": "bad_request", "error": msg}
+        start = self.walk_start()
+        if isinstance(start, str):
+            return {"ok": False, "code": "refused", "error": start}
         try:
             plan: WalkPlan = self.planner.call(
                 PLAN_WALK_FN, steps, start, direction=direction, unloaded=unloaded
@@ -631,7 +654,9 @@ class ServiceCore:
         self._walk_driven = self._walk_stop = None
         self._attitude_group()
 
-    def _walk_resume_cause(self, inp: MachineInputs) -> Cause | None:
+    def _walk_resume_cause(self, inp: MachineInputs, forces: bool = True) -> Cause | None:
+        """The walk's resume check against the stop state; ``forces`` False: the rods
+        only (a ride-through: see :meth:`_ride_through`)."""
         w, lim = self.walker, self.walk_limits
         assert w is not None and lim is not None
         if self._walk_stop is None:
@@ -642,7 +667,8 @@ class ServiceCore:
         heights = w.legs + w.upper
         return walk_resume_cause(
             x.tolist(), x_stop.tolist(), heights, w.travel, self.limits.ids,
-            w.forces_n(inp.pressures.value).tolist(), f_stop.tolist(), share, w.leg_ids, lim,
+            w.forces_n(inp.pressures.value).tolist(), f_stop.tolist(), share,
+            w.leg_ids if forces else (), lim,
         )  # fmt: skip
 
     def walk_status(self) -> dict[str, Any] | None:
@@ -1150,14 +1176,19 @@ class ServiceCore:
         u = np.zeros(len(self.cfg.cylinders))
         if not (self.modes.valves_enabled and inp.positions_valid):
             return u, None
-        # a value not usable (NaN) as 0.0; without one the readings as they are (the
-        # walk never writes to them)
+        # each reading that is not valid this cycle (a slow group's frame late or lost)
+        # stands at its last valid value, and a cylinder outside the active group whose
+        # position is not valid is not driven (its valve closed) until one comes again
         pos, press = inp.positions, inp.pressures
-        x = pos.value if pos.valid.all() else np.nan_to_num(pos.value, nan=0.0)
-        p = press.value if press.valid.all() else np.nan_to_num(press.value, nan=0.0)
+        last = self._walk_driven
+        if last is None:
+            last = (np.nan_to_num(pos.value, nan=0.0), np.nan_to_num(press.value, nan=0.0))
+        x = np.where(pos.valid, pos.value, last[0])
+        p = np.where(press.valid, press.value, last[1])
         was_done = walker.done
         band_was = walker.figures.out_of_band
-        u = walker.update(now, x, p, set(self.limits.active), inp.pressures.age_s)
+        u = walker.update(now, x, p, set(self.limits.active), press.age_s)
+        u[~pos.valid] = 0.0  # the active group's are valid here (else suspended)
         self._walk_driven = (x, p)
         band = walker.figures.out_of_band
         if band != band_was and self.record is not None:  # the sync band: hold, go on
@@ -1215,10 +1246,20 @@ class ServiceCore:
         self._fresh_cycles += 1
         if self._fresh_cycles < self.RESUME_FRESH_CYCLES:
             return
-        if self.walker is not None:  # walking.md's resume check, as after a hold
-            cause = self._walk_resume_cause(inp)
-            if cause is None and not bool(inp.pressures.valid[list(self.limits.active)].all()):
-                cause = Cause(Interlock.RESUME_CHECK, where="pressures", detail="not valid")
+        if self.walker is not None:
+            # walking.md's resume check on the rods (heights, the travel pair's coast); not
+            # on the legs' forces: in a stop of at most safety.max_suspend_ms what moves
+            # them is the interrupted motion settling as the valves close (up to 20 kN in
+            # the walk campaign), and the overload and transfer checks judge them again
+            # from the first cycle it goes on. A hold's unhold checks them too (its stop
+            # may last long enough for a leg to sink or a foot to give way).
+            w = self.walker
+            press_needed = w.legs + list(self.limits.active)
+            if not (
+                inp.positions.all_valid(w.walk_cylinders) and inp.pressures.all_valid(press_needed)
+            ):
+                return  # a slow group's frame yet to come (the suspend timeout bounds this)
+            cause = self._walk_resume_cause(inp, forces=False)
         else:
             stop_ref = self._stop_ref.tolist() if self._stop_ref is not None else None
             cause = resume_cause(inp, stop_ref, self.limits)

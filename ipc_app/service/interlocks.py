@@ -228,8 +228,9 @@ SPECS: dict[Interlock, Spec] = {
         "resume of a stopped walk (unhold, or the end of a suspension): a leg or upper "
         "cylinder moved more than the tolerance, a travel rod more than its coasting allowance "
         "(`walking.travel_speed_mm_s` times `safety.command_timeout_ms`, plus the tolerance), "
-        "or a leg's force changed more than `walking.resume_force_tolerance_percent` of its "
-        "share, since the stop: the unhold refused (after a suspension: stop, latched); "
+        "or (after a hold) a leg's force changed more than "
+        "`walking.resume_force_tolerance_percent` of its share, since the stop: the unhold "
+        "refused (after a suspension: stop, latched); "
         "`wara ctl stop` and a new walk re-plan from the measured state",
     ),
 }

@@ -19,7 +19,7 @@ from typing import Any
 import numpy as np
 
 from wara.campaign.engine import campaign_of_dir, read_manifest, read_results
-from wara.campaign.spec import Campaign
+from wara.campaign.spec import HIGHER_IS_BETTER, Campaign
 
 
 def lower_bound(n: int, failures: int, confidence: float) -> float:
@@ -36,18 +36,25 @@ def lower_bound(n: int, failures: int, confidence: float) -> float:
 
 
 def percentile_figure(rows: list[dict[str, Any]], metric: str, probability: float) -> float:
-    """The campaign's figure: ``margin``'s (1 - probability) quantile (higher is better),
-    else the figure's ``probability`` quantile (lower is better). A run that did not
-    finish counts as the worst value (margin -1, figure +inf). The quantile is an order
-    statistic, on the safe side (no interpolation)."""
+    """The campaign's figure: for ``margin`` and the figures of
+    :data:`~wara.campaign.spec.HIGHER_IS_BETTER` their (1 - probability) quantile, else
+    the figure's ``probability`` quantile (lower is better). A run that did not finish
+    counts as the worst value (margin -1, a figure -inf or +inf). The quantile is an
+    order statistic, on the safe side (no interpolation)."""
     if not rows:
         return math.nan
-    if metric == "margin":
-        v = np.array([r["margin"] for r in rows], dtype=float)
-        return float(np.quantile(np.nan_to_num(v, nan=-1.0), 1.0 - probability, method="lower"))
     v = np.array([r[metric] for r in rows], dtype=float)
+    if metric == "margin":
+        return float(np.quantile(np.nan_to_num(v, nan=-1.0), 1.0 - probability, method="lower"))
+    if metric in HIGHER_IS_BETTER:
+        v[np.isnan(v)] = -np.inf
+        return float(np.quantile(v, 1.0 - probability, method="lower"))
     v[np.isnan(v)] = np.inf
     return float(np.quantile(v, probability, method="higher"))
+
+
+def _higher_is_better(name: str) -> bool:
+    return name == "margin" or name in HIGHER_IS_BETTER
 
 
 def verdict(c: Campaign, rows: list[dict[str, Any]], planned: int) -> dict[str, Any]:
@@ -69,7 +76,7 @@ def verdict(c: Campaign, rows: list[dict[str, Any]], planned: int) -> dict[str, 
         "shown": shown,
         "metric": req.metric,
         "percentile_figure": percentile_figure(rows, req.metric, req.probability),
-        "limits": dict(req.limits),
+        "limits": dict(c.limits),
     }
 
 
@@ -145,7 +152,7 @@ def _counts(rows: list[dict[str, Any]]) -> dict[str, int]:
 def _figure_stats(c: Campaign, rows: list[dict[str, Any]]) -> dict[str, dict[str, float]]:
     req = c.spec.requirement
     out = {}
-    for name in [*req.limits, "margin"]:
+    for name in [*c.limits, "margin"]:
         v = np.array([r[name] for r in rows], dtype=float)
         v = v[np.isfinite(v)]
         if not len(v):
@@ -153,8 +160,8 @@ def _figure_stats(c: Campaign, rows: list[dict[str, Any]]) -> dict[str, dict[str
         out[name] = {
             "median": float(np.median(v)),
             "p_requirement": percentile_figure(rows, name, req.probability),
-            "worst": float(v.min() if name == "margin" else v.max()),
-            "limit": float(req.limits.get(name, 0.0)),
+            "worst": float(v.min() if _higher_is_better(name) else v.max()),
+            "limit": float(c.limits.get(name, 0.0)),
         }
     return out
 
@@ -176,12 +183,13 @@ def render_text(s: dict[str, Any]) -> str:
             else ("incomplete campaign" if not v["complete"] else "requirement NOT shown")
         ),
         "",
-        "figure               median      percentile  worst       limit",
+        f"{'figure':<33}median      percentile  worst       limit",
     ]
     for name, f in s["figures"].items():
-        lim = f"{f['limit']:.4g}" if name != "margin" else "0 (>)"
+        lim = f"{f['limit']:.4g}" + (" (>=)" if name in HIGHER_IS_BETTER else "")
+        lim = lim if name != "margin" else "0 (>)"
         lines.append(
-            f"{name:<20} {f['median']:<11.4g} {f['p_requirement']:<11.4g} {f['worst']:<11.4g} {lim}"
+            f"{name:<32} {f['median']:<11.4g} {f['p_requirement']:<11.4g} {f['worst']:<11.4g} {lim}"
         )
     lines += ["", "worst runs:"]
     for w in s["worst_runs"]:
@@ -206,13 +214,12 @@ def plots(c: Campaign, rows: list[dict[str, Any]], s: dict[str, Any]) -> list[tu
     import matplotlib.pyplot as plt
 
     images = []
-    req = c.spec.requirement
     passed = np.array([r["passed"] for r in rows], dtype=bool)
-    for name in [*req.limits, "margin"]:
+    for name in [*c.limits, "margin"]:
         v = np.array([r[name] for r in rows], dtype=float)
         fig, ax = plt.subplots(figsize=(6, 3.6))
         ax.hist(v[np.isfinite(v)], bins=30, color="#4a78b0")
-        limit = 0.0 if name == "margin" else req.limits[name]
+        limit = 0.0 if name == "margin" else c.limits[name]
         ax.axvline(limit, color="r", ls="--", label="limit")
         ax.set_xlabel(name)
         ax.set_ylabel("runs")

@@ -1,5 +1,8 @@
 """One campaign run: the lockstep harness (simulator + service core) with run ``i``'s
-drawn parameters, its targets one after another, judged as the demo's examples.
+drawn parameters, doing what the spec's ``run`` says: attitude targets one after
+another (judged as the demo's examples), a walk (judged per step as ``wara walk``
+judges it) or ring cycles (judged per ring on the simulator's truth as ``wara cycle``
+judges them).
 
 :func:`run_one` is the whole task a campaign worker runs, and what ``wara campaign
 replay`` runs again with plots: the row it returns depends only on the spec, the
@@ -9,14 +12,27 @@ project and the run index.
 from __future__ import annotations
 
 import math
+import tempfile
 import time
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 from config.schema import ProjectConfig
+from ipc_app.model.placement import Pose
 from ipc_app.service.modes import Mode
 from ipc_app.service.worker import PlannerWorker
-from wara.campaign.spec import FIGURES, Campaign, Draw, set_path
+from wara.campaign.spec import (
+    FIGURES_OF,
+    HIGHER_IS_BETTER,
+    AttitudeTargets,
+    Campaign,
+    Draw,
+    RingCycleRun,
+    WalkRun,
+    figure_margin,
+    set_path,
+)
 from wara.examples import ExampleResult
 from wara.harness import Harness
 
@@ -25,6 +41,20 @@ VOLATILE_COLUMNS = ("wall_s", "worker")
 
 #: How long (simulated) the service may take to come up before the first target.
 STARTUP_S = 20.0
+
+
+@dataclass
+class RunOutcome:
+    """What a run did: its figures (the worst over its targets, steps or rings; NaN
+    where it did not get that far), whether it finished (every target held, every step
+    walked, every ring built), why not, and the service's state at the end."""
+
+    figures: dict[str, float]
+    done: bool
+    problem: str = ""
+    fault_reasons: list[str] = field(default_factory=list)
+    final_mode: str = ""
+    sim_time_s: float = 0.0
 
 
 def service_project(c: Campaign, overrides: dict[str, float] | None) -> ProjectConfig:
@@ -47,7 +77,8 @@ def run_one(
     plot_dir: Path | None = None,
     worker: str = "",
 ) -> dict[str, Any]:
-    """Run ``index`` of the campaign; one result row (see :func:`row_of`)."""
+    """Run ``index`` of the campaign; one result row (see :func:`row_of`). ``plot_dir``:
+    the run's plots (attitude targets: ``demo.png``; a walk: ``walk.png``)."""
     t0 = time.perf_counter()
     draw = c.draw(index)
     cfg = service_project(c, overrides)
@@ -57,6 +88,30 @@ def run_one(
 
         planner = PlannerWorker(c.project_file, timeout_s=PLANNER_TIMEOUT_S)
         planner.start()
+    try:
+        run = c.spec.run
+        if isinstance(run, WalkRun):
+            outcome = _walk(c, run, cfg, draw, planner, plot_dir)
+        elif isinstance(run, RingCycleRun):
+            outcome = _ring_cycle(c, run, cfg, draw, planner)
+        else:
+            outcome = _attitude(c, run, cfg, draw, planner, plot_dir)
+    finally:
+        if own:
+            planner.close()
+    return row_of(c, draw, outcome, wall_s=time.perf_counter() - t0, worker=worker)
+
+
+def _attitude(
+    c: Campaign,
+    run: AttitudeTargets,
+    cfg: ProjectConfig,
+    draw: Draw,
+    planner: PlannerWorker,
+    plot_dir: Path | None,
+) -> RunOutcome:
+    """The targets one after another, each judged as a demo example."""
+    names = FIGURES_OF[run.kind]
     h = Harness(
         cfg,
         c.project_file,
@@ -79,7 +134,7 @@ def run_one(
             results.append(r)
             held.append(
                 h.core.modes.mode == Mode.COMPLETE
-                and all(math.isfinite(getattr(r, f)) for f in FIGURES)
+                and all(math.isfinite(getattr(r, f)) for f in names)
             )
             if h.faulted() or not held[-1]:
                 break
@@ -92,65 +147,150 @@ def run_one(
             plot_trace(h.trace, plot_dir)
     finally:
         h.close()
-        if own:
-            planner.close()
-    return row_of(
-        c,
-        draw,
-        results,
-        done=not problem and len(held) == len(draw.targets) and all(held),
-        problem=problem,
+    n = len(draw.targets)
+    complete = len(results) == n
+    figures = {f: max(getattr(r, f) for r in results) if complete else math.nan for f in names}
+    figures["duration_s"] = sum(r.duration_s for r in results) if complete else math.nan
+    return RunOutcome(
+        figures,
+        done=not problem and len(held) == n and all(held),
+        problem=problem or next((r.note for r in results if r.note), ""),
         fault_reasons=fault_reasons,
         final_mode=final_mode,
         sim_time_s=sim_t,
-        wall_s=time.perf_counter() - t0,
-        worker=worker,
+    )
+
+
+def _walk(
+    c: Campaign,
+    run: WalkRun,
+    cfg: ProjectConfig,
+    draw: Draw,
+    planner: PlannerWorker,
+    plot_dir: Path | None,
+) -> RunOutcome:
+    """``wara walk --steps N --lockstep`` on the drawn machine; the worst step's figures."""
+    from wara.walk import run_walk
+
+    directions = (run.direction, "back" if run.direction == "forward" else "forward")
+    out = run_walk(
+        c.project_file,
+        run.steps,
+        cfg=cfg,
+        scenario=draw.scenario,
+        sim_cfg=draw.sim_project,
+        seed=draw.sim_seed,
+        planner=planner,
+        plot_dir=plot_dir,
+        directions=directions if run.and_back else directions[:1],
+    )
+    steps = out.get("steps") or []
+    want = run.steps * (2 if run.and_back else 1)
+    done = len(steps) == want and all(s["duration_s"] > 0 for s in steps)
+    figures: dict[str, float] = dict.fromkeys(FIGURES_OF["walk"], math.nan)
+    if done:
+        step_m = cfg.walking.step_length_m if cfg.walking is not None else 0.0
+        figures["distance_error_mm"] = max(
+            1000.0 * abs(abs(s["distance_m"]) - step_m) for s in steps
+        )
+        for name in (
+            "max_leg_sync_error_mm",
+            "max_travel_sync_error_mm",
+            "max_transfer_attitude_change_deg",
+            "max_leg_force_ratio",
+        ):
+            figures[name] = max(float(s[name]) for s in steps)
+        figures["min_stability_margin_m"] = min(float(s["min_stability_margin_m"]) for s in steps)
+        figures["max_step_duration_s"] = max(float(s["duration_s"]) for s in steps)
+    return RunOutcome(
+        figures,
+        done=done and out.get("final_mode") == str(Mode.COMPLETE),
+        problem=str(out.get("refused") or out.get("error") or ""),
+        fault_reasons=list(out.get("fault_reasons") or []),
+        final_mode=str(out.get("final_mode", "")),
+        sim_time_s=float(out.get("sim_time_s", 0.0)),
+    )
+
+
+def _ring_cycle(
+    c: Campaign, run: RingCycleRun, cfg: ProjectConfig, draw: Draw, planner: PlannerWorker
+) -> RunOutcome:
+    """``wara cycle --rings N --lockstep`` on the drawn machine, its records in a store
+    of its own; the worst ring's figures on the simulator's truth."""
+    from config import units
+    from wara.cycle import run_cycle
+
+    y_mm, z_mm = draw.previous_mm
+    with tempfile.TemporaryDirectory(prefix="wara-campaign-ring-") as tmp:
+        out = run_cycle(
+            c.project_file,
+            run.rings,
+            previous_deviation=Pose(y=units.mm(y_mm), z=units.mm(z_mm)),
+            db_path=Path(tmp) / "acceptance.sqlite",
+            seed=draw.sim_seed,
+            cfg=cfg,
+            sim_cfg=draw.sim_project,
+            planner=planner,
+            scenario=draw.scenario,
+        )
+    rows = out.get("rings") or []
+    done = len(rows) == run.rings and out.get("error") is None
+    figures: dict[str, float] = dict.fromkeys(FIGURES_OF["ring_cycle"], math.nan)
+    if done:
+        for name in (
+            "vertical_misalignment_mm",
+            "horizontal_misalignment_mm",
+            "gap_mm",
+            "centreline_deviation_x_mm",
+            "centreline_deviation_y_mm",
+            "gap_error_mm",
+            "cycle_time_s",
+        ):
+            figures[name] = max(abs(float(r[name])) for r in rows)
+        figures["position_error_mm"] = max(
+            abs(float(r["error_from_target"][k])) for r in rows for k in ("x_mm", "y_mm", "z_mm")
+        )
+        figures["angle_error_deg"] = max(
+            abs(float(r["error_from_target"][k]))
+            for r in rows
+            for k in ("roll_deg", "pitch_deg", "yaw_deg")
+        )
+    return RunOutcome(
+        figures,
+        done=done,
+        problem=str(out.get("error") or ""),
+        fault_reasons=list(out.get("fault_reasons") or []),
+        final_mode=str(out.get("final_mode", "")),
+        sim_time_s=float(out.get("sim_time_s", 0.0)),
     )
 
 
 def row_of(
-    c: Campaign,
-    draw: Draw,
-    results: list[ExampleResult],
-    *,
-    done: bool,
-    problem: str,
-    fault_reasons: list[str],
-    final_mode: str,
-    sim_time_s: float,
-    wall_s: float,
-    worker: str,
+    c: Campaign, draw: Draw, outcome: RunOutcome, *, wall_s: float, worker: str
 ) -> dict[str, Any]:
-    """``done``: every target reached and held. The row: ``run``, ``seed``, the drawn
-    parameters (``p.<name>``), the figures (the worst over the run's targets),
-    ``margin``, ``passed``, ``status`` (passed, over_limit, not_finished), ``note``,
-    ``fault_reasons``, ``final_mode``, ``sim_time_s``, and the volatile ``wall_s`` and
-    ``worker``."""
-    req = c.spec.requirement
-    n_targets = len(draw.targets)
-    figures: dict[str, float] = {}
-    for f in FIGURES:
-        vals = [getattr(r, f) for r in results]
-        figures[f] = max(vals) if vals and len(vals) == n_targets else math.nan
-    figures["duration_s"] = (
-        sum(r.duration_s for r in results) if len(results) == n_targets else math.nan
-    )
+    """The row: ``run``, ``seed``, the drawn parameters (``p.<name>``), the figures (the
+    worst over the run's targets, steps or rings), ``margin`` (the smallest relative
+    margin over the limits, :func:`~wara.campaign.spec.figure_margin`; -1 when the run
+    did not finish), ``passed``, ``status`` (passed, over_limit, not_finished),
+    ``note``, ``fault_reasons``, ``final_mode``, ``sim_time_s``, and the volatile
+    ``wall_s`` and ``worker``."""
+    figures = outcome.figures
     over = [
-        f"{name} {figures[name]:.4g} > {limit:g}"
-        for name, limit in req.limits.items()
-        if not figures[name] <= limit
+        f"{name} {figures[name]:.4g} {'<' if name in HIGHER_IS_BETTER else '>'} {limit:g}"
+        for name, limit in c.limits.items()
+        if not figure_margin(name, figures[name], limit) >= 0.0
     ]
     margin = -1.0
-    if done:
-        margin = min(1.0 - figures[name] / limit for name, limit in req.limits.items())
-    passed = done and not over
+    if outcome.done:
+        margin = min(figure_margin(name, figures[name], limit) for name, limit in c.limits.items())
+    passed = outcome.done and not over
     if passed:
         status, note = "passed", ""
-    elif done:
+    elif outcome.done:
         status, note = "over_limit", "; ".join(over)
     else:
         status = "not_finished"
-        note = problem or next((r.note for r in results if r.note), "") or (f"service {final_mode}")
+        note = outcome.problem or f"service {outcome.final_mode}"
     row: dict[str, Any] = {"run": draw.index, "seed": draw.sim_seed}
     row.update({f"p.{k}": v for k, v in draw.params.items()})
     row.update(figures)
@@ -160,9 +300,9 @@ def row_of(
             "passed": passed,
             "status": status,
             "note": note,
-            "fault_reasons": "; ".join(fault_reasons),
-            "final_mode": final_mode,
-            "sim_time_s": sim_time_s,
+            "fault_reasons": "; ".join(outcome.fault_reasons),
+            "final_mode": outcome.final_mode,
+            "sim_time_s": outcome.sim_time_s,
             "wall_s": wall_s,
             "worker": worker,
         }

@@ -24,32 +24,61 @@ from pathlib import Path
 from typing import Annotated, Any, Literal
 
 import numpy as np
-from pydantic import Field, model_validator
+from pydantic import Discriminator, Field, Tag, model_validator
 
-from config import ConfigError, load_project
+from config import ConfigError, load_project, units
 from config.hil_scenario import EVENT_KINDS, HilScenario
 from config.loader import default_project_path, read_yaml, validate_data
 from config.schema import Finite, ProjectConfig, Strict
 from wara.examples import ATTITUDE_TOL_DEG, SYNC_TOL_MM, TWIST_TOL_MM
 
-#: Per-run figures a requirement may limit (all: lower is better).
-FIGURES: tuple[str, ...] = (
-    "attitude_error_deg",
-    "max_twist_mm",
-    "sync_error_mm",
-    "max_sync_error_mm",
-)
+#: Per-run figures a requirement may limit, by run kind: the worst over the run's
+#: targets, steps or rings. Lower is better, except those of :data:`HIGHER_IS_BETTER`.
+FIGURES_OF: dict[str, tuple[str, ...]] = {
+    "attitude_targets": (
+        "attitude_error_deg",
+        "max_twist_mm",
+        "sync_error_mm",
+        "max_sync_error_mm",
+    ),
+    "walk": (
+        "distance_error_mm",
+        "max_leg_sync_error_mm",
+        "max_travel_sync_error_mm",
+        "max_transfer_attitude_change_deg",
+        "max_leg_force_ratio",
+        "min_stability_margin_m",
+        "max_step_duration_s",
+    ),
+    "ring_cycle": (
+        "vertical_misalignment_mm",
+        "horizontal_misalignment_mm",
+        "gap_mm",
+        "centreline_deviation_x_mm",
+        "centreline_deviation_y_mm",
+        "position_error_mm",
+        "angle_error_deg",
+        "gap_error_mm",
+        "cycle_time_s",
+    ),
+}
+#: Figures whose limit is a lower bound (a run passes at or above it).
+HIGHER_IS_BETTER = frozenset({"min_stability_margin_m"})
+#: The attitude targets' figures (the demo's examples).
+FIGURES = FIGURES_OF["attitude_targets"]
 
-#: The demo's tolerances: the default limits.
+#: The demo's tolerances: the default limits of attitude targets.
 DEMO_LIMITS: dict[str, float] = {
     "attitude_error_deg": ATTITUDE_TOL_DEG,
     "max_twist_mm": TWIST_TOL_MM,
     "sync_error_mm": SYNC_TOL_MM,
 }
 
-#: Run kinds a spec may name; only these run today.
-RUN_KINDS_AVAILABLE = ("attitude_targets",)
-RUN_KINDS_PLANNED = ("walk", "ring_cycle")
+
+def figure_margin(name: str, value: float, limit: float) -> float:
+    """How far ``value`` is inside ``limit``, relative: 0 at the limit, below 0 beyond it
+    (NaN for a NaN value)."""
+    return value / limit - 1.0 if name in HIGHER_IS_BETTER else 1.0 - value / limit
 
 
 class Distribution(Strict):
@@ -126,25 +155,77 @@ class Distribution(Strict):
         return float(self.values[int(rng.integers(len(self.values)))])
 
 
+def _check_ranges(run: Strict, names: tuple[str, ...], bound: float, unit: str) -> None:
+    """Each ``[low, high]`` of ``names`` in order and within +-``bound``."""
+    for name in names:
+        lo, hi = getattr(run, name)
+        if not lo <= hi:
+            raise ValueError(f"{name}: [{lo}, {hi}] must be [low, high]")
+        if max(abs(lo), abs(hi)) > bound:
+            raise ValueError(f"{name}: within +-{bound:g} {unit}")
+
+
 class AttitudeTargets(Strict):
     """Each run: ``targets`` attitude adjustments one after another from the level
     start at mid-stroke, each drawn uniformly in the roll/pitch box, each held and
     judged as a demo example."""
 
-    kind: Literal["attitude_targets", "walk", "ring_cycle"] = "attitude_targets"
+    kind: Literal["attitude_targets"] = "attitude_targets"
     targets: Annotated[int, Field(ge=1, le=20)] = 1
     roll_deg: tuple[Finite, Finite] = (-5.0, 5.0)
     pitch_deg: tuple[Finite, Finite] = (-2.0, 2.0)
 
     @model_validator(mode="after")
     def _box(self) -> AttitudeTargets:
-        for name in ("roll_deg", "pitch_deg"):
-            lo, hi = getattr(self, name)
-            if not lo <= hi:
-                raise ValueError(f"{name}: [{lo}, {hi}] must be [low, high]")
-            if max(abs(lo), abs(hi)) > 45:
-                raise ValueError(f"{name}: within +-45 deg")
+        _check_ranges(self, ("roll_deg", "pitch_deg"), 45.0, "deg")
         return self
+
+
+class WalkRun(Strict):
+    """Each run: ``wara walk --steps N`` in lockstep (the walking rig, the service's
+    step sequencer), ``direction``, and with ``and_back`` the same steps back; judged
+    per step as ``wara walk`` judges it (docs/walking.md)."""
+
+    kind: Literal["walk"]
+    steps: Annotated[int, Field(ge=1, le=3)] = 1
+    direction: Literal["forward", "back"] = "forward"
+    and_back: bool = False
+
+
+class RingCycleRun(Strict):
+    """Each run: ``wara cycle --rings N`` in lockstep from ring 2 (the project's
+    ``cycle`` section: walk, place, fixing, release, survey, record, walk back), the
+    part before it off its design by ``previous_y_mm`` / ``previous_z_mm`` (each drawn
+    uniformly in its ``[low, high]``); judged per ring on the simulator's truth as
+    ``wara cycle`` judges it (docs/placement.md)."""
+
+    kind: Literal["ring_cycle"]
+    rings: Annotated[int, Field(ge=1, le=5)] = 1
+    previous_y_mm: tuple[Finite, Finite] = (0.0, 0.0)
+    previous_z_mm: tuple[Finite, Finite] = (0.0, 0.0)
+
+    @model_validator(mode="after")
+    def _box(self) -> RingCycleRun:
+        _check_ranges(self, ("previous_y_mm", "previous_z_mm"), 50.0, "mm")
+        return self
+
+
+def _run_kind(v: Any) -> str:
+    """The ``run`` section's kind (left out: attitude targets)."""
+    kind = v.get("kind", "attitude_targets") if isinstance(v, dict) else getattr(v, "kind", None)
+    return str(kind)
+
+
+RunSpec = Annotated[
+    Annotated[AttitudeTargets, Tag("attitude_targets")]
+    | Annotated[WalkRun, Tag("walk")]
+    | Annotated[RingCycleRun, Tag("ring_cycle")],
+    Discriminator(
+        _run_kind,
+        custom_error_type="run_kind",
+        custom_error_message="run.kind must be attitude_targets, walk or ring_cycle",
+    ),
+]
 
 
 class RandomEvent(Strict):
@@ -181,24 +262,25 @@ class Requirement(Strict):
     of a run over its limits (1 - value / limit; below 0 when a limit is broken, -1
     when the run did not finish)."""
 
-    limits: dict[str, Annotated[Finite, Field(gt=0)]] = Field(
-        default_factory=lambda: dict(DEMO_LIMITS)
-    )
+    #: figure -> limit; null: the run kind's goals (:func:`default_limits`)
+    limits: dict[str, Annotated[Finite, Field(gt=0)]] | None = None
     metric: str = "margin"
     probability: Annotated[Finite, Field(gt=0, lt=1)] = 0.99
     confidence: Annotated[Finite, Field(gt=0, lt=1)] = 0.95
     runs: Annotated[int, Field(ge=1, le=1_000_000)] | None = None
 
-    @model_validator(mode="after")
-    def _names(self) -> Requirement:
-        bad = [k for k in self.limits if k not in FIGURES]
+    def check_names(self, kind: str) -> None:
+        """The figures named are ``kind``'s (ValueError otherwise)."""
+        figures = FIGURES_OF[kind]
+        bad = [k for k in self.limits or () if k not in figures]
         if bad:
-            raise ValueError(f"limits: unknown figure {bad[0]!r}; one of {', '.join(FIGURES)}")
-        if not self.limits:
+            raise ValueError(
+                f"limits: unknown figure {bad[0]!r} of a {kind} run; one of {', '.join(figures)}"
+            )
+        if self.limits is not None and not self.limits:
             raise ValueError("limits: name at least one figure")
-        if self.metric != "margin" and self.metric not in FIGURES:
-            raise ValueError(f"metric must be margin or one of {', '.join(FIGURES)}")
-        return self
+        if self.metric != "margin" and self.metric not in figures:
+            raise ValueError(f"metric must be margin or one of {', '.join(figures)}")
 
     @property
     def run_count(self) -> int:
@@ -230,7 +312,7 @@ class CampaignSpec(Strict):
     #: the project YAML, relative to the spec file (null: the shipped project)
     project: str | None = None
     seed: Annotated[int, Field(ge=0)] = 0
-    run: AttitudeTargets = AttitudeTargets()
+    run: RunSpec = AttitudeTargets()
     #: project key path -> distribution (the simulated machine only)
     dispersions: dict[str, Distribution] = Field(default_factory=dict)
     #: HIL scenario key path -> distribution (sensors.position.noise_um, plant.rod_mass_kg)
@@ -238,6 +320,51 @@ class CampaignSpec(Strict):
     events: tuple[RandomEvent, ...] = ()
     requirement: Requirement = Requirement()
     tune: Tune = Tune()
+
+    @model_validator(mode="after")
+    def _figures_of_the_kind(self) -> CampaignSpec:
+        try:
+            self.requirement.check_names(self.run.kind)
+        except ValueError as exc:
+            raise ValueError(f"requirement.{exc}") from None
+        return self
+
+
+def default_limits(kind: str, project: ProjectConfig) -> dict[str, float]:
+    """The goals a run of ``kind`` is judged against when the spec sets no limits: the
+    demo's tolerances (attitude targets), ``wara walk``'s goals, ``wara cycle``'s (Table
+    4 of the project's ``acceptance``, the simulation goals, ``cycle.max_cycle_time_min``)."""
+    if kind == "attitude_targets":
+        return dict(DEMO_LIMITS)
+    if kind == "walk":
+        from wara import walk
+
+        return {
+            "distance_error_mm": units.to_mm(walk.STEP_LENGTH_TOL_M),
+            "max_leg_sync_error_mm": walk.LEG_SYNC_MM,
+            "max_travel_sync_error_mm": walk.TRAVEL_SYNC_MM,
+            "max_transfer_attitude_change_deg": walk.ATTITUDE_CHANGE_DEG,
+            "max_leg_force_ratio": walk.FORCE_RATIO,
+            "min_stability_margin_m": walk.MIN_MARGIN_M,
+            "max_step_duration_s": walk.STEP_S,
+        }
+    from wara.placement_run import GOAL_DEG, GOAL_MM
+
+    acc = project.acceptance
+    cyc = project.cycle
+    out = {
+        "vertical_misalignment_mm": acc.vertical_misalignment_mm,
+        "horizontal_misalignment_mm": acc.horizontal_misalignment_mm,
+        "gap_mm": acc.max_gap_mm,
+        "centreline_deviation_x_mm": acc.centreline_deviation_x_mm,
+        "centreline_deviation_y_mm": acc.centreline_deviation_y_mm,
+        "position_error_mm": GOAL_MM,
+        "angle_error_deg": GOAL_DEG,
+        "gap_error_mm": GOAL_MM,
+    }
+    if cyc is not None:
+        out["cycle_time_s"] = 60.0 * cyc.max_cycle_time_min
+    return out
 
 
 # --------------------------------------------------------------------------- loading
@@ -257,15 +384,23 @@ class Campaign:
         ``spec.project`` is read."""
         self.spec = spec
         self.source = source
-        if spec.run.kind not in RUN_KINDS_AVAILABLE:
-            raise ConfigError(
-                f"{source}: run.kind: {spec.run.kind!r} campaigns do not exist yet; "
-                f"available: {', '.join(RUN_KINDS_AVAILABLE)}"
-            )
         self.project_path: str | None = (
             None if spec.project is None else str((base_dir / spec.project).resolve())
         )
         self.project = load_project(self.project_path) if project is None else project
+        kind = spec.run.kind
+        if kind == "walk" and self.project.walking is None:
+            raise ConfigError(f"{source}: run.kind: walk: the project has no walking section")
+        if kind == "ring_cycle" and (self.project.cycle is None or self.project.placement is None):
+            raise ConfigError(
+                f"{source}: run.kind: ring_cycle: the project has no cycle or placement section"
+            )
+        #: figure -> limit: the spec's, or the run kind's goals
+        self.limits: dict[str, float] = (
+            dict(spec.requirement.limits)
+            if spec.requirement.limits is not None
+            else default_limits(kind, self.project)
+        )
         nominal = self.project.model_dump(mode="json")
         expanded = _expand(_with_plants(nominal), spec.dispersions, source, "dispersions")
         # a cylinder's own plant last: it starts from the run's drawn defaults
@@ -319,10 +454,14 @@ class Draw:
         sim_project: ProjectConfig,
         scenario: HilScenario,
         sim_seed: int,
+        previous_mm: tuple[float, float] = (0.0, 0.0),
     ) -> None:
+        """``targets``: the attitude targets (roll, pitch deg); ``previous_mm``: a ring
+        cycle's previous part's (y, z) deviation from its design, mm."""
         self.index = index
         self.params = params
         self.targets = targets
+        self.previous_mm = previous_mm
         self.sim_project = sim_project
         self.scenario = scenario
         self.sim_seed = sim_seed
@@ -332,17 +471,24 @@ class Draw:
         spec = c.spec
         rng = np.random.default_rng(np.random.SeedSequence(spec.seed, spawn_key=(index,)))
         sim_seed = int(rng.integers(2**31))
-        targets = [
-            (
-                float(rng.uniform(*spec.run.roll_deg)),
-                float(rng.uniform(*spec.run.pitch_deg)),
-            )
-            for _ in range(spec.run.targets)
-        ]
+        run = spec.run
+        targets: list[tuple[float, float]] = []
+        previous = (0.0, 0.0)
         params: dict[str, float] = {}
-        for i, (roll, pitch) in enumerate(targets):
-            params[f"target{i}_roll_deg"] = roll
-            params[f"target{i}_pitch_deg"] = pitch
+        if isinstance(run, AttitudeTargets):
+            targets = [
+                (float(rng.uniform(*run.roll_deg)), float(rng.uniform(*run.pitch_deg)))
+                for _ in range(run.targets)
+            ]
+            for i, (roll, pitch) in enumerate(targets):
+                params[f"target{i}_roll_deg"] = roll
+                params[f"target{i}_pitch_deg"] = pitch
+        elif isinstance(run, RingCycleRun):
+            previous = (
+                float(rng.uniform(*run.previous_y_mm)),
+                float(rng.uniform(*run.previous_z_mm)),
+            )
+            params["previous_y_mm"], params["previous_z_mm"] = previous
         proj = copy.deepcopy(c._nominal)
         for name, (path, dist) in c.dispersions.items():
             if _is_cylinder_plant(path):
@@ -380,6 +526,7 @@ class Draw:
             validate_data(ProjectConfig, proj, f"{where}: drawn project"),
             validate_data(HilScenario, scen, f"{where}: drawn scenario"),
             sim_seed,
+            previous,
         )
 
 

@@ -1,7 +1,8 @@
 """``wara campaign tune SPEC``: Optuna over the spec's ``tune.parameters`` (the LADRC
 bandwidths by default), each trial a campaign on the same engine and the same drawn
 runs (the spec's seed), maximising the campaign's percentile figure
-(:func:`wara.campaign.report.percentile_figure`; for a figure, its negative).
+(:func:`wara.campaign.report.percentile_figure`; for a lower-is-better figure, its
+negative).
 
 The result is a YAML fragment for the project with the best values, and that trial's
 verdict.
@@ -17,7 +18,7 @@ import yaml
 
 from wara.campaign.engine import read_results, run_campaign
 from wara.campaign.report import percentile_figure, verdict
-from wara.campaign.spec import Campaign
+from wara.campaign.spec import HIGHER_IS_BETTER, Campaign
 
 
 def tune(
@@ -39,7 +40,7 @@ def tune(
     spec = c.spec.model_copy(update={"requirement": req.model_copy(update={"runs": n_runs})})
     trial_c = Campaign(spec, c.source, Path("."), project=c.project)
     trial_c.project_path = c.project_path
-    sign = 1.0 if req.metric == "margin" else -1.0
+    sign = 1.0 if req.metric == "margin" or req.metric in HIGHER_IS_BETTER else -1.0
     history: list[dict[str, Any]] = []
 
     def objective(trial: Any) -> float:

@@ -169,7 +169,8 @@ def _replay(args: argparse.Namespace) -> int:
             + ("not in the campaign yet" if same is None else ("yes" if same else "NO"))
         )
         if args.plot:
-            print(f"plot: {Path(args.plot) / 'demo.png'}")
+            pngs = sorted(Path(args.plot).glob("*.png"))
+            print("plots: " + (", ".join(str(p) for p in pngs) or "none for this run kind"))
     return EXIT_OK if row["passed"] else EXIT_FAILED
 
 
