@@ -30,6 +30,7 @@ class Transducer:
         self._rng = np.random.default_rng(seed)
         self._inv_res = 1.0 / resolution if resolution > 0 else 0.0
         self._block: FloatArray = np.zeros((0, n))
+        self._block_len = 0  # rows of _block
         self._next = 0
 
     def read(self, true_value: FloatArray) -> FloatArray:
@@ -39,12 +40,21 @@ class Transducer:
     def next_noise(self) -> FloatArray:
         """The noise of the next sample (n,): the stream moves on by one sample whether
         or not its reading is ever taken (:meth:`quantize`), so a run stays the same."""
-        if self._next >= self._block.shape[0]:
+        self.skip()
+        return self._block[self._next - 1]
+
+    def skip(self) -> None:
+        """Move the stream on by one sample without making its noise (:meth:`last_noise`
+        gives it if its reading is taken after all)."""
+        if self._next >= self._block_len:
             self._block = self._rng.standard_normal((_BLOCK, self.n)) * self.noise_rms
+            self._block_len = _BLOCK
             self._next = 0
-        noise = self._block[self._next]
         self._next += 1
-        return noise
+
+    def last_noise(self) -> FloatArray:
+        """The noise of the sample the stream last moved on to (:meth:`skip`)."""
+        return self._block[self._next - 1]
 
     def quantize(self, true_value: FloatArray, noise: FloatArray) -> FloatArray:
         """The readings for the true values with one sample's ``noise``

@@ -59,6 +59,7 @@ from config.hil_scenario import (
 )
 from config.schema import N_CYLINDERS, ProjectConfig
 from config.stall import StallTrace
+from hil_sim._jit import jit
 from hil_sim.rig import LayerTruth, Rig
 from hil_sim.sensors import PositionTransducer, PressureTransducer
 from hil_sim.walking import WalkingRig
@@ -173,7 +174,6 @@ class HilSimulator:
             and self._press_every == 1
             and not any(isinstance(ev, SensorFault) for ev in self.scenario.events)
         )
-        self._pos_noise = self._press_noise = np.zeros(0)
         self._stroke = self.rig.params.stroke_m.copy()
         self._limit_m = plant.limit_switch_m
         self._extended_at = self._stroke - self._limit_m
@@ -200,7 +200,9 @@ class HilSimulator:
         self._fresh_scan = True
         self._status_key: tuple[Any, ...] = ()
         self._sensor_fault = False
-        self._limits: tuple[bytes, bytes] = (b"", b"")
+        #: the limit switches as (retracted, extended) bit masks by can_index
+        self._limits: tuple[int, int] = (-1, -1)
+        self._bit = np.arange(N_CYLINDERS)
         self._stalled = False
         self._retracted = np.zeros(N_CYLINDERS, dtype=bool)
         self._extended = np.zeros(N_CYLINDERS, dtype=bool)
@@ -212,6 +214,7 @@ class HilSimulator:
         self._cmd_version = 0
         self._u_key: tuple[Any, ...] = ()
         self._u = np.zeros(N_CYLINDERS)
+        self._logic_inputs: tuple[Any, ...] = ()
 
     # ----------------------------------------------------------------- set-up
 
@@ -354,7 +357,7 @@ class HilSimulator:
             frames = self.plc.poll(t)
         self._logic(t, frames)
         if self._deferred_readings:
-            self.plc.defer_readings(None)  # this scan's readings, or none
+            self.plc.defer_readings(None, None)  # this scan's readings, or none
         self.rig.advance(self.steps_per_cycle)
         self._k += 1
         self.t_s = self._k * self.cycle_s
@@ -461,9 +464,9 @@ class HilSimulator:
     def _sample(self, k: int) -> None:
         rig = self.rig
         if self._deferred_readings:
-            self._pos_noise = self._pos_sensor.next_noise()
-            self._press_noise = self._press_sensor.next_noise()
-            self.plc.defer_readings(self._take_readings)
+            self._pos_sensor.skip()  # the noise only if a frame takes the reading
+            self._press_sensor.skip()
+            self.plc.defer_readings(self._take_positions, self._take_pressures)
         else:
             faults = self._sensor_faults
             new_pos = k % self._pos_every == 0
@@ -475,21 +478,25 @@ class HilSimulator:
                 self._press_reading = self._press_sensor.read(p).reshape(2, N_CYLINDERS).T
             if faults or new_pos or new_press or self._sensor_fault:
                 self._hand_over(faults)
-        x = rig.x_view
-        self._retracted = x <= self._limit_m
-        self._extended = x >= self._extended_at
-        key = (self._retracted.tobytes(), self._extended.tobytes())
-        if key != self._limits:
-            self._limits = key
+        bits = _limit_switch_bits(rig.x_view, self._limit_m, self._extended_at)
+        if bits != self._limits:
+            self._limits = bits
+            self._retracted = (bits[0] >> self._bit) & 1 == 1
+            self._extended = (bits[1] >> self._bit) & 1 == 1
             self.plc.set_limit_switches(self._retracted, self._extended)
 
-    def _take_readings(self) -> None:
-        """This scan's readings, deferred by :meth:`_sample` until a frame needs them."""
-        rig = self.rig
-        self._pos_reading = self._pos_sensor.quantize(rig.x_view, self._pos_noise)
-        press = self._press_sensor.quantize(rig.pressure_view, self._press_noise)
+    def _take_positions(self) -> None:
+        """This scan's positions, deferred by :meth:`_sample` until a frame needs them."""
+        sensor = self._pos_sensor
+        self._pos_reading = sensor.quantize(self.rig.x_view, sensor.last_noise())
+        self.plc.set_positions_m(self._pos_reading)
+
+    def _take_pressures(self) -> None:
+        """This scan's pressures, deferred by :meth:`_sample` until a frame needs them."""
+        sensor = self._press_sensor
+        press = sensor.quantize(self.rig.pressure_view, sensor.last_noise())
         self._press_reading = press.reshape(2, N_CYLINDERS).T
-        self._hand_over([])
+        self.plc.set_pressures_pa(self._press_reading)
 
     def _hand_over(self, faults: list[int]) -> None:
         """Readings with the sensor faults applied, to the link."""
@@ -539,6 +546,25 @@ class HilSimulator:
             self._cmd_version += 1
         self._fresh_scan = timeout
         ctl = self._ctl
+        # The rest is a function of these inputs and of the latched fault and the
+        # engaged flag it updates: with all of them as at the last scan it would give
+        # the same outputs and state again (most scans: no frame, no timeout edge).
+        inputs = (
+            ctl,
+            timeout,
+            lost,
+            estop,
+            ignore,
+            self._cmd_version,
+            self._limits,
+            self._active_version,
+            self._sensor_fault,
+            self._latched,
+            self._engaged,
+        )
+        if inputs == self._logic_inputs:
+            return
+        self._logic_inputs = inputs
         if estop:
             self._latched = Fault.ESTOP
         elif self._engaged and lost:
@@ -646,6 +672,23 @@ class HilSimulator:
 
     def close(self) -> None:
         self.plc.close()
+
+
+@jit
+def _limit_switch_bits(
+    x: FloatArray, retracted_at: float, extended_at: FloatArray
+) -> tuple[int, int]:
+    """The rods at their retracted and at their extended limit switches, as bit masks
+    (bit i: ``can_index`` i): ``x <= retracted_at``, ``x >= extended_at``. Compiled: the
+    PLC reads its switches every scan, and they change a few times in a run."""
+    retracted = 0
+    extended = 0
+    for i in range(x.shape[0]):
+        if x[i] <= retracted_at:
+            retracted |= 1 << i
+        if x[i] >= extended_at[i]:
+            extended |= 1 << i
+    return retracted, extended
 
 
 def _is_active(ev: Any, t: float) -> bool:

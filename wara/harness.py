@@ -326,8 +326,11 @@ class Harness:
         attitude request, or the HMI's walk, planned on a thread of its own from the
         HMI's frame until its request is back with the loop."""
         deadline = time.monotonic() + self.worker.timeout_s + 5.0
+        pause = 0.0005  # growing to 4 ms: a plan takes tenths of a second, and each
+        # look costs this process CPU time that the run's figures count
         while self._planning() and time.monotonic() < deadline:
-            time.sleep(0.0005)
+            time.sleep(pause)
+            pause = min(2.0 * pause, 0.004)
 
     def wait_for(self, mode: Mode, timeout_s: float, *, stop_on_fault: bool = True) -> bool:
         """Advance until the service is in ``mode`` (machine time in lockstep); False at

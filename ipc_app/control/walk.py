@@ -154,6 +154,8 @@ class _PhaseRun:
     t0: float  #: machine time it started
     tau: float = 0.0  #: its reference clock
     start_x: FloatArray = field(default_factory=lambda: np.zeros(0))
+    #: a travel phase's move of the pair (from ``start_x``), made at its first cycle
+    travel_move: Move | None = None
     start_f: FloatArray = field(default_factory=lambda: np.zeros(0))
     target_f: FloatArray = field(default_factory=lambda: np.zeros(0))
     duration_s: float = 0.0
@@ -231,6 +233,9 @@ class WalkSequencer:
         self.viscous_n_s_m = np.array(
             [viscous_damping_n_s_m(c, pl, cfg.hydraulics) for c, pl in plants]
         )
+        self._friction = list(
+            zip(self.coulomb_n.tolist(), self.viscous_n_s_m.tolist(), strict=True)
+        )
         self.force: dict[int, LADRC] = {}
         for i in self.legs:
             cyl = by_index[i]
@@ -247,12 +252,16 @@ class WalkSequencer:
         self.leg_band = units.mm(self.walk.leg_sync_band_mm)
         self.travel_band = units.mm(self.walk.travel_sync_band_mm)
         self.touch_pa = units.mpa(self.walk.touch_mpa)
+        #: a leg's cap-side force above this is a foot touching (walking.touch_mpa), N
+        self._touch_n = [float(v) for v in self.touch_pa * self.cap[self.legs]]
         self.td_travel = units.mm(self.walk.touchdown_travel_mm)
         self.td_speed = units.mm(self.walk.touchdown_speed_mm_s)
         traj = cfg.planner.trajectory
         self.leg_v, self.leg_a = traj.max_rod_speed_m_s, traj.max_rod_accel_m_s2
         self.machine = WalkingMachine(cfg, unloaded=plan.unloaded, standing=plan.standing)
         self.point_cache: dict[int, tuple[float, FloatArray]] = {}
+        #: the parts of :meth:`_residual_share` that stay while S and the legs held do
+        self._residual_parts: tuple[Any, ...] | None = None
         self.hold_ref = np.zeros(self.n)
         self.force_mode: set[int] = set()
         self.run: _PhaseRun | None = None
@@ -275,10 +284,10 @@ class WalkSequencer:
         self._twist_frame_now: tuple[int, ...] = ()
         self._twist_started = False
         #: each leg's last two pressure samples: cap-side force, N, and sample time, s
-        self._f_last = np.zeros(8)
-        self._f_prev = np.zeros(8)
-        self._t_last = np.full(8, -math.inf)
-        self._t_prev = np.full(8, -math.inf)
+        self._f_last = [0.0] * 8
+        self._f_prev = [0.0] * 8
+        self._t_last = [-math.inf] * 8
+        self._t_prev = [-math.inf] * 8
         #: the legs' last rod positions over :attr:`MOTION_WINDOW_S` (a ring), m
         self._x_hist = np.zeros((max(2, round(self.MOTION_WINDOW_S / period_s) + 1), 8))
         self._x_k = 0
@@ -291,8 +300,12 @@ class WalkSequencer:
         return cap_side_forces_n(p[idx], self.cap[idx], self.rod[idx])
 
     def x_s(self, x: FloatArray) -> float:
-        """S's position along the rails, measured: the travel pair's mean less ``e_0``."""
-        return float(np.mean(x[self.travel])) - self.e0
+        """S's position along the rails, measured: the travel pair's mean less ``e_0``
+        (summed in order and divided, as ``np.mean`` of so few values does)."""
+        total = 0.0
+        for i in self.travel:
+            total += float(x[i])
+        return total / len(self.travel) - self.e0
 
     def set_upper(self, x: FloatArray) -> None:
         """The upper platform's attitude fixes the workpiece's COG: from its rods."""
@@ -301,6 +314,7 @@ class WalkSequencer:
         self.machine = WalkingMachine(
             self.cfg, float(fit.roll), float(fit.pitch), self.plan.unloaded, self.plan.standing
         )
+        self._residual_parts = None
 
     def share(self, x_s: float, legs: tuple[int, ...]) -> FloatArray:
         """Expected forces (8,) with ``legs`` standing (minimum norm), N."""
@@ -501,8 +515,12 @@ class WalkSequencer:
         k1 = min(k0 + 1, len(ph.leg_forces_n) - 1)
         plan_f = ph.leg_forces_n[k0] * (1 - (kk - k0)) + ph.leg_forces_n[k1] * (kk - k0)
         if key in TRAVEL:
-            move = Move(ph.end_m[0] - (float(np.mean(run.start_x[self.travel])) - self.e0),
-                        *self._travel_move())  # fmt: skip
+            move = run.travel_move
+            if move is None:  # from the phase's start to its end: the same every cycle
+                move = run.travel_move = Move(
+                    ph.end_m[0] - (float(np.mean(run.start_x[self.travel])) - self.e0),
+                    *self._travel_move(),
+                )
             s = move.position_at(run.tau)
             s1 = move.position_at(run.tau + dt)
             for i in self.travel:
@@ -667,17 +685,20 @@ class WalkSequencer:
 
         # the figures of the checks
         x_s = self.x_s(x)
-        touching = tuple(j for j in range(8) if f[j] > self.touch_pa * self.cap[self.legs[j]])
+        fl = f.tolist()
+        touch = self._touch_n
+        touching = tuple(j for j in range(8) if fl[j] > touch[j])
         fig.margin_m = self.margin(x_s, touching) if len(touching) >= 3 else -math.inf
         standing = self._frame(ph.standing, self.leg_ids)
         idx_t = self.travel
         fig.travel_force_n = float(
             np.sum(cap_side_forces_n(p[idx_t], self.cap[idx_t], self.rod[idx_t]))
         )
-        fig.friction_capacity_n = self.walk.foot_friction_coefficient * float(
-            sum(max(0.0, f[j]) for j in standing)
-        )
-        x_s_now = self.x_s(x) if key in TRAVEL else float(ph.x_s_m[0])
+        capacity = 0  # summed in order, as sum() of the standing legs' forces
+        for j in standing:
+            capacity += max(0.0, fl[j])
+        fig.friction_capacity_n = self.walk.foot_friction_coefficient * float(capacity)
+        x_s_now = x_s if key in TRAVEL else float(ph.x_s_m[0])
         share8 = self._share8(x_s_now)
         if key in PRELOAD or key in TRANSFER:
             held = list(MAIN if key in ("3", "4") else SUB)
@@ -794,8 +815,15 @@ class WalkSequencer:
     def _equilibrium(self, x_s: float) -> FloatArray:
         """(3, 8): what each leg's vertical force adds to the body's vertical force and
         to its moments about x and y (its position's y and -x)."""
-        pts = self.machine.legs_xy(x_s)
-        return np.vstack([np.ones(8), pts[:, 1], -pts[:, 0]])
+        m = self.machine
+        a = np.empty((3, 8))
+        a[0] = 1.0
+        # WalkingMachine.legs_xy(x_s) written out: S's legs shifted by (x_s, 0)
+        a[1, :4] = m.main_legs_xy[:, 1]
+        a[1, 4:] = m.sub_legs_xy[:, 1] + 0.0
+        a[2, :4] = -m.main_legs_xy[:, 0]
+        a[2, 4:] = -(m.sub_legs_xy[:, 0] + x_s)
+        return a
 
     @staticmethod
     def _min_norm(a: FloatArray, legs: list[int], rhs: FloatArray) -> FloatArray:
@@ -809,13 +837,23 @@ class WalkSequencer:
         """Expected forces: a leg held in position carries its minimum-norm share of what
         the other legs leave of the load (the body's equilibrium with their contact
         forces, :meth:`contact_n`); the others the plan's force."""
-        others = [j for j in range(8) if j not in held]
-        a = self._equilibrium(x_s)
-        rhs = a @ share8  # the load (any equilibrium gives it)
+        key = (x_s, tuple(held))
+        c = self._residual_parts
+        if c is None or c[0] != key or c[1] is not share8:
+            # what depends on the legs' positions and the load alone: once while they
+            # stay (every cycle of a phase but a travel), computed as each cycle did
+            others = [j for j in range(8) if j not in held]
+            a = self._equilibrium(x_s)
+            a_r = a[:, held]
+            # (key, share8, the load (any equilibrium gives it), others, a's columns
+            # of the others, of the held legs, and the held legs' normal matrix)
+            c = (key, share8, a @ share8, others, a[:, others], a_r, a_r @ a_r.T)
+            self._residual_parts = c
+        _key, _share8, rhs, others, a_o, a_r, normal = c
         contact = self.contact_n(f)
-        rest = rhs - a[:, others] @ contact[others]
+        rest = rhs - a_o @ contact[others]
         out = plan_f.copy()
-        out[held] = self._min_norm(a, held, rest)
+        out[held] = a_r.T @ np.linalg.solve(normal, rest)  # _min_norm, its parts kept
         return out
 
     def contact_n(self, f: FloatArray) -> FloatArray:
@@ -856,18 +894,19 @@ class WalkSequencer:
         positive): its plant's Coulomb friction (full above :attr:`COULOMB_SPEED_M_S`)
         and viscous damping (``config.derived.viscous_damping_n_s_m``) at the rod's speed
         over :attr:`MOTION_WINDOW_S`. The pressures carry it on top of what the leg
-        puts on the body."""
-        v = np.array([self._rod_speed(j) for j in range(8)])
-        coulomb = self.coulomb_n * np.clip(v / self.COULOMB_SPEED_M_S, -1.0, 1.0)
-        return np.asarray(coulomb + self.viscous_n_s_m * v)
-
-    def _rod_speed(self, j: int) -> float:
-        """Leg ``j``'s rod speed (extending positive) over the last
-        :attr:`MOTION_WINDOW_S`, m/s, from its measured positions."""
+        puts on the body. On plain floats, element by element as numpy would."""
         n = self._x_hist.shape[0]
-        newest = self._x_hist[(self._x_k - 1) % n, j]
-        oldest = self._x_hist[self._x_k % n, j]
-        return float(newest - oldest) / ((n - 1) * self.period_s)
+        newest = self._x_hist[(self._x_k - 1) % n].tolist()
+        oldest = self._x_hist[self._x_k % n].tolist()
+        span = (n - 1) * self.period_s
+        c_speed = self.COULOMB_SPEED_M_S
+        out = [0.0] * 8
+        for j, (coulomb, viscous) in enumerate(self._friction):
+            v = (newest[j] - oldest[j]) / span
+            c = v / c_speed
+            c = -1.0 if c < -1.0 else (1.0 if c > 1.0 else c)
+            out[j] = coulomb * c + viscous * v
+        return np.array(out)
 
     def aligned_forces_n(self, now: float, f: FloatArray, age_s: FloatArray | None) -> FloatArray:
         """The legs' cap-side forces (8,) at one instant, N, for the checks.
@@ -880,28 +919,31 @@ class WalkSequencer:
         while S stands, every leg within 2 % of its share in the simulator's truth).
         So each leg's force is taken at the instant of the oldest latest sample: a leg
         sampled since is interpolated between its last two samples. Constant work: eight
-        legs, two samples each."""
+        legs, two samples each, on plain floats."""
         if age_s is None:
             return f
-        ts = now - np.asarray(age_s, dtype=float)[self.legs]
-        for j in range(8):
-            if not math.isfinite(ts[j]):
+        ages = np.asarray(age_s, dtype=float).tolist()
+        fs = f.tolist()
+        t_last, t_prev = self._t_last, self._t_prev
+        f_last, f_prev = self._f_last, self._f_prev
+        for j, i in enumerate(self.legs):
+            t = now - ages[i]
+            if not math.isfinite(t):
                 continue
-            if ts[j] > self._t_last[j] + 1e-9:
-                self._f_prev[j], self._t_prev[j] = self._f_last[j], self._t_last[j]
-                self._t_last[j] = ts[j]
-            self._f_last[j] = f[j]
-        known = self._t_last[np.isfinite(self._t_last)]
-        if known.size == 0:
+            if t > t_last[j] + 1e-9:
+                f_prev[j], t_prev[j] = f_last[j], t_last[j]
+                t_last[j] = t
+            f_last[j] = fs[j]
+        known = [t for t in t_last if math.isfinite(t)]
+        if not known:
             return f
-        t_c = float(known.min())
-        out = np.array(f, dtype=float)
+        t_c = min(known)
         for j in range(8):
-            t1, t0 = self._t_last[j], self._t_prev[j]
+            t1, t0 = t_last[j], t_prev[j]
             if math.isfinite(t0) and t1 > t_c and t1 > t0:
                 w = min(1.0, max(0.0, (t_c - t0) / (t1 - t0)))
-                out[j] = self._f_prev[j] + w * (self._f_last[j] - self._f_prev[j])
-        return out
+                fs[j] = f_prev[j] + w * (f_last[j] - f_prev[j])
+        return np.array(fs)
 
     def _share8(self, x_s: float) -> FloatArray:
         key = round(x_s * 1e3)  # per mm (the cache is emptied at each phase's start)

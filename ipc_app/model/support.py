@@ -190,9 +190,14 @@ def cog_projection(cog: Array, g_base: Vec) -> Array:
 
 def _hull(points: Array) -> Array:
     """Convex hull, counter-clockwise (monotone chain)."""
-    pts = sorted({(float(p[0]), float(p[1])) for p in points})
+    return np.array(_hull_points(points))
+
+
+def _hull_points(points: Array) -> list[tuple[float, float]]:
+    """:func:`_hull` as plain (x, y) floats."""
+    pts = sorted({(p[0], p[1]) for p in np.asarray(points, dtype=np.float64).tolist()})
     if len(pts) < 3:
-        return np.array(pts)
+        return pts
 
     def cross(o: tuple[float, float], a: tuple[float, float], b: tuple[float, float]) -> float:
         return (a[0] - o[0]) * (b[1] - o[1]) - (a[1] - o[1]) * (b[0] - o[0])
@@ -207,20 +212,26 @@ def _hull(points: Array) -> Array:
         while len(upper) >= 2 and cross(upper[-2], upper[-1], p) <= 0:
             upper.pop()
         upper.append(p)
-    return np.array(lower[:-1] + upper[:-1])
+    return lower[:-1] + upper[:-1]
 
 
 def stability_margin(points_xy: Array, point: Array) -> float:
     """Signed distance (m) from ``point`` to the nearest edge of the convex hull of
-    ``points_xy``: positive inside, negative outside."""
-    hull = _hull(points_xy)
+    ``points_xy``: positive inside, negative outside.
+
+    On plain floats (the walk asks every cycle) but for each edge's length and the dot
+    product, which stay numpy's (``np.hypot``; the dot of two 2-vectors, whose BLAS
+    kernel may fuse a multiply and add): the same bits as on arrays."""
+    hull = _hull_points(points_xy)
     if len(hull) < 3:
         return -float("inf")
+    px, py = (float(v) for v in point)
     margin = float("inf")
     for k in range(len(hull)):
-        a, b = hull[k], hull[(k + 1) % len(hull)]
-        edge = b - a
+        (ax, ay), (bx, by) = hull[k], hull[(k + 1) % len(hull)]
+        ex, ey = bx - ax, by - ay
+        length = float(np.hypot(ex, ey))
         # inward normal of a counter-clockwise edge
-        inward = np.array([-edge[1], edge[0]]) / float(np.hypot(edge[0], edge[1]))
-        margin = min(margin, float(inward @ (point - a)))
+        inward = np.array([-ey / length, ex / length])
+        margin = min(margin, float(inward @ np.array([px - ax, py - ay])))
     return margin

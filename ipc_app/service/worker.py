@@ -401,8 +401,11 @@ class PlannerWorker:
             if self._pending is None or self._pending.request_id != result.request_id:
                 log.warning("planner_stale_result", request_id=result.request_id)
                 return
+            # in the queue before the worker stops being busy: a lockstep harness that
+            # waits for ``busy`` to end then finds the result in its next cycle's poll
+            # (put after, the loop could run a cycle between the two under load)
+            self._out.put(result)
             self._pending = None
-        self._out.put(result)
         log.info(
             "plan_result",
             request_id=result.request_id,

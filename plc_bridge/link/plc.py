@@ -53,8 +53,10 @@ class PlcLink(LinkSide):
         self._pos_m: FloatArray = np.full(N_CYLINDERS, math.nan)
         self._press_pa: FloatArray = np.full((N_CYLINDERS, 2), math.nan)
         self._pos_mm: list[float] | None = None
-        self._press_mpa: list[list[float]] | None = None
-        self._deferred: Callable[[], None] | None = None
+        #: (19, 2) flat by rows: cap, rod of can_index 0, then of 1, ...
+        self._press_mpa: list[float] | None = None
+        self._deferred_pos: Callable[[], None] | None = None
+        self._deferred_press: Callable[[], None] | None = None
         self._limits = (0, 0)
         self._hmi: HmiTarget | None = None
         self._ctl_rec = self._rx_by_name["IPC_Control"]
@@ -66,6 +68,11 @@ class PlcLink(LinkSide):
         # False (the PLC asks every scan; a frame accepted only moves them on)
         self._commands_fresh_until = -math.inf
         self._ipc_seen_until = -math.inf
+        #: per sent message (frame id): what builds its values, chosen once here, not
+        #: by its name per frame (the positions alone are some 800 frames a second)
+        self._builders: dict[int, Callable[[float], list[float]]] = {
+            spec.frame_id: self._builder(spec) for spec in self.tx_specs
+        }
 
     def _on_accepted(self, rec: RxRecord, now: float) -> None:
         if rec.name == "IPC_Control" and rec.values is not None:
@@ -137,13 +144,18 @@ class PlcLink(LinkSide):
             raise ValueError(f"pressures: expected shape ({N_CYLINDERS}, 2), got {arr.shape}")
         self._press_pa, self._press_mpa = arr, None
 
-    def defer_readings(self, source: Callable[[], None] | None) -> None:
-        """Readings on demand: ``source`` is called once, before the next frame that
-        carries positions or pressures is built in :meth:`poll`, and sets them
-        (:meth:`set_positions_m`, :meth:`set_pressures_pa`); ``None``: no longer. For a
-        simulated PLC whose transducers sample every scan while most scans send none of
-        those frames."""
-        self._deferred = source
+    def defer_readings(
+        self,
+        positions: Callable[[], None] | None,
+        pressures: Callable[[], None] | None = None,
+    ) -> None:
+        """Readings on demand: ``positions`` is called once, before the next frame that
+        carries positions is built in :meth:`poll`, and sets them
+        (:meth:`set_positions_m`); ``pressures`` likewise for the pressures
+        (:meth:`set_pressures_pa`); ``None``: no longer. For a simulated PLC whose
+        transducers sample every scan while most scans send none of those frames."""
+        self._deferred_pos = positions
+        self._deferred_press = pressures
 
     def set_limit_switches(self, retracted: Iterable[bool], extended: Iterable[bool]) -> None:
         self._limits = (
@@ -155,45 +167,75 @@ class PlcLink(LinkSide):
         self._hmi = target
 
     def _values_for(self, spec: MessageSpec, now: float) -> list[float] | None:
+        return self._builders[spec.frame_id](now)
+
+    def _builder(self, spec: MessageSpec) -> Callable[[float], list[float]]:
+        """The function that gives ``spec``'s values (DBC units, in its signals' order)."""
         name = spec.name
+        if name.startswith(("PLC_RodPos_", "PLC_Pressure_")):
+            lo, hi = spec.slots[0], spec.slots[-1] + 1
+            if list(spec.slots) != list(range(lo, hi)):
+                raise ValueError(f"{name}: slots {spec.slots} are not consecutive")
+            if name.startswith("PLC_RodPos_"):
+                return lambda _now: self._positions_mm()[lo:hi]
+            return lambda _now: self._pressures_mpa()[2 * lo : 2 * hi]
         names = self._codec_by_name[name].signal_names
-        if self._deferred is not None and name.startswith(("PLC_RodPos_", "PLC_Pressure_")):
-            source, self._deferred = self._deferred, None
-            source()
-        if name.startswith("PLC_RodPos_"):
-            pos = self._pos_mm
-            if pos is None:
-                pos = self._pos_mm = (self._pos_m / units.MM).tolist()
-            return [pos[i] for i in spec.slots]
-        if name.startswith("PLC_Pressure_"):
-            press = self._press_mpa
-            if press is None:
-                press = self._press_mpa = (self._press_pa / units.MPA).tolist()
-            return [v for i in spec.slots for v in press[i]]
         if name == "PLC_Status":
-            s = self._status
-            d: dict[str, float] = {
-                "ModeActual": int(s.mode),
-                "EStop": int(s.estop),
-                "PumpRunning": int(s.pump_running),
-                "DrivesEnabled": int(s.drives_enabled),
-                "CommandTimeout": int(s.command_timeout or self.command_timeout(now)),
-                "FaultCode": int(s.fault),
-                "SupplyPressure": units.to_mpa(s.supply_pressure_pa),
-            }
-        elif name == "PLC_Limits":
-            d = {"LimitRetractedMask": self._limits[0], "LimitExtendedMask": self._limits[1]}
-        elif name == "PLC_HmiTarget":
-            t = self._hmi
-            d = {
-                "TargetRoll": 0.0 if t is None else units.to_deg(t.roll_rad),
-                "TargetPitch": 0.0 if t is None else units.to_deg(t.pitch_rad),
-                "TargetRequest": 0 if t is None else int(t.request),
-                "TargetSeq": 0 if t is None else t.seq & 0xFF,
-                "WalkSteps": 0 if t is None else t.walk_steps & 0x3,
-            }
-        else:  # pragma: no cover - the DBC has no other PLC message
-            return None
+            return lambda now: self._status_values(names, now)
+        if name == "PLC_Limits":
+            return lambda _now: [
+                {"LimitRetractedMask": self._limits[0], "LimitExtendedMask": self._limits[1]}[n]
+                for n in names
+            ]
+        if name == "PLC_HmiTarget":
+            return lambda _now: self._hmi_values(names)
+        raise ValueError(f"{name}: the PLC sends no such message")  # pragma: no cover
+
+    def _positions_mm(self) -> list[float]:
+        """The latest positions in DBC units (mm, by ``can_index``), the deferred ones
+        taken first."""
+        source = self._deferred_pos
+        if source is not None:
+            self._deferred_pos = None
+            source()
+        pos = self._pos_mm
+        if pos is None:
+            pos = self._pos_mm = (self._pos_m / units.MM).tolist()
+        return pos
+
+    def _pressures_mpa(self) -> list[float]:
+        """The latest pressures in DBC units (MPa; cap, rod by ``can_index``, flat)."""
+        source = self._deferred_press
+        if source is not None:
+            self._deferred_press = None
+            source()
+        press = self._press_mpa
+        if press is None:
+            press = self._press_mpa = (self._press_pa / units.MPA).ravel().tolist()
+        return press
+
+    def _status_values(self, names: tuple[str, ...], now: float) -> list[float]:
+        s = self._status
+        d: dict[str, float] = {
+            "ModeActual": int(s.mode),
+            "EStop": int(s.estop),
+            "PumpRunning": int(s.pump_running),
+            "DrivesEnabled": int(s.drives_enabled),
+            "CommandTimeout": int(s.command_timeout or self.command_timeout(now)),
+            "FaultCode": int(s.fault),
+            "SupplyPressure": units.to_mpa(s.supply_pressure_pa),
+        }
+        return [d[n] for n in names]
+
+    def _hmi_values(self, names: tuple[str, ...]) -> list[float]:
+        t = self._hmi
+        d: dict[str, float] = {
+            "TargetRoll": 0.0 if t is None else units.to_deg(t.roll_rad),
+            "TargetPitch": 0.0 if t is None else units.to_deg(t.pitch_rad),
+            "TargetRequest": 0 if t is None else int(t.request),
+            "TargetSeq": 0 if t is None else t.seq & 0xFF,
+            "WalkSteps": 0 if t is None else t.walk_steps & 0x3,
+        }
         return [d[n] for n in names]
 
 

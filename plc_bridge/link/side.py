@@ -158,8 +158,14 @@ class LinkSide:
         #: the scan of its messages until then. Whatever changes ``_next_due`` or
         #: ``_period`` outside that scan sets it back to -inf.
         self._wake = -math.inf
+        #: Per scheduled message (in :attr:`_scheduled_tx` order), the time from which
+        #: :meth:`_send_due` sends it (``_next_due`` less a quarter period): worked out
+        #: again whenever ``_wake`` is set back to -inf, kept up to date by the scan.
+        self._due_at: list[float] = [-math.inf] * len(self._scheduled_tx)
         #: No received message can go stale before this, nor turn fresh without a frame
-        #: accepted (which sets it back to -inf, as a change of the timeouts does):
+        #: accepted (which sets it back to -inf when its record was not fresh, as a
+        #: change of the timeouts does; a frame accepted on a fresh record only moves
+        #: that record's own edge later, so the time stays a bound):
         #: :meth:`_check_timeouts` skips its records until then.
         self._stale_check_at = -math.inf
         self.rx_outcomes: Counter[str] = Counter()
@@ -270,7 +276,8 @@ class LinkSide:
             ):
                 vals[vlo:vhi] = v[: vhi - vlo]
         val = np.array(vals)
-        val *= si_per_unit  # DBC unit -> SI, factor from config.units
+        if si_per_unit != 1.0:  # (times 1.0 changes no value: the valve commands)
+            val *= si_per_unit  # DBC unit -> SI, factor from config.units
         if width > 1:
             val = val.reshape(N_CYLINDERS, width)
         return Reading(value=val, valid=val == val, age_s=np.array(ages))  # == : not NaN
@@ -322,15 +329,21 @@ class LinkSide:
     def _send_due(self, now: float) -> None:
         if now < self._wake:
             return  # every frame's own test below would skip it
+        due_at = self._due_at
+        if self._wake == -math.inf:  # _next_due or _period changed: their times anew
+            due_at[:] = [
+                self._next_due[spec.frame_id] - 0.25 * self._period[spec.frame_id]
+                for spec in self._scheduled_tx
+            ]
         wake = math.inf
-        for spec in self._scheduled_tx:
-            fid = spec.frame_id
-            period = self._period[fid]
-            at = self._next_due[fid] - 0.25 * period
+        for k, at in enumerate(due_at):
             if now < at:
                 if at < wake:
                     wake = at
                 continue
+            spec = self._scheduled_tx[k]
+            fid = spec.frame_id
+            period = self._period[fid]
             values = self._values_for(spec, now)
             if values is not None:
                 self._send(self._codec_by_name[spec.name], values, now)
@@ -340,7 +353,7 @@ class LinkSide:
                     self.tx_counts["tx_overruns"] += 1
                 nd = now + period
             self._next_due[fid] = nd
-            at = nd - 0.25 * period
+            at = due_at[k] = nd - 0.25 * period
             if at < wake:
                 wake = at
         self._wake = wake
@@ -388,7 +401,8 @@ class LinkSide:
                 lost_before = rec.lost_frames
                 outcome = rec.on_frame(msg.data, now)
                 if outcome == "accepted":
-                    self._stale_check_at = -math.inf
+                    if not rec.was_fresh:  # it may turn fresh: walk the records again
+                        self._stale_check_at = -math.inf
                     self.bus_health.on_frame_ok()
                     if rec.lost_frames != lost_before:
                         self._last_fault = now
