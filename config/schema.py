@@ -168,6 +168,12 @@ class Base(Strict):
         return units.deg(self.pitch_deg)
 
 
+#: The upper layer's body that is the arc part (``layers.upper.bodies``): what the ring
+#: cycle sets in the ring and walks back without (the controller's statics unloaded, the
+#: simulator's bolted part).
+WORKPIECE_BODY = "workpiece"
+
+
 class Body(Strict):
     """A rigid body carried by a platform: point mass at its centre of gravity.
 
