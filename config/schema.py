@@ -707,13 +707,15 @@ class Walking(Strict):
     #: resume check: leg forces within this of the values at the stop (of the leg's share)
     resume_force_tolerance_percent: Annotated[Finite, Field(gt=0, le=100)] = 10.0
     #: force loop (touch-down, preload, transfer): LADRC bandwidths on the cap-side force
-    #: (``force_wo_rad_s`` also the twist-mode loop's observer)
     force_wc_rad_s: Annotated[Finite, Field(gt=0, le=1000)] = 4.0
     force_wo_rad_s: Annotated[Finite, Field(gt=0, le=1000)] = 16.0
     #: the twist-mode controller of a frame standing in position control (travel,
     #: the other frame's lowering and preload): the crossover of its force loop on the
     #: legs' twist, which sets the twist mode's share of their valve commands
     twist_bandwidth_rad_s: Annotated[Finite, Field(gt=0, le=100)] = 6.0
+    #: and its observer's bandwidth: the legs' twist is measured from pressures up to one
+    #: pressure cycle (50 ms) old, which an observer much faster than the loop rings on
+    twist_observer_rad_s: Annotated[Finite, Field(gt=0, le=1000)] = 6.0
 
     @property
     def step_length_m(self) -> float:
