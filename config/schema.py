@@ -71,10 +71,37 @@ class Cycle(Strict):
     survey_noise_mm: Annotated[Finite, Field(ge=0, le=10)] = 1.0
     #: a ring cycle's machine time, the fixing hold excluded, is judged against this
     max_cycle_time_min: Annotated[Finite, Field(gt=0, le=600)] = 15.0
+    #: the release: the upper layer's four cylinders lower together at this speed ...
+    release_speed_mm_s: Annotated[Finite, Field(gt=0, le=20)] = 1.0
+    #: ... until every upper cylinder's load pressure (rod force over cap area) is within
+    #: this of its empty-platform value (the statics without the workpiece, less the
+    #: rods' friction while lowering); at loading, of its value with the part on
+    platform_pressure_tolerance_mpa: Annotated[Finite, Field(gt=0, le=10)] = 0.2
+    #: then a further lowering, clear of the part, before the controlled stop
+    release_clearance_mm: Annotated[Finite, Field(ge=0, le=100)] = 5.0
+    #: lowered this far with the pressures not fallen (the part not fixed): the
+    #: ``release`` interlock stops the machine
+    release_max_travel_mm: Annotated[Finite, Field(gt=0, le=100)] = 10.0
 
     @property
     def survey_noise_m(self) -> float:
         return units.mm(self.survey_noise_mm)
+
+    @property
+    def release_speed_m_s(self) -> float:
+        return units.mm(self.release_speed_mm_s)
+
+    @property
+    def platform_pressure_tolerance_pa(self) -> float:
+        return units.mpa(self.platform_pressure_tolerance_mpa)
+
+    @property
+    def release_clearance_m(self) -> float:
+        return units.mm(self.release_clearance_mm)
+
+    @property
+    def release_max_travel_m(self) -> float:
+        return units.mm(self.release_max_travel_mm)
 
 
 # --------------------------------------------------------------------------- project
