@@ -14,12 +14,17 @@ Model
   ``d_i = z - x_i sin(pitch) + y_i sin(roll) cos(pitch)``; rod speeds are ``J_d q'``.
 - Rods push along their base's z axis; lateral forces are taken by guides at the
   platform centre (paper assumption 2), which do no work on ``q``.
-- Bodies are point masses at the COGs of the YAML (model.md section 5); each rod is a
-  point mass (``rod_mass_kg``) at its action point, moving with its base along the
-  rod axis. Lagrange: ``M(q) q'' = J_d^T F_rod + Q_g(q)`` with
-  ``M = sum m J^T J`` and ``Q_g = sum m J^T g_b`` (``g_b``: gravity in the tunnel base
-  frame). ``M`` and ``Q_g`` are evaluated once per integration step; the
-  velocity-product (Coriolis) terms are left out: the platforms turn at a few mrad/s.
+- Bodies sit at the COGs of the YAML (model.md section 5): the part (the upper
+  layer's body ``workpiece``) a point mass, every other body a plate over its layer's
+  support rectangle (:func:`plate_inertia`); each rod is a point mass (``rod_mass_kg``)
+  at its action point, moving with its base along the rod axis. Lagrange:
+  ``M(q) q'' = J_d^T F_rod + Q_g(q) + Q_pads`` with ``M = sum m J^T J + sum W^T I W``
+  and ``Q_g = sum m J^T g_b`` (``g_b``: gravity in the tunnel base frame; ``Q_pads``: a
+  bolted part's pads, :func:`pad_forces`). ``M`` and ``Q_g`` are evaluated once per PLC
+  scan; the velocity-product (Coriolis) terms are left out: the platforms turn at a few
+  mrad/s.
+- The rods' smoothed Coulomb friction near standstill is a damper RK4 integrates only
+  up to a rate: :meth:`Rig.bound_friction` keeps it there (docs/hil.md).
 - Rod forces come from the chamber pressures (``p_A A_A - p_B A_B``), friction and
   the end stops, so cylinders that move out of step fight through the oil and the
   twist shows up as pressure.
