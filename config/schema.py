@@ -71,10 +71,37 @@ class Cycle(Strict):
     survey_noise_mm: Annotated[Finite, Field(ge=0, le=10)] = 1.0
     #: a ring cycle's machine time, the fixing hold excluded, is judged against this
     max_cycle_time_min: Annotated[Finite, Field(gt=0, le=600)] = 15.0
+    #: the release: the upper layer's four cylinders lower together at this speed ...
+    release_speed_mm_s: Annotated[Finite, Field(gt=0, le=20)] = 1.0
+    #: ... until every upper cylinder's load pressure (rod force over cap area) is within
+    #: this of its empty-platform value (the statics without the workpiece, less the
+    #: rods' friction while lowering); at loading, of its value with the part on
+    platform_pressure_tolerance_mpa: Annotated[Finite, Field(gt=0, le=10)] = 0.2
+    #: then a further lowering, clear of the part, before the controlled stop
+    release_clearance_mm: Annotated[Finite, Field(ge=0, le=100)] = 5.0
+    #: lowered this far with the pressures not fallen (the part not fixed): the
+    #: ``release`` interlock stops the machine
+    release_max_travel_mm: Annotated[Finite, Field(gt=0, le=100)] = 10.0
 
     @property
     def survey_noise_m(self) -> float:
         return units.mm(self.survey_noise_mm)
+
+    @property
+    def release_speed_m_s(self) -> float:
+        return units.mm(self.release_speed_mm_s)
+
+    @property
+    def platform_pressure_tolerance_pa(self) -> float:
+        return units.mpa(self.platform_pressure_tolerance_mpa)
+
+    @property
+    def release_clearance_m(self) -> float:
+        return units.mm(self.release_clearance_mm)
+
+    @property
+    def release_max_travel_m(self) -> float:
+        return units.mm(self.release_max_travel_mm)
 
 
 # --------------------------------------------------------------------------- project
@@ -166,6 +193,12 @@ class Base(Strict):
     @property
     def pitch_rad(self) -> float:
         return units.deg(self.pitch_deg)
+
+
+#: The upper layer's body that is the arc part (``layers.upper.bodies``): what the ring
+#: cycle sets in the ring and walks back without (the controller's statics unloaded, the
+#: simulator's bolted part).
+WORKPIECE_BODY = "workpiece"
 
 
 class Body(Strict):
@@ -704,13 +737,15 @@ class Walking(Strict):
     #: resume check: leg forces within this of the values at the stop (of the leg's share)
     resume_force_tolerance_percent: Annotated[Finite, Field(gt=0, le=100)] = 10.0
     #: force loop (touch-down, preload, transfer): LADRC bandwidths on the cap-side force
-    #: (``force_wo_rad_s`` also the twist-mode loop's observer)
     force_wc_rad_s: Annotated[Finite, Field(gt=0, le=1000)] = 4.0
     force_wo_rad_s: Annotated[Finite, Field(gt=0, le=1000)] = 16.0
     #: the twist-mode controller of a frame standing in position control (travel,
     #: the other frame's lowering and preload): the crossover of its force loop on the
     #: legs' twist, which sets the twist mode's share of their valve commands
     twist_bandwidth_rad_s: Annotated[Finite, Field(gt=0, le=100)] = 6.0
+    #: and its observer's bandwidth: the legs' twist is measured from pressures up to one
+    #: pressure cycle (50 ms) old, which an observer much faster than the loop rings on
+    twist_observer_rad_s: Annotated[Finite, Field(gt=0, le=1000)] = 6.0
 
     @property
     def step_length_m(self) -> float:

@@ -12,6 +12,9 @@ with every cylinder at mid-stroke (the home pose): lower platform
 platform ``(z_U, R_U)``, the slide ``(x, y, yaw)``. As :mod:`hil_sim.rig` says of the
 layer kinematics, this is the plant's own, on purpose not the controller's
 ``ipc_app.model.placement``: it is what the controller is checked against.
+
+Once the part is bolted to its ring (:func:`bolt_part`) its pose is frozen: from then
+on :func:`pose_from_home` is that pose, wherever the platform goes.
 """
 
 from __future__ import annotations
@@ -47,7 +50,11 @@ def slide_state(cfg: ProjectConfig, rod_positions_m: FloatArray) -> tuple[float,
 
 
 def pose_from_home(cfg: ProjectConfig, rig: Rig) -> tuple[FloatArray, FloatArray]:
-    """``(R, t)``: the part's frame relative to its home pose (all rods at mid-stroke)."""
+    """``(R, t)``: the part's frame relative to its home pose (all rods at mid-stroke);
+    while the part is bolted, the pose it was bolted in."""
+    if rig.part_state == "bolted" and rig.bolted_pose is not None:
+        r, t = rig.bolted_pose
+        return r.copy(), t.copy()
     q = rig.q
     x, y, yaw = slide_state(cfg, rig.rod_positions_m)
     r_l = rotation(float(q[1]), float(q[2]))
@@ -57,3 +64,13 @@ def pose_from_home(cfg: ProjectConfig, rig: Rig) -> tuple[FloatArray, FloatArray
     on_upper = float(q[3]) * ez + r_u @ np.array([x, y, 0.0])
     t = float(q[0]) * ez + r_l @ (origin_u + on_upper) - origin_u
     return r_l @ r_u @ _rz(yaw), t
+
+
+def bolt_part(cfg: ProjectConfig, rig: Rig) -> tuple[FloatArray, FloatArray]:
+    """The part bolted to its ring where it is now: its pose frozen (the returned ``(R,
+    t)`` from home) and its pads under it on the upper platform, carried there by the
+    slide stage (:meth:`Rig.bolt_part`)."""
+    pose = pose_from_home(cfg, rig)
+    x, y, yaw = slide_state(cfg, rig.rod_positions_m)
+    rig.bolt_part(rig.pad_points_m(x, y, yaw), pose)
+    return pose

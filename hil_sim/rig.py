@@ -14,12 +14,17 @@ Model
   ``d_i = z - x_i sin(pitch) + y_i sin(roll) cos(pitch)``; rod speeds are ``J_d q'``.
 - Rods push along their base's z axis; lateral forces are taken by guides at the
   platform centre (paper assumption 2), which do no work on ``q``.
-- Bodies are point masses at the COGs of the YAML (model.md section 5); each rod is a
-  point mass (``rod_mass_kg``) at its action point, moving with its base along the
-  rod axis. Lagrange: ``M(q) q'' = J_d^T F_rod + Q_g(q)`` with
-  ``M = sum m J^T J`` and ``Q_g = sum m J^T g_b`` (``g_b``: gravity in the tunnel base
-  frame). ``M`` and ``Q_g`` are evaluated once per integration step; the
-  velocity-product (Coriolis) terms are left out: the platforms turn at a few mrad/s.
+- Bodies sit at the COGs of the YAML (model.md section 5): the part (the upper
+  layer's body ``workpiece``) a point mass, every other body a plate over its layer's
+  support rectangle (:func:`plate_inertia`); each rod is a point mass (``rod_mass_kg``)
+  at its action point, moving with its base along the rod axis. Lagrange:
+  ``M(q) q'' = J_d^T F_rod + Q_g(q) + Q_pads`` with ``M = sum m J^T J + sum W^T I W``
+  and ``Q_g = sum m J^T g_b`` (``g_b``: gravity in the tunnel base frame; ``Q_pads``: a
+  bolted part's pads, :func:`pad_forces`). ``M`` and ``Q_g`` are evaluated once per PLC
+  scan; the velocity-product (Coriolis) terms are left out: the platforms turn at a few
+  mrad/s.
+- The rods' smoothed Coulomb friction near standstill is a damper RK4 integrates only
+  up to a rate: :meth:`Rig.bound_friction` keeps it there (docs/hil.md).
 - Rod forces come from the chamber pressures (``p_A A_A - p_B A_B``), friction and
   the end stops, so cylinders that move out of step fight through the oil and the
   twist shows up as pressure.
@@ -45,12 +50,13 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
 from config import units
-from config.schema import N_CYLINDERS, ProjectConfig
+from config.schema import N_CYLINDERS, WORKPIECE_BODY, ProjectConfig
 from hil_sim._jit import jit
 from hil_sim.hydraulics import (
     CylinderParams,
@@ -126,10 +132,40 @@ def _matvec3(a, x, out):
 
 
 @jit
-def _mass_and_gravity(q, body_m, body_c, body_layer, rod_xy, rod_m, origin_u, g_b):
-    """Mass matrix ``M`` (6, 6) and generalized gravity ``Q_g`` (6,) at ``q``."""
-    m_mat = np.zeros((6, 6))
-    q_g = np.zeros(6)
+def _body_point_jacobian(q, c, layer, origin_u, r_l, dr_l, dp_l, r_u, dr_u, dp_u, jac, w, t, col):
+    """Writes ``jac`` (3, 6): ``d(position)/dq`` in the lower layer's base frame of the point
+    ``c`` fixed to the lower (``layer`` 0) or the upper platform (platform frame), given
+    the two layers' rotations and their partials at ``q``; ``w``, ``t``, ``col``: scratch."""
+    jac[:, :] = 0.0
+    if layer == 0:
+        jac[2, 0] = 1.0
+        _matvec3(dr_l, c, col)
+        jac[:, 1] = col
+        _matvec3(dp_l, c, col)
+        jac[:, 2] = col
+        return
+    _matvec3(r_u, c, w)
+    for a in range(3):
+        w[a] += origin_u[a]
+    w[2] += q[3]
+    jac[2, 0] = 1.0
+    _matvec3(dr_l, w, col)
+    jac[:, 1] = col
+    _matvec3(dp_l, w, col)
+    jac[:, 2] = col
+    jac[:, 3] = r_l[:, 2]
+    _matvec3(dr_u, c, t)
+    _matvec3(r_l, t, col)
+    jac[:, 4] = col
+    _matvec3(dp_u, c, t)
+    _matvec3(r_l, t, col)
+    jac[:, 5] = col
+
+
+@jit
+def point_jacobian(q, c, layer, origin_u):
+    """``d(position)/dq`` (3, 6) of the point ``c`` fixed to the lower (``layer`` 0) or
+    upper platform (its frame), in the lower layer's base frame, at ``q``."""
     r_l = rotation(q[1], q[2])
     dr_l, dp_l = _rotation_partials(q[1], q[2])
     r_u = rotation(q[4], q[5])
@@ -138,35 +174,67 @@ def _mass_and_gravity(q, body_m, body_c, body_layer, rod_xy, rod_m, origin_u, g_
     w = np.zeros(3)
     t = np.zeros(3)
     col = np.zeros(3)
+    _body_point_jacobian(q, c, layer, origin_u, r_l, dr_l, dp_l, r_u, dr_u, dp_u, jac, w, t, col)
+    return jac
+
+
+@jit
+def _mass_and_gravity(q, body_m, body_c, body_i, body_layer, rod_xy, rod_m, origin_u, g_b):
+    """Mass matrix ``M`` (6, 6) and generalized gravity ``Q_g`` (6,) at ``q``.
+
+    Each body is its mass at its COG plus, where ``body_i`` is not zero, its principal
+    moments of inertia about the COG (platform axes): ``M += W^T diag(I) W`` with ``W``
+    the body's angular velocity per ``q'`` in its own frame.
+    """
+    m_mat = np.zeros((6, 6))
+    q_g = np.zeros(6)
+    r_l = rotation(q[1], q[2])
+    dr_l, dp_l = _rotation_partials(q[1], q[2])
+    r_u = rotation(q[4], q[5])
+    dr_u, dp_u = _rotation_partials(q[4], q[5])
+    r_lu = r_l @ r_u
+    jac = np.zeros((3, 6))
+    omega = np.zeros((3, 6))
+    wb = np.zeros((3, 6))
+    w = np.zeros(3)
+    t = np.zeros(3)
+    col = np.zeros(3)
     n_bodies = body_m.shape[0]
+    # angular velocity per q' of each platform in the lower base frame: R = Ry(p) Rx(r)
+    # turns at p' e_y + r' Ry(p) e_x; the upper platform adds R_L times its own
+    cl, sl = math.cos(q[2]), math.sin(q[2])
+    cu, su = math.cos(q[5]), math.sin(q[5])
+    omega[0, 1], omega[2, 1] = cl, -sl
+    omega[1, 2] = 1.0
+    for a in range(3):
+        omega[a, 4] = r_l[a, 0] * cu - r_l[a, 2] * su
+        omega[a, 5] = r_l[a, 1]
     for k in range(n_bodies + 8):
         jac[:, :] = 0.0
         if k < n_bodies:
             m = body_m[k]
-            c = body_c[k]
-            if body_layer[k] == 0:
-                jac[2, 0] = 1.0
-                _matvec3(dr_l, c, col)
-                jac[:, 1] = col
-                _matvec3(dp_l, c, col)
-                jac[:, 2] = col
-            else:
-                _matvec3(r_u, c, w)
-                for a in range(3):
-                    w[a] += origin_u[a]
-                w[2] += q[3]
-                jac[2, 0] = 1.0
-                _matvec3(dr_l, w, col)
-                jac[:, 1] = col
-                _matvec3(dp_l, w, col)
-                jac[:, 2] = col
-                jac[:, 3] = r_l[:, 2]
-                _matvec3(dr_u, c, t)
-                _matvec3(r_l, t, col)
-                jac[:, 4] = col
-                _matvec3(dp_u, c, t)
-                _matvec3(r_l, t, col)
-                jac[:, 5] = col
+            layer = body_layer[k]
+            _body_point_jacobian(
+                q, body_c[k], layer, origin_u, r_l, dr_l, dp_l, r_u, dr_u, dp_u, jac, w, t, col
+            )
+            inertia = body_i[k]
+            if m > 0.0 and (inertia[0] > 0.0 or inertia[1] > 0.0 or inertia[2] > 0.0):
+                rb = r_l if layer == 0 else r_lu
+                last = 3 if layer == 0 else 6
+                for a in range(3):  # W = R^T omega (the lower platform: its own columns)
+                    for b in range(6):
+                        acc = 0.0
+                        if b < last:
+                            for e in range(3):
+                                acc += rb[e, a] * omega[e, b]
+                        wb[a, b] = acc
+                for a in range(6):
+                    for b in range(6):
+                        m_mat[a, b] += (
+                            inertia[0] * wb[0, a] * wb[0, b]
+                            + inertia[1] * wb[1, a] * wb[1, b]
+                            + inertia[2] * wb[2, a] * wb[2, b]
+                        )
         else:
             j = k - n_bodies
             m = rod_m[j]
@@ -268,9 +336,40 @@ def cylinder_forces(y, dy, u, ports, leak, f_ext, p, x, v, f_out):
 
 
 @jit
+def pad_forces(q, pads, pad_out):
+    """The bolted part's pads on the upper platform (:class:`Pads`): ``pad_out`` (4,) the
+    normal force of each pad, N, ``max(0, n0 + k g . (q - q0))``: each pad's preload at the
+    bolting plus the pad's stiffness times how far its point moved towards the part since.
+    ``pads`` rows: 0..3 ``g`` (the pads' points' motion along the part's normal per ``q``,
+    six columns), row 4 ``q0``, row 5 ``n0`` (four) and ``k`` (column 4); ``k`` 0: none."""
+    k = pads[5, 4]
+    for j in range(4):
+        if k == 0.0:
+            pad_out[j] = 0.0
+            continue
+        s = 0.0
+        for a in range(6):
+            s += pads[j, a] * (q[a] - pads[4, a])
+        f = pads[5, j] + k * s
+        pad_out[j] = f if f > 0.0 else 0.0
+
+
+@jit
+def _add_pad_forces(q, pads, pad_out, gen):
+    """The pads' generalized forces on ``q`` (the part pushes the platform down)."""
+    if pads[5, 4] == 0.0:
+        return
+    pad_forces(q, pads, pad_out)
+    for j in range(4):
+        for a in range(6):
+            gen[a] -= pad_out[j] * pads[j, a]
+
+
+@jit
 def _derivative(
-    y, dy, u, ports, leak, f_ext, p, plat_idx, rod_xy, half_stroke, m_inv, q_g, x_out, f_out
-):
+    y, dy, u, ports, leak, f_ext, p, plat_idx, rod_xy, half_stroke, m_inv, q_g, pads, x_out,
+    f_out, pad_out,
+):  # fmt: skip
     """``dy = f(y)`` for the whole rig; writes rod positions/velocities and rod forces."""
     q = y[_Q : _Q + 6]
     qd = y[_QD : _QD + 6]
@@ -294,6 +393,7 @@ def _derivative(
     gen = np.empty(6)
     for a in range(6):
         gen[a] = q_g[a]
+    _add_pad_forces(q, pads, pad_out, gen)
     for j in range(8):
         i = plat_idx[j]
         qo = 3 * (j // 4)
@@ -312,8 +412,8 @@ def _derivative(
 
 @jit
 def _advance(
-    y, u, ports, leak, f_ext, p, plat_idx, rod_xy, half_stroke, body_m, body_c, body_layer, rod_m,
-    origin_u, g_b, h, n_steps, x_out, f_out,
+    y, u, ports, leak, f_ext, p, plat_idx, rod_xy, half_stroke, body_m, body_c, body_i,
+    body_layer, rod_m, origin_u, g_b, pads, h, n_steps, x_out, f_out, pad_out,
 ):  # fmt: skip
     """``n_steps`` RK4 steps of ``h`` with commands, port states and forces held.
 
@@ -327,12 +427,15 @@ def _advance(
     k4 = np.empty(n)
     tmp = np.empty(n)
     m_mat, q_g = _mass_and_gravity(
-        y[_Q : _Q + 6], body_m, body_c, body_layer, rod_xy, rod_m, origin_u, g_b
+        y[_Q : _Q + 6], body_m, body_c, body_i, body_layer, rod_xy, rod_m, origin_u, g_b
     )
     m_inv = inverse(m_mat)
     hh = 0.5 * h
     h6 = h / 6.0
-    args = (u, ports, leak, f_ext, p, plat_idx, rod_xy, half_stroke, m_inv, q_g, x_out, f_out)
+    args = (
+        u, ports, leak, f_ext, p, plat_idx, rod_xy, half_stroke, m_inv, q_g, pads, x_out, f_out,
+        pad_out,
+    )  # fmt: skip
     for _ in range(n_steps):
         _derivative(y, k1, *args)
         for a in range(n):
@@ -351,6 +454,14 @@ def _advance(
 
 
 # --------------------------------------------------------------------------- the rig
+
+
+def plate_inertia(mass_kg: float, support: Any) -> tuple[float, float, float]:
+    """Principal moments of inertia (about x, y, z; kg m^2) of a structure of
+    ``mass_kg`` spread evenly over the support rectangle of ``support`` (``a_m``, ``b_m``:
+    half-spans): a thin plate of ``2a x 2b``."""
+    lx, ly = 2.0 * support.a_m, 2.0 * support.b_m
+    return (mass_kg * ly**2 / 12.0, mass_kg * lx**2 / 12.0, mass_kg * (lx**2 + ly**2) / 12.0)
 
 
 @dataclass(frozen=True)
@@ -407,20 +518,45 @@ class Rig:
             [(sx * layer.a_m, sy * layer.b_m) for layer in (lo, up) for sx, sy in _SIGNS]
         )
         self._half_stroke = np.array([lo.stroke_m / 2] * 4 + [up.stroke_m / 2] * 4)
-        # bodies: the YAML's, plus one load-step slot per layer (mass 0 until a step)
-        masses, cogs, layers = [], [], []
+        # bodies: the YAML's, plus one load-step slot per layer (mass 0 until a step); the
+        # structures spread over their layer's support rectangle, the part a point mass
+        masses: list[float] = []
+        cogs: list[tuple[float, ...]] = []
+        inertias: list[tuple[float, ...]] = []
+        layers: list[int] = []
+        part = -1
         for k, layer in enumerate((lo, up)):
             for b in layer.bodies:
+                is_part = k == 1 and b.name == WORKPIECE_BODY
+                part = len(masses) if is_part else part
                 masses.append(b.mass_kg)
                 cogs.append(b.cog_m)
+                inertias.append((0.0,) * 3 if is_part else plate_inertia(b.mass_kg, layer))
                 layers.append(k)
         self._extra_slot = {"lower": len(masses), "upper": len(masses) + 1}
         masses += [0.0, 0.0]
         cogs += [(0.0, 0.0, 0.0), (0.0, 0.0, 0.0)]
+        inertias += [(0.0,) * 3, (0.0,) * 3]
         layers += [0, 1]
         self._body_m = np.array(masses, dtype=np.float64)
         self._body_c = np.array(cogs, dtype=np.float64)
+        self._body_i = np.array(inertias, dtype=np.float64)
         self._body_layer = np.array(layers, dtype=np.int64)
+        #: the arc part: index of the upper layer's body ``workpiece`` (-1: none), its mass
+        self._part_body = part
+        self.part_mass_kg = float(masses[part]) if part >= 0 else 0.0
+        #: ``carried`` (on the upper platform), ``loading`` (a crane setting it down:
+        #: :meth:`load_part`), ``bolted`` (fixed in the ring, resting on the pads:
+        #: :meth:`bolt_part`), ``none`` (a project without a body ``workpiece``)
+        self.part_state = "carried" if part >= 0 else "none"
+        self._loading: tuple[float, float] = (0.0, 0.0)  # (start, duration) of a load, s
+        self._bound_at_kg = self.part_mass_kg  # the part's mass at the last friction bound
+        #: the bolted part's pads (:func:`pad_forces`); all zero: none
+        self._pads = np.zeros((6, 6))
+        #: the part's pose from home ``(R, t)`` when it was bolted (None: not bolted)
+        self.bolted_pose: tuple[FloatArray, FloatArray] | None = None
+        #: the pads' normal forces on the upper platform at the last state, N
+        self.pad_force_n = np.zeros(4)
         self.rod_mass_kg = float(rod_mass_kg)
         #: moving mass of each platform rod (lower 1..4, upper 1..4) in the platforms' mass
         self._rod_m = np.full(8, self.rod_mass_kg)
@@ -444,6 +580,58 @@ class Rig:
 
     # ----------------------------------------------------------------- set-up
 
+    #: RK4's step times the fastest friction mode's rate at rest is kept at or below this
+    #: (the method is stable up to 2.785 on the negative real axis; the margin covers the
+    #: mass matrix's change with the attitude, and with a load, between two bounds)
+    FRICTION_STEP_RATE = 2.5
+
+    def _friction_rows(self) -> tuple[FloatArray, FloatArray, IntArray]:
+        """The rods whose friction acts on the platforms' inertia: ``(rows, extra,
+        index)``, each rod's speed per ``q'`` (rows of ``dd/dq``), a compliance of its
+        own in series (1/kg; none here) and its can_index: both platforms' eight rods."""
+        return self.rod_jacobian(), np.zeros(8), self._plat_idx
+
+    def bound_friction(self) -> None:
+        """Keep the friction modes at rest inside RK4's stability at :attr:`step_s`.
+
+        A rod's smoothed Coulomb friction (:func:`~hil_sim.hydraulics.friction_force_n`)
+        is, near standstill, a damper of ``F_c / v_c`` (2e7 N s/m at the nominal ``v_c``
+        of 0.1 mm/s) on the inertia its rod moves; with the viscous ``B`` the rods'
+        dampers ``C`` make modes whose fastest rate is the largest eigenvalue of
+        ``C^1/2 A C^1/2``, ``A = J M^-1 J^T`` (plus each rod's own compliance) over the
+        rods of :meth:`_friction_rows`. Where the step times that rate exceeds
+        :attr:`FRICTION_STEP_RATE`, every one of these rods' ``v_c`` is raised by one
+        factor, as far as needed: an explicit step cannot integrate a faster damper (it
+        rings at half the step rate, bounded only by the friction's own saturation;
+        without the part's inertia on the upper platform it diverged). Called whenever
+        the bodies change (a load step, the part's bolting or loading).
+        """
+        m, _ = self.generalized_gravity()
+        rows, extra, idx = self._friction_rows()
+        a = rows @ np.linalg.solve(m, rows.T) + np.diag(extra)
+        viscous = self._p[16, idx]
+        coulomb = self._p[17, idx] / self._p_nominal[18, idx]  # the slope at rest
+        limit = self.FRICTION_STEP_RATE / self.step_s
+
+        def rate(share: float) -> float:
+            r = np.sqrt(viscous + share * coulomb)
+            return float(np.linalg.eigvalsh(r[:, None] * a * r[None, :]).max())
+
+        if rate(0.0) > limit:
+            raise ValueError(
+                f"the rods' viscous damping alone is beyond what RK4 at "
+                f"{self.step_s * 1e3:g} ms integrates on the platforms' inertia: a shorter "
+                "plant.step_ms"
+            )
+        share = 1.0
+        if rate(1.0) > limit:
+            lo, hi = 0.0, 1.0
+            for _ in range(40):
+                mid = 0.5 * (lo + hi)
+                lo, hi = (mid, hi) if rate(mid) <= limit else (lo, mid)
+            share = lo
+        self._p[18, idx] = self._p_nominal[18, idx] / share
+
     def generalized_gravity(self, q: FloatArray | None = None) -> tuple[FloatArray, FloatArray]:
         """``(M, Q_g)`` at ``q`` (default: the present state)."""
         qq = self.y[_Q : _Q + 6].copy() if q is None else np.asarray(q, dtype=np.float64)
@@ -451,6 +639,7 @@ class Rig:
             qq,
             self._body_m,
             self._body_c,
+            self._body_i,
             self._body_layer,
             self._rod_xy,
             self._rod_m,
@@ -498,6 +687,7 @@ class Rig:
         self.y[_PB : _PB + N] = pressure
         self._xv[0] = self.y[_X : _X + N]
         self._force[:] = force
+        self.bound_friction()
 
     # ----------------------------------------------------------------- faults
 
@@ -508,8 +698,116 @@ class Rig:
     def set_platform_load(self, layer: str, mass_kg: float, cog_m: tuple[float, ...]) -> None:
         """The extra mass set down on a platform (frame of that platform)."""
         k = self._extra_slot[layer]
+        if self._body_m[k] == mass_kg and tuple(self._body_c[k]) == tuple(cog_m):
+            return
         self._body_m[k] = mass_kg
         self._body_c[k] = cog_m
+        self.bound_friction()
+
+    # ----------------------------------------------------------------- the part
+
+    #: Stiffness of each of the four pads the part rests on, N/m (elastomer bearing pads
+    #: under a precast part: the platform's share of the part's weight falls by this
+    #: much per metre of lowering, about 1.8 mm from the part's weight to none)
+    pad_stiffness_n_m = 5.0e7
+
+    def pad_points_m(self, slide_x_m: float, slide_y_m: float, slide_yaw_rad: float) -> FloatArray:
+        """The four pads' points (4, 3) in the upper platform's frame: under the part's
+        bottom face (z 0), at ``(+-(w/2 - 0.2), +-(b_U - 0.2))`` from its reference point
+        (``w`` the part's width along x, ``b_U`` the upper layer's half-span in y: inside
+        both), carried with the part by the slide stage (``x``, ``y``, yaw)."""
+        px = self.cfg.workpiece.width_m / 2 - 0.2
+        py = self.cfg.layers.upper.b_m - 0.2
+        c, s = math.cos(slide_yaw_rad), math.sin(slide_yaw_rad)
+        out = np.zeros((4, 3))
+        for j, (sx, sy) in enumerate(_SIGNS):
+            x, y = sx * px, sy * py
+            out[j] = (slide_x_m + c * x - s * y, slide_y_m + s * x + c * y, 0.0)
+        return out
+
+    def bolt_part(
+        self,
+        pad_points_m: FloatArray,
+        pose: tuple[FloatArray, FloatArray] | None = None,
+    ) -> None:
+        """The part is bolted to the ring where it is (from now on the ring, not the
+        platform, holds it; ``pose``: where, kept as :attr:`bolted_pose`): it leaves the
+        platform's bodies and rests on it through the
+        pads at ``pad_points_m`` (:meth:`pad_points_m`), each a unilateral spring of
+        :attr:`pad_stiffness_n_m` against the part's frozen pose, preloaded so that the
+        platform carries the part's weight as before (the minimum-norm split of its load on
+        the upper platform's heave, roll and pitch). As the platform lowers, its share
+        falls linearly and is zero once every pad is clear; the bolts carry the rest."""
+        if self.part_state != "carried":
+            raise ValueError(f"bolt_part: the part is {self.part_state}, not carried")
+        q = self.y[_Q : _Q + 6].copy()
+        k = self._part_body
+        n = (rotation(q[1], q[2]) @ rotation(q[4], q[5]))[:, 2]  # the part's normal
+        g = np.array(
+            [n @ point_jacobian(q, np.asarray(c, float), 1, self._origin_u) for c in pad_points_m]
+        )
+        j_part = point_jacobian(q, self._body_c[k], 1, self._origin_u)
+        load = self._body_m[k] * (j_part.T @ self.g_base)[3:]  # on the upper platform
+        a = g[:, 3:].T  # (3, 4): each pad's push on the upper platform's heave, roll, pitch
+        n0 = a.T @ np.linalg.solve(a @ a.T, -load)
+        if np.any(n0 <= 0.0):
+            raise ValueError(f"bolt_part: the pads do not carry the part's COG ({n0} N)")
+        self._pads[:4] = g
+        self._pads[4] = q
+        self._pads[5, :4] = n0
+        self._pads[5, 4] = self.pad_stiffness_n_m
+        self._set_part_mass(0.0)
+        self.part_state = "bolted"
+        self.bolted_pose = pose
+        self.advance(0)
+
+    def load_part(self, duration_s: float) -> None:
+        """A new part set down on the upper platform at its home position (the YAML's
+        COG) by a crane: its weight ramped from none to all over ``duration_s``; a part
+        bolted before stays in its ring (its pads no longer touch the platform)."""
+        if self.part_state not in ("bolted", "none") or self._part_body < 0:
+            raise ValueError(f"load_part: the platform carries a part ({self.part_state})")
+        if not duration_s > 0:
+            raise ValueError(f"load_part: duration_s must be positive, got {duration_s}")
+        self._pads[:] = 0.0
+        self.pad_force_n[:] = 0.0
+        self.bolted_pose = None
+        self._loading = (self.t_s, float(duration_s))
+        self._bound_at_kg = 0.0
+        self.part_state = "loading"
+
+    @property
+    def part_load_n(self) -> float:
+        """How much of the part's weight the upper platform carries now, N: the part's
+        weight while it is carried (the load ramp's share while loading), the pads'
+        forces while it is bolted."""
+        if self.part_state == "bolted":
+            return float(self.pad_force_n.sum())
+        if self._part_body < 0:
+            return 0.0
+        return float(self._body_m[self._part_body] * units.G)
+
+    #: While a part is set down, the friction's bound (:meth:`bound_friction`) is taken
+    #: again each time this share of the part's mass has been added (the bound of a
+    #: lighter platform holds for a heavier one)
+    LOAD_BOUND_SHARE = 0.1
+
+    def _set_part_mass(self, mass_kg: float, bound: bool = True) -> None:
+        self._body_m[self._part_body] = mass_kg
+        if bound:
+            self.bound_friction()
+            self._bound_at_kg = mass_kg
+
+    def _load_ramp(self) -> None:
+        """A load in progress: the part's share of its weight at this scan."""
+        t0, dur = self._loading
+        frac = (self.t_s - t0) / dur
+        frac = 1.0 if frac >= 1.0 - 1e-9 else frac  # the clock's rounding
+        mass = frac * self.part_mass_kg
+        step = self.LOAD_BOUND_SHARE * self.part_mass_kg
+        self._set_part_mass(mass, bound=mass - self._bound_at_kg >= step or frac >= 1.0)
+        if frac >= 1.0:
+            self.part_state = "carried"
 
     def set_rod_position(self, index: int, x_m: float) -> None:
         """Put a standalone (non-platform) cylinder's rod at ``x_m``, at rest (test set-ups)."""
@@ -524,6 +822,8 @@ class Rig:
     def advance(self, n_steps: int) -> None:
         """Integrate ``n_steps`` with :attr:`command`, :attr:`ports_open` and
         :attr:`external_force_n` held."""
+        if self.part_state == "loading":
+            self._load_ramp()
         _advance(
             self.y,
             self.command,
@@ -536,16 +836,36 @@ class Rig:
             self._half_stroke,
             self._body_m,
             self._body_c,
+            self._body_i,
             self._body_layer,
             self._rod_m,
             self._origin_u,
             self.g_base,
+            self._pads,
             self.step_s,
             int(n_steps),
             self._xv,
             self._force,
+            self.pad_force_n,
         )
         self.t_s += n_steps * self.step_s
+
+    def derivative(self, y: FloatArray | None = None) -> FloatArray:
+        """The state's time derivative at ``y`` (default: the present state) with the
+        present commands, ports, loads and pads, the mass matrix taken at ``y`` (what
+        one RK4 stage evaluates: for checks of the integration, e.g. its stability)."""
+        yy = np.array(self.y if y is None else y, dtype=np.float64)
+        m_mat, q_g = _mass_and_gravity(
+            yy[_Q : _Q + 6], self._body_m, self._body_c, self._body_i, self._body_layer,
+            self._rod_xy, self._rod_m, self._origin_u, self.g_base,
+        )  # fmt: skip
+        dy = np.zeros_like(yy)
+        _derivative(
+            yy, dy, self.command, self.ports_open, self.valve_leak, self.external_force_n,
+            self._p, self._plat_idx, self._rod_xy, self._half_stroke, inverse(m_mat), q_g,
+            self._pads, np.zeros((2, N)), np.zeros(N), np.zeros(4),
+        )  # fmt: skip
+        return dy
 
     # ----------------------------------------------------------------- truth
 

@@ -60,6 +60,7 @@ from config.hil_scenario import (
 from config.schema import N_CYLINDERS, ProjectConfig
 from config.stall import StallTrace
 from hil_sim._jit import jit
+from hil_sim.placement import bolt_part
 from hil_sim.rig import LayerTruth, Rig
 from hil_sim.sensors import PositionTransducer, PressureTransducer
 from hil_sim.walking import WalkingRig
@@ -111,6 +112,10 @@ class Truth:
     applied_command: FloatArray
     status: PlcStatus
     faults_active: tuple[str, ...] = field(default=())
+    #: the arc part: ``carried``, ``loading``, ``bolted`` (:meth:`HilSimulator.bolt_part`)
+    part_state: str = "carried"
+    #: how much of the part's weight the upper platform carries, N (bolted: its pads)
+    part_load_n: float = 0.0
 
 
 class HilSimulator:
@@ -628,6 +633,24 @@ class HilSimulator:
             )
             plc.set_status(self.status)
 
+    # ----------------------------------------------------------------- the part
+
+    #: How long the crane takes to set a new part down on the platform, s
+    LOAD_DURATION_S = 5.0
+
+    def bolt_part(self) -> tuple[FloatArray, FloatArray]:
+        """The site crew bolts the part to its ring where it is now (the operator's
+        fixing confirmation): its pose is frozen, the simulator's truth from now on
+        (:func:`hil_sim.placement.pose_from_home`), and it rests on the upper platform
+        through its pads until the platform lowers off it (docs/hil.md, "The part").
+        Returns the frozen pose ``(R, t)`` from home."""
+        return bolt_part(self.cfg, self.rig)
+
+    def load_part(self, duration_s: float = LOAD_DURATION_S) -> None:
+        """A crane sets a new part down on the upper platform at its home position, its
+        weight ramped on over ``duration_s``; the part bolted before stays in its ring."""
+        self.rig.load_part(duration_s)
+
     # ----------------------------------------------------------------- truth
 
     def active_faults(self) -> tuple[str, ...]:
@@ -656,6 +679,8 @@ class HilSimulator:
             applied_command=self.applied_command.copy(),
             status=self.status,
             faults_active=self.active_faults(),
+            part_state=rig.part_state,
+            part_load_n=rig.part_load_n,
         )
 
     def status_line(self) -> str:

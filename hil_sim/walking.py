@@ -53,12 +53,15 @@ from hil_sim.rig import (
     _X,
     N_STATE,
     FloatArray,
+    IntArray,
     N,
     Rig,
+    _add_pad_forces,
     _mass_and_gravity,
     cylinder_forces,
     extension_and_jacobian,
     inverse,
+    plate_inertia,
 )
 
 #: offsets of the walking state after the rig's: foot heights, foot speeds, X_M, V_M, X_S, V_S
@@ -86,7 +89,7 @@ def ground_height(xw, yw, ground):
 def _walk_derivative(
     y, dy, u, ports, leak, f_ext, p, up_idx, up_xy, up_half, leg_idx, leg_xy, leg_sub,
     leg_half, travel_idx, e0, m_inv, q_g, foot_m, foot_inertia, g_b, k_c, c_c, ground, fric, anchor,
-    k_t, c_t, mass_x, x_out, f_out, n_out,
+    k_t, c_t, mass_x, pads, x_out, f_out, n_out, pad_out,
 ):  # fmt: skip
     q = y[_Q : _Q + 6]
     qd = y[_QD : _QD + 6]
@@ -137,6 +140,7 @@ def _walk_derivative(
     gen = np.empty(6)
     for a in range(6):
         gen[a] = q_g[a]
+    _add_pad_forces(q, pads, pad_out, gen)
     for j in range(4):
         i = up_idx[j]
         for a in range(3):
@@ -177,8 +181,9 @@ def _walk_derivative(
 @jit
 def _walk_advance(
     y, u, ports, leak, f_ext, p, up_idx, up_xy, up_half, leg_idx, leg_xy, leg_sub, leg_half,
-    travel_idx, e0, body_m, body_c, body_layer, rod_xy, rod_m, origin_u, foot_m, foot_inertia,
-    g_b, k_c, c_c, ground, fric, anchor, slip, k_t, c_t, mass_x, h, n_steps, x_out, f_out, n_out,
+    travel_idx, e0, body_m, body_c, body_i, body_layer, rod_xy, rod_m, origin_u, foot_m,
+    foot_inertia, g_b, k_c, c_c, ground, fric, anchor, slip, k_t, c_t, mass_x, pads, h, n_steps,
+    x_out, f_out, n_out, pad_out,
 ):  # fmt: skip
     """``n_steps`` RK4 steps; after each, the friction anchors follow a slipping frame."""
     n = y.shape[0]
@@ -188,7 +193,7 @@ def _walk_advance(
     k4 = np.empty(n)
     tmp = np.empty(n)
     m_mat, q_g = _mass_and_gravity(
-        y[_Q : _Q + 6], body_m, body_c, body_layer, rod_xy, rod_m, origin_u, g_b
+        y[_Q : _Q + 6], body_m, body_c, body_i, body_layer, rod_xy, rod_m, origin_u, g_b
     )
     m_inv = inverse(m_mat)
     hh = 0.5 * h
@@ -196,7 +201,7 @@ def _walk_advance(
     args = (
         u, ports, leak, f_ext, p, up_idx, up_xy, up_half, leg_idx, leg_xy, leg_sub, leg_half,
         travel_idx, e0, m_inv, q_g, foot_m, foot_inertia, g_b, k_c, c_c, ground, fric, anchor,
-        k_t, c_t, mass_x, x_out, f_out, n_out,
+        k_t, c_t, mass_x, pads, x_out, f_out, n_out, pad_out,
     )  # fmt: skip
     if n_steps == 0:
         _walk_derivative(y, k1, *args)
@@ -291,6 +296,9 @@ class WalkingRig(Rig):
         self._n_rig_bodies = len(self._body_m)
         extra_m = [b.mass_kg for b in frames.main.bodies] + [b.mass_kg for b in frames.sub.bodies]
         extra_c = [b.cog_m for b in frames.main.bodies] + [b.cog_m for b in frames.sub.bodies]
+        extra_i = [plate_inertia(b.mass_kg, cfg.layers.lower) for b in frames.main.bodies] + [
+            plate_inertia(b.mass_kg, frames.sub) for b in frames.sub.bodies
+        ]
         # S's bodies: one slice (moved along the rails every scan; a slice, not an index
         # array: numpy's fancy indexing costs about three times as much per scan)
         self._sub_bodies = slice(
@@ -299,6 +307,7 @@ class WalkingRig(Rig):
         self._body_m = np.concatenate([self._body_m, np.array(extra_m, dtype=np.float64)])
         self._body_c0 = np.concatenate([self._body_c, np.array(extra_c, dtype=np.float64)])
         self._body_c = self._body_c0.copy()
+        self._body_i = np.concatenate([self._body_i, np.array(extra_i, dtype=np.float64)])
         self._body_layer = np.concatenate(
             [self._body_layer, np.zeros(len(extra_m), dtype=np.int64)]
         )
@@ -321,12 +330,19 @@ class WalkingRig(Rig):
         #: distance each frame's feet have slipped while touching (main, sub), m
         self.slip_m = np.zeros(2)
         self.foot_force_n = np.zeros(8)
+        #: M's world x at the part's bolting: its pads touch only while M stands there
+        self._bolted_at_x_m = 0.0
         y = np.zeros(N_WALK_STATE)
         y[:N_STATE] = self.y
         self.y = y
         self._settle_walking()
+        self.bound_friction()
 
     # ----------------------------------------------------------------- set-up
+
+    def _settle_level(self) -> None:
+        """Nothing yet: the walking rig settles in :meth:`_settle_walking`, once its legs
+        are set up."""
 
     def _place_sub_bodies(self, x_s: float) -> None:
         self._body_c[self._sub_bodies, 0] = self._body_c0[self._sub_bodies, 0] + x_s
@@ -342,8 +358,8 @@ class WalkingRig(Rig):
         self._anchor[:] = (0.0, x_s)
         self._place_sub_bodies(x_s)
         _m, q_g = _mass_and_gravity(
-            np.zeros(6), self._body_m, self._body_c, self._body_layer, self._rod_xy,
-            self._rod_m, self._origin_u, self.g_base,
+            np.zeros(6), self._body_m, self._body_c, self._body_i, self._body_layer,
+            self._rod_xy, self._rod_m, self._origin_u, self.g_base,
         )  # fmt: skip
         g_z = self.g_base[2]
         jac = np.zeros((8, 3))
@@ -404,19 +420,79 @@ class WalkingRig(Rig):
 
     # ----------------------------------------------------------------- run
 
+    #: How far M may move along the tunnel from where the part was bolted before the
+    #: part's pads no longer reach the platform (the machine walked away from its ring), m
+    PADS_REACH_M = 0.1
+
+    def _friction_rows(self) -> tuple[FloatArray, FloatArray, IntArray]:
+        """The upper platform's four rods, and the eight legs, each in series with its
+        foot's own inertia (:attr:`foot_inertia_kg`)."""
+        q = self.y[_Q : _Q + 6]
+        rows = np.zeros((12, 6))
+        rows[:4] = self.rod_jacobian()[4:]
+        x_s = self.x_s_m
+        for j in range(8):
+            px = self._leg_xy[j, 0] + x_s * self._leg_sub[j]
+            _d, *row = extension_and_jacobian(q[0], q[1], q[2], px, self._leg_xy[j, 1])
+            rows[4 + j, :3] = row
+        extra = np.concatenate([np.zeros(4), np.full(8, 1.0 / self.foot_inertia_kg)])
+        return rows, extra, np.concatenate([self.upper_index, self._leg_idx])
+
+    def _set_part_mass(self, mass_kg: float, bound: bool = True) -> None:
+        """The part's mass on the platform, and with it M's along the tunnel."""
+        self._mass_x[0] += mass_kg - self._body_m[self._part_body]
+        super()._set_part_mass(mass_kg, bound)
+
+    def bolt_part(
+        self,
+        pad_points_m: FloatArray,
+        pose: tuple[FloatArray, FloatArray] | None = None,
+    ) -> None:
+        self._bolted_at_x_m = self.world_x_m[0]
+        super().bolt_part(pad_points_m, pose)
+
+    bolt_part.__doc__ = Rig.bolt_part.__doc__
+
     def advance(self, n_steps: int) -> None:
+        if self.part_state == "loading":
+            self._load_ramp()
+        elif self._pads[5, 4] != 0.0 and abs(self.world_x_m[0] - self._bolted_at_x_m) > (
+            self.PADS_REACH_M
+        ):
+            self._pads[:] = 0.0  # walked away from the ring: the part stays behind
+            self.pad_force_n[:] = 0.0
         self._place_sub_bodies(self.x_s_m)
         _walk_advance(
             self.y, self.command, self.ports_open, self.valve_leak, self.external_force_n,
             self._p, self.upper_index, self._up_xy, self._up_half, self._leg_idx, self._leg_xy,
             self._leg_sub, self._leg_half, self._travel_idx, self.travel_mid_m, self._body_m,
-            self._body_c, self._body_layer, self._rod_xy, self._rod_m, self._origin_u,
-            self.rod_mass_kg, self.foot_inertia_kg, self.g_base, self._k_c, self._c_c,
-            self.ground, self.friction,
+            self._body_c, self._body_i, self._body_layer, self._rod_xy, self._rod_m,
+            self._origin_u, self.rod_mass_kg, self.foot_inertia_kg, self.g_base, self._k_c,
+            self._c_c, self.ground, self.friction,
             self._anchor, self.slip_m, self.shear_stiffness_n_m, self._c_t, self._mass_x,
-            self.step_s, int(n_steps), self._xv, self._force, self.foot_force_n,
+            self._pads, self.step_s, int(n_steps), self._xv, self._force, self.foot_force_n,
+            self.pad_force_n,
         )  # fmt: skip
         self.t_s += n_steps * self.step_s
+
+    def derivative(self, y: FloatArray | None = None) -> FloatArray:
+        yy = np.array(self.y if y is None else y, dtype=np.float64)
+        m_mat, q_g = _mass_and_gravity(
+            yy[_Q : _Q + 6], self._body_m, self._body_c, self._body_i, self._body_layer,
+            self._rod_xy, self._rod_m, self._origin_u, self.g_base,
+        )  # fmt: skip
+        dy = np.zeros_like(yy)
+        _walk_derivative(
+            yy, dy, self.command, self.ports_open, self.valve_leak, self.external_force_n,
+            self._p, self.upper_index, self._up_xy, self._up_half, self._leg_idx, self._leg_xy,
+            self._leg_sub, self._leg_half, self._travel_idx, self.travel_mid_m, inverse(m_mat),
+            q_g, self.rod_mass_kg, self.foot_inertia_kg, self.g_base, self._k_c, self._c_c,
+            self.ground, self.friction, self._anchor.copy(), self.shear_stiffness_n_m, self._c_t,
+            self._mass_x, self._pads, np.zeros((2, N)), np.zeros(N), np.zeros(8), np.zeros(4),
+        )  # fmt: skip
+        return dy
+
+    derivative.__doc__ = Rig.derivative.__doc__
 
     # ----------------------------------------------------------------- truth
 

@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 
 from config import load_project
-from config.schema import Planner, Safety, Walking
+from config.schema import Cycle, Planner, Safety, Walking
 from ipc_app.service.interlocks import SPECS, Applies, Cause, Interlock, markdown_table
 from ipc_app.service.modes import Mode
 from wara.harness import Harness
@@ -36,7 +36,7 @@ def test_every_interlock_has_a_spec_with_a_real_key() -> None:
     for il, spec in SPECS.items():
         if spec.key is not None:
             section, name = spec.key.split(".")
-            sections = {"safety": Safety, "walking": Walking, "planner": Planner}
+            sections = {"safety": Safety, "walking": Walking, "planner": Planner, "cycle": Cycle}
             assert section in sections and name in sections[section].model_fields, il
         assert spec.applies in Applies and spec.condition
 

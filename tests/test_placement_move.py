@@ -68,7 +68,8 @@ def test_the_slide_extensions_take_out_the_layers_lever_arm(
     q = np.zeros(6)
     q[1], q[2] = units.deg(lower_deg[0]), units.deg(lower_deg[1])
     q[4], q[5] = units.deg(upper_deg[0]), units.deg(upper_deg[1])
-    _r, t = pose_from_home(project, cast(Any, SimpleNamespace(q=q, rod_positions_m=rods)))
+    rig = SimpleNamespace(q=q, rod_positions_m=rods, part_state="carried", bolted_pose=None)
+    _r, t = pose_from_home(project, cast(Any, rig))
     assert t[:2] == pytest.approx([0.005, 0.002], abs=1e-9)
     if lower_deg != (0.0, 0.0):  # uncorrected, the lower layer's 0.9 m lever shows
         assert abs(ext["lateral"][0] - 0.002) > 1e-5

@@ -162,10 +162,10 @@ def test_the_ring_cycle_steers_back_and_writes_the_records(tmp_path: Path) -> No
     cfg = load_project(None)
     rec = RunRecorder(rec_dir, ServiceCore.record_columns(cfg))
     rec.start()
-    try:
+    try:  # standing at the ring (the walks: the 200 mm cycle below)
         out = run_cycle(
             None, 2, first_ring=2, previous_deviation=sheet_deviation(6, -6, 0, 0, 0),
-            db_path=db, record=rec,
+            db_path=db, record=rec, cfg=_cycle_with(walk_steps=0),
         )  # fmt: skip
     finally:
         rec.stop()
@@ -176,6 +176,12 @@ def test_the_ring_cycle_steers_back_and_writes_the_records(tmp_path: Path) -> No
         assert set(r["phase_times_s"]) == set(PHASES)
         assert r["cycle_time_s"] <= 15 * 60
         assert r["place_settled"] is True
+        # bolted, then released: the platform carried the part's weight, then none
+        assert r["platform_part_load_kn"]["bolted"] == pytest.approx(356.5, abs=0.5)
+        assert r["platform_part_load_kn"]["released"] == 0.0
+        assert 1.0 < r["release"]["released_at_mm"] < 2.5
+    # ring 3 began with a new part set down by the crane (its weight ramped on over 5 s)
+    assert out["rings"][1]["phase_times_s"]["load"] > 5.0
     dev = [r["as_built_deviation"]["y_mm"] for r in out["rings"]]
     assert 3.0 <= dev[0] <= 5.0 and 1.0 <= dev[1] <= 3.0, dev  # 2 mm per ring toward 0
     assert out["passed"]
@@ -201,7 +207,10 @@ def test_a_stop_mid_cycle_holds_and_names_the_phase(tmp_path: Path) -> None:
             h.core.modes.stop("operator stop (test)")
             stopped.append(phase)
 
-    out = run_cycle(None, 1, db_path=tmp_path / "a.sqlite", on_cycle=stop_in_place)
+    out = run_cycle(
+        None, 1, db_path=tmp_path / "a.sqlite", on_cycle=stop_in_place,
+        cfg=_cycle_with(walk_steps=0),
+    )  # fmt: skip
     assert stopped and not out["passed"]
     assert out["stopped_in_phase"] == "place" and out["error"].startswith("place:")
     assert out["final_mode"] == "IDLE" and out["valves_enabled"] is False
@@ -251,8 +260,9 @@ def test_the_simulated_survey_follows_its_keys() -> None:
 @pytest.mark.slow
 def test_the_cycle_keys_govern_the_cycle(tmp_path: Path) -> None:
     cfg = _cycle_with(
-        fixing_confirm_after_s=1.5, survey_points=5, survey_noise_mm=0.0, max_cycle_time_min=0.01
-    )
+        fixing_confirm_after_s=1.5, survey_points=5, survey_noise_mm=0.0, max_cycle_time_min=0.01,
+        walk_steps=0,
+    )  # fmt: skip
     out = run_cycle(None, 1, db_path=tmp_path / "a.sqlite", cfg=cfg)
     (row,) = out["rings"]
     assert abs(row["phase_times_s"]["fixing"] - 1.5) < 0.02
@@ -298,17 +308,46 @@ def test_the_cycle_section_is_validated(tmp_path: Path, change: Any, text: str) 
 
 @pytest.mark.slow
 def test_a_cycle_that_walks_goes_to_the_ring_and_back(tmp_path: Path) -> None:
-    """200 mm steps, one step to the ring and one back (the gait mirrored)."""
+    """200 mm steps, two rings: one step to the ring with the part, one back without it
+    (the gait mirrored, the statics unloaded), a new part set down at the loading point
+    before the second ring, which walks loaded again."""
     data = yaml.safe_load(default_project_path().read_text())
     data["walking"]["step_length_mm"] = 200
     data["cycle"]["walk_steps"] = 1
     path = tmp_path / "walks.yaml"
     path.write_text(yaml.safe_dump(data), encoding="utf-8")
-    out = run_cycle(str(path), 1, db_path=tmp_path / "a.sqlite", cfg=load_project(path))
+    rec = RunRecorder(tmp_path / "run", ServiceCore.record_columns(load_project(path)))
+    rec.start()
+    try:
+        out = run_cycle(
+            str(path), 2, db_path=tmp_path / "a.sqlite", cfg=load_project(path), record=rec
+        )
+    finally:
+        rec.stop()
     assert out["error"] is None, out["error"]
-    (row,) = out["rings"]
-    assert row["phase_times_s"]["walk"] > 10 and row["phase_times_s"]["walk_back"] > 10
-    # placed after a walk as without one: at its target height, not by the feet's
-    # compression (0.9 mm) below it
-    assert abs(row["error_from_target"]["z_mm"]) < 0.1
+    for row in out["rings"]:
+        assert row["phase_times_s"]["walk"] > 10 and row["phase_times_s"]["walk_back"] > 10
+        # placed after a walk as without one: at its target height, not by the feet's
+        # compression (0.9 mm) below it
+        assert abs(row["error_from_target"]["z_mm"]) < 0.1
+        assert row["platform_part_load_kn"]["released"] == 0.0
+    assert out["rings"][1]["phase_times_s"]["load"] > 5.0  # the crane's 5 s, then settled
+    walks = [e for e in map(json.loads, (tmp_path / "run" / "events.jsonl").open())
+             if e["kind"] == "walk"]  # fmt: skip
+    assert [(w["direction"], w["unloaded"]) for w in walks] == [
+        ("forward", False), ("back", True), ("forward", False), ("back", True),
+    ]  # fmt: skip
     assert out["passed"]
+
+
+@pytest.mark.slow
+def test_an_unreachable_target_is_refused_before_the_walk(tmp_path: Path) -> None:
+    """The cycle plans the ring's target before it walks to the ring: a previous part
+    9 mm off is refused with the binding limit, nothing moved (the shipped 1 step)."""
+    out = run_cycle(
+        None, 1, db_path=tmp_path / "a.sqlite",
+        previous_deviation=sheet_deviation(9, -9, 0, 0, 0),
+    )  # fmt: skip
+    assert out["refused"] and "exceeded by 2.000" in out["refused"]
+    assert out["stopped_in_phase"] == "walk" and out["rings"] == []
+    assert out["final_mode"] == "IDLE"

@@ -20,7 +20,7 @@ import numpy as np
 import pytest
 
 from config import ProjectConfig, load_project
-from config.schema import Planner, Safety, Walking
+from config.schema import Cycle, Planner, Safety, Walking
 from ipc_app.control.attitude import LayerMetrics
 from ipc_app.service.app import ctl_server
 from ipc_app.service.core import ServiceCore
@@ -206,7 +206,9 @@ def test_every_interlock_key_is_a_config_key() -> None:
     keys = {s.key for s in SPECS.values() if s.key is not None}
     walking = {f"walking.{k}" for k in Walking.model_fields}  # tests/test_walk_interlocks.py
     planner = {"planner.request_timeout_s"}  # tests/test_service_worker.py: the timeout
-    assert keys <= {f"safety.{k}" for k in Safety.model_fields} | walking | planner
+    cycle = {"cycle.release_max_travel_mm"}  # tests/test_release.py, test_service_cycle.py
+    assert keys <= {f"safety.{k}" for k in Safety.model_fields} | walking | planner | cycle
+    assert all(k in Cycle.model_fields for k in (c.split(".")[1] for c in cycle))
     assert all(k in Planner.model_fields for k in (p.split(".")[1] for p in planner))
 
 

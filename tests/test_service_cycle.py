@@ -1,6 +1,8 @@
 """The ring cycle as a request of the service (``wara ctl cycle``): its phases in order,
-the operator's fixing confirmation and the survey it waits for, a stop in a phase, and
-bad input (docs/placement.md)."""
+the part on the platform it starts from, the operator's fixing confirmation, the
+release that lowers the platform off the bolted part (and stops when the part is not
+fixed), the survey it waits for, a stop in a phase, and bad input (docs/placement.md).
+The machine stands at its ring here (``walk_steps`` 0); the walks: tests/test_ring_cycle.py."""
 
 from __future__ import annotations
 
@@ -60,13 +62,15 @@ def test_the_cycle_waits_for_the_operator_and_the_survey(tmp_path: Path) -> None
     records = _Records()
     try:
         previous = previous_from_deviation(cfg, 3, sheet_deviation(2, -2, 0, 0, 0))
-        out = h.core.request_cycle(3, previous, records, drive=False)
-        assert out == {"ok": True, "ring": 3, "phase": "walk"}
+        out = h.core.request_cycle(3, previous, records, drive=False, walk_steps=0)
+        assert out == {"ok": True, "ring": 3, "phase": "load"}
         again = h.core.request_cycle(3, previous, records, drive=False)
-        assert again["ok"] is False and "ring 3's cycle is in walk" in again["error"]
+        assert again["ok"] is False and "ring 3's cycle is in load" in again["error"]
         cyc = h.core.ring_cycle
         assert cyc is not None
         assert h.core.submit_survey(pose=Pose())["code"] == "refused"  # not in survey yet
+        _run_until(h, cyc, "place")  # the part on the platform: its pressures
+        assert cyc.phase_times_s["load"] == pytest.approx(1.0, abs=0.02)  # LOAD_SETTLED_S
         _run_until(h, cyc, "fixing")
         assert h.core.modes.mode == Mode.COMPLETE and h.core.modes.valves_enabled
         h.advance(2.0)  # no confirmation: the pose stays held
@@ -76,13 +80,21 @@ def test_the_cycle_waits_for_the_operator_and_the_survey(tmp_path: Path) -> None
             "fixing",
             "operator confirmation (wara ctl confirm-fixed)",
         )
+        h.sim.bolt_part()  # the crew's bolts
         r, t = pose_from_home(cfg, h.sim.rig)
         as_built = compose(home_pose(cfg, 3), Pose.from_matrix(r, t))
         assert h.core.confirm_fixed("operator A")["ok"] is True
         assert h.core.confirm_fixed("operator A")["code"] == "refused"  # once
+        assert cyc.phase == "release"
+        cyc.tick()
         h.advance(h.period)
-        assert cyc.phase == "survey" and h.core.modes.mode == Mode.IDLE
-        assert not h.core.modes.valves_enabled  # released: a controlled stop
+        assert h.core.modes.mode == Mode.EXECUTE and h.core.releaser is not None
+        assert h.core.snapshot()["release"]["phase"] == "lowering"
+        _run_until(h, cyc, "survey", limit_s=30.0)
+        assert h.core.modes.mode == Mode.IDLE and not h.core.modes.valves_enabled  # stopped
+        fig = cyc.release_figures
+        assert 1.0 < fig["released_at_mm"] < 2.5 and fig["travel_mm"] > fig["released_at_mm"] + 4.9
+        assert h.sim.rig.part_load_n == 0.0  # the platform clear of the part
         pts = simulated_survey(cfg, 3, as_built, np.random.default_rng(0))
         few = h.core.submit_survey(points=pts[:3])
         assert few["ok"] is False and few["code"] == "bad_request"
@@ -103,6 +115,7 @@ def test_the_cycle_waits_for_the_operator_and_the_survey(tmp_path: Path) -> None
     assert ring == 3 and set(values) == set(RECORD_KEYS)
     assert attached["kind"] == "ring_cycle" and attached["plan"]["ring"] == 3
     assert attached["cycle"]["fixed_by"] == "operator A"
+    assert attached["cycle"]["release"] == fig
     # the as-built pose as the store keeps it (mm, deg; a round trip to SI is not exact)
     assert attached["as_built_pose"] == cyc.surveyed.to_dict()
     evs = _events(tmp_path)
@@ -112,6 +125,42 @@ def test_the_cycle_waits_for_the_operator_and_the_survey(tmp_path: Path) -> None
     assert (audit["user"], audit["action"]) == ("operator A", "confirm_fixed")
     (end,) = [e for e in evs if e["kind"] == "cycle_end"]
     assert end["error"] is None and end["phase"] == "done"
+    kinds = [e["kind"] for e in evs]
+    assert {"release", "release_phase", "release_done"} <= set(kinds)
+
+
+@pytest.mark.slow
+def test_a_part_not_fixed_stops_the_release_with_its_interlock(tmp_path: Path) -> None:
+    """The operator confirms a part whose bolts do not hold (here: none): the platform
+    lowers its whole travel with the part's weight still on it, the ``release``
+    interlock stops the machine (ABORTED, valves closed, the part held on the
+    platform), and the cycle ends in ``release`` with that cause, nothing recorded."""
+    cfg = load_project(None)
+    h, rec = _place_harness(tmp_path)
+    records = _Records()
+    try:
+        previous = previous_from_deviation(cfg, 2, Pose())
+        assert h.core.request_cycle(2, previous, records, drive=False, walk_steps=0)["ok"]
+        cyc = h.core.ring_cycle
+        assert cyc is not None
+        _run_until(h, cyc, "fixing")
+        x0 = h.sim.rig.rod_positions_m[h.sim.rig.upper_index].mean()
+        assert h.core.confirm_fixed("operator A")["ok"]  # but nobody bolted it
+        t_end = h.sim.t_s + 30.0
+        while cyc.active and h.sim.t_s < t_end:
+            cyc.tick()
+            h.advance(h.period)
+        assert h.core.modes.mode == Mode.ABORTED and not h.core.modes.valves_enabled
+        (reason,) = h.core.modes.fault_reasons
+        assert reason.startswith("release: upper_") and "(above the limit 10.00 mm)" in reason
+        assert cyc.stopped_in_phase == "release" and "release" in (cyc.error or "")
+        lowered = x0 - h.sim.rig.rod_positions_m[h.sim.rig.upper_index].mean()
+        assert 0.0099 < lowered < 0.0105  # stopped at its travel, the part still on it
+        assert h.sim.rig.part_state == "carried"
+    finally:
+        h.close()
+        rec.stop()
+    assert records.written == []
 
 
 @pytest.mark.slow
@@ -123,7 +172,7 @@ def test_a_stop_in_fixing_ends_the_cycle_holding_safely(tmp_path: Path) -> None:
     records = _Records()
     try:
         previous = previous_from_deviation(cfg, 2, Pose())
-        assert h.core.request_cycle(2, previous, records, drive=False)["ok"]
+        assert h.core.request_cycle(2, previous, records, drive=False, walk_steps=0)["ok"]
         cyc = h.core.ring_cycle
         assert cyc is not None
         _run_until(h, cyc, "fixing")

@@ -232,6 +232,7 @@ _EVENTS: dict[str, Any] = {
     "jog": lambda m: m.jog("main_leg_1 +1 mm"),
     "walk": lambda m: m.walk("3 step(s) of 2.000 m"),
     "place": lambda m: m.place("ring 5"),
+    "release": lambda m: m.release("ring 5"),
     "motion_done": lambda m: m.motion_done(),
     "hold": lambda m: m.hold(),
     "unhold": lambda m: m.unhold(),

@@ -281,6 +281,7 @@ def test_cli_walk_plan_bad_arguments(capsys: pytest.CaptureFixture[str], tmp_pat
     data = yaml.safe_load(default_project_path().read_text())
     data.pop("frames")
     data.pop("walking")
+    data["cycle"]["walk_steps"] = 0  # its ring cycles stand at the ring
     path = tmp_path / "p.yaml"
     path.write_text(yaml.safe_dump(data))
     assert main(["walk", "plan", "--steps", "1", "--config", str(path)]) == 2

@@ -17,12 +17,15 @@ PERIOD_S = 0.005
 TWIST = np.array([1.0, -1.0, 1.0, -1.0])
 
 
-def sequencer(bandwidth_rad_s: float | None = None) -> WalkSequencer:
+def sequencer(
+    bandwidth_rad_s: float | None = None, observer_rad_s: float | None = None
+) -> WalkSequencer:
     cfg = load_project(None)
-    if bandwidth_rad_s is not None:
-        assert cfg.walking is not None
-        walking = cfg.walking.model_copy(update={"twist_bandwidth_rad_s": bandwidth_rad_s})
-        cfg = ProjectConfig.model_validate({**cfg.model_dump(), "walking": walking.model_dump()})
+    assert cfg.walking is not None
+    upd = {"twist_bandwidth_rad_s": bandwidth_rad_s, "twist_observer_rad_s": observer_rad_s}
+    upd = {k: v for k, v in upd.items() if v is not None}
+    walking = cfg.walking.model_copy(update=upd)
+    cfg = ProjectConfig.model_validate({**cfg.model_dump(), "walking": walking.model_dump()})
     return WalkSequencer(cfg, PERIOD_S, plan_walk(cfg, 1))
 
 
@@ -90,6 +93,18 @@ def test_the_bandwidth_key_governs_the_twist_loop() -> None:
     assert fast == pytest.approx(2.0 * slow, rel=1e-9)  # the first command is -wc T / b0
 
 
+def test_the_observer_key_governs_the_twist_loop() -> None:
+    """``walking.twist_observer_rad_s`` is the twist loop's observer bandwidth (not the
+    force loops'): a twist held against the loop is estimated, and driven against,
+    the faster the higher it is."""
+    slow, fast = sequencer(observer_rad_s=3.0), sequencer(observer_rad_s=12.0)
+    assert (slow.twist.wo, fast.twist.wo) == (3.0, 12.0)
+    assert slow.force[slow.legs[0]].wo == fast.force[fast.legs[0]].wo  # force_wo_rad_s
+    u_slow = commands_after(slow, 5e3, 40) - U_POS
+    u_fast = commands_after(fast, 5e3, 40) - U_POS
+    assert abs(u_fast[0]) > 1.2 * abs(u_slow[0]) and u_fast[0] < 0 and u_slow[0] < 0
+
+
 def test_the_position_loops_do_not_see_the_twist_and_a_frame_in_force_control_is_left_alone() -> (
     None
 ):
@@ -137,3 +152,17 @@ def test_a_force_ramp_restarts_from_the_forces_at_the_resume() -> None:
     assert np.allclose(run.start_f[list(MAIN)], f[list(MAIN)])
     delta = max(abs(run.target_f[j] - f[j]) for j in MAIN)
     assert run.duration_s == pytest.approx(delta / seq.walk.force_ramp_n_s)
+
+
+@pytest.mark.parametrize("speed_mm_s", [0.05, 0.25, 0.5, 2.0])
+def test_a_legs_friction_estimate_is_linear_below_half_a_mm_per_s(speed_mm_s: float) -> None:
+    """The rods' friction taken off the legs' forces (``WalkSequencer.friction_n``): the
+    Coulomb part full from 0.5 mm/s, linear below (near standstill its sign is not
+    known), plus the viscous part at the measured speed."""
+    seq = sequencer()
+    n = seq._x_hist.shape[0]
+    v = speed_mm_s * 1e-3
+    seq._x_hist[:] = (np.arange(n) * v * PERIOD_S)[:, None]  # each leg extending at v
+    seq._x_k = 0  # the oldest sample next: row 0
+    coulomb = seq.coulomb_n * min(1.0, speed_mm_s / 0.5)
+    assert seq.friction_n() == pytest.approx(coulomb + seq.viscous_n_s_m * v, rel=1e-9)

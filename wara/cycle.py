@@ -6,23 +6,28 @@ request ``wara ctl cycle`` makes), ticked here between the simulated periods, wi
 operator's part played here (the fixing confirmed, the survey simulated). Each phase
 shows in the service's status (``cycle``), run record (``cycle_phase`` events) and log:
 
-1. ``walk``: ``cycle.walk_steps`` steps to the ring (0: the machine stands at it);
-2. ``place``: the target planned from the previous part's as-built pose (the survey of
+1. ``load``: the part on the platform at the loading point. The first ring's is there
+   from the start; before each later ring a crane (played here:
+   :meth:`HilSimulator.load_part`) sets a new one down, its weight ramped on over
+   :attr:`HilSimulator.LOAD_DURATION_S`, and the service waits for its pressures;
+2. ``walk``: ``cycle.walk_steps`` steps to the ring (0: the machine stands at it);
+3. ``place``: the target planned from the previous part's as-built pose (the survey of
    the ring before; for the first ring, the given deviation) and moved to
    (:meth:`ServiceCore.request_place_plan`);
-3. ``fixing``: the pose held until the operator confirms the part is fixed; here the
-   confirmation comes after ``cycle.fixing_confirm_after_s`` of machine time;
-4. ``release``: the hold ends with a controlled stop (valves closed). The simulated rig
-   has no bolted state: the part's as-built pose is the simulator's truth at the
-   confirmation;
-5. ``survey``: ``cycle.survey_points`` points on the part's front joint face, the
-   truth plus ``cycle.survey_noise_mm`` of noise per coordinate, fitted as
+4. ``fixing``: the pose held until the operator confirms the part is fixed; here the
+   crew bolts it (:meth:`HilSimulator.bolt_part`: its pose frozen, the simulator's
+   truth from then on) and confirms after ``cycle.fixing_confirm_after_s`` of machine
+   time;
+5. ``release``: the upper platform lowers off the bolted part until its pressures are
+   the empty platform's, then clear of it (:meth:`ServiceCore.request_release`), and
+   stops (valves closed);
+6. ``survey``: ``cycle.survey_points`` points on the part's front joint face, the
+   frozen truth plus ``cycle.survey_noise_mm`` of noise per coordinate, fitted as
    ``wara survey import`` fits a file (:func:`~ipc_app.planner.survey.fit_survey`);
-6. ``record``: the ring's acceptance record (the surveyed Table 4 items) and, attached,
+7. ``record``: the ring's acceptance record (the surveyed Table 4 items) and, attached,
    the plan, the cycle's figures and the surveyed pose (where the next ring's plan and
    ``wara place plan --from-store`` find it);
-7. ``walk_back``: the same steps back (loaded here: the simulator has no bolted part,
-   so its part stays on the platform).
+8. ``walk_back``: the same steps back, unloaded (the part stays bolted in its ring).
 
 A stop at any point (``wara ctl stop``; a latched fault) leaves the service holding
 safely (valves closed) and ends the cycle with the phase it was in.
@@ -158,10 +163,8 @@ class _Cycle:
             self.db_path, operator="wara cycle",
             remarks="simulated survey (HIL truth plus survey noise)",
         )  # fmt: skip
-        # the simulator carries its part back (no bolted part): the walk back is loaded
-        res = core.request_cycle(
-            ring, previous, records, drive=False, walk_back_unloaded=False, say=self.say
-        )
+        sim = self.h.sim
+        res = core.request_cycle(ring, previous, records, drive=False, say=self.say)
         if not res.get("ok"):
             raise RuntimeError(f"cycle refused: {res.get('error')}")
         cyc = core.ring_cycle
@@ -170,23 +173,32 @@ class _Cycle:
         fixing_since: float | None = None
         settled: Any = None
         waited = 0.0
+        part_load_kn: dict[str, float] = {}
         while cyc.active:
             self.phase = cyc.phase
             cyc.tick()
             if not cyc.active:
                 break
-            if cyc.phase == "fixing":
+            if cyc.phase == "load" and sim.rig.part_state == "bolted":
+                sim.load_part()  # the crane sets the next part down at the loading point
+            elif cyc.phase == "fixing":
                 if fixing_since is None:  # the placement just ended: how it settled
                     placer = core.placer
                     settled = placer.settled if placer is not None else None
-                    fixing_since = self.h.sim.t_s
-                if self.h.sim.t_s - fixing_since >= cfg.cycle.fixing_confirm_after_s - 1e-9:
-                    as_built = self.truth(ring)  # what the bolts fix
+                    fixing_since = sim.t_s
+                if sim.t_s - fixing_since >= cfg.cycle.fixing_confirm_after_s - 1e-9:
+                    sim.bolt_part()  # the crew's bolts: from now the ring holds the part
+                    as_built = self.truth(ring)
+                    part_load_kn["bolted"] = sim.rig.part_load_n / units.KN
                     core.confirm_fixed("wara cycle (automatic confirmation)")
                     continue
             elif cyc.phase == "survey":
-                assert as_built is not None
-                pts = simulated_survey(cfg, ring, as_built, self.rng)
+                # the part where the bolts hold it, the platform lowered away from it
+                truth = self.truth(ring)
+                if truth != as_built:
+                    raise RuntimeError(f"ring {ring}: the bolted part moved: {truth} != {as_built}")
+                part_load_kn["released"] = sim.rig.part_load_n / units.KN
+                pts = simulated_survey(cfg, ring, truth, self.rng)
                 out = core.submit_survey(points=pts)
                 if not out.get("ok"):
                     raise RuntimeError(f"ring {ring}: {out.get('error')}")
@@ -229,6 +241,8 @@ class _Cycle:
             "fixing_hold_s": times["fixing"],
             "place_settled": settled,
             "phase_times_s": times,
+            "release": cyc.release_figures,
+            "platform_part_load_kn": part_load_kn,
         }
         goals = {
             "table4_within_limits": all(v["passed"] is not False for v in table4.values()),

@@ -13,6 +13,7 @@ Work per cycle is bounded: one trajectory sample and 8 controller updates.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -37,6 +38,47 @@ def cylinder_controller(cfg: ProjectConfig, cyl: Cylinder, period_s: float) -> C
         b0 = cylinder_b0(cyl, cfg.hydraulics, order=ctl.ladrc.order)
         return LADRC.from_config(ctl.ladrc, b0, period_s)
     return PID.from_config(ctl.pid, period_s, rate_limit=ctl.ladrc.rate_limit_per_s)
+
+
+class ConstantSpeedPath:
+    """Some cylinders of one layer moved by one distance at a constant speed, every other
+    cylinder keeping its start displacement: the trajectory interface (``duration_s``,
+    ``sample``, ``positions``) of a jog (one cylinder) and of the part's release (the
+    upper layer's four). Displacements from mid-stroke [m], four per layer; ``cylinders``:
+    positions 0..3 in ``layer``."""
+
+    def __init__(
+        self,
+        start_lower: Sequence[float],
+        start_upper: Sequence[float],
+        layer: str,
+        cylinders: Sequence[int],
+        distance_m: float,
+        speed_m_s: float,
+    ) -> None:
+        self._start = {"lower": list(start_lower), "upper": list(start_upper)}
+        self._layer, self._moving = layer, tuple(cylinders)
+        self._distance_m = distance_m
+        self._v = speed_m_s if distance_m >= 0 else -speed_m_s
+        self.duration_s = abs(distance_m) / speed_m_s
+
+    def positions(self, t: float) -> tuple[list[float], list[float]]:
+        lo, up = list(self._start["lower"]), list(self._start["upper"])
+        d = lo if self._layer == "lower" else up
+        tt = min(max(t, 0.0), self.duration_s)
+        step = self._distance_m if tt >= self.duration_s else self._v * tt
+        for k in self._moving:
+            d[k] += step
+        return lo, up
+
+    def sample(self, t: float) -> tuple[list[float], list[float], list[float], list[float]]:
+        lo, up = self.positions(t)
+        vl, vu = [0.0] * 4, [0.0] * 4
+        if 0.0 <= t < self.duration_s:
+            v = vl if self._layer == "lower" else vu
+            for k in self._moving:
+                v[k] = self._v
+        return lo, up, vl, vu
 
 
 @dataclass(frozen=True)
@@ -103,6 +145,21 @@ class AttitudeController:
         self.hold_ref = np.array(x_rod_m, dtype=float)
         for name, idx in self.layers.items():
             self.groups[name].reset(self.hold_ref[idx])
+
+    def move_layer(self, t_now: float, layer: str, distance_m: float, speed_m_s: float) -> None:
+        """From the present references, move every cylinder of ``layer`` by
+        ``distance_m`` at ``speed_m_s`` (the other layer held where it is referenced), the
+        controllers going on as they are: no reset, the motion starts where the
+        references stand (the part's release from the placed pose's hold)."""
+        ref = self.references(t_now)
+        start = {
+            name: [float(ref[i]) - h for i, h in zip(idx, self._half_lists[name], strict=True)]
+            for name, idx in self.layers.items()
+        }
+        self.trajectory = ConstantSpeedPath(  # type: ignore[assignment]
+            start["lower"], start["upper"], layer, range(4), distance_m, speed_m_s
+        )
+        self.t_start = t_now
 
     def hold(self, x_ref_rod_m: FloatArray) -> None:
         """Keep regulating at fixed references (after a motion: its end point)."""

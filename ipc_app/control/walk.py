@@ -195,8 +195,12 @@ class WalkSequencer:
     #: in the slow part of a lowering, the free rod's pressure follows while within this
     #: fraction of the touch rise above its baseline
     FREE_BAND = 0.1
-    #: a rod's Coulomb friction is full above this speed, m/s
-    COULOMB_SPEED_M_S = 1e-4
+    #: a rod's Coulomb friction is taken full above this speed, linear below, m/s: near
+    #: standstill its sign is not known (the speed over :attr:`MOTION_WINDOW_S` of 1 um
+    #: positions, a rod stopping or reversing within the window; the rig's friction is
+    #: smooth over some 0.3-0.5 mm/s, docs/hil.md); with 0.1 mm/s the estimate of a
+    #: standing leg's force swung by the whole 2 kN as its measured speed crossed zero
+    COULOMB_SPEED_M_S = 5e-4
     #: the transfers whose releasing loops are told their oil columns' decompression
     DECOMPRESSION_FEEDFORWARD = frozenset({"7c"})
 
@@ -278,7 +282,7 @@ class WalkSequencer:
         #: twist, the mode's share of their valve commands (:meth:`_twist_control`)
         b0_f = float(np.mean([self.force[self.legs[j]].b0 for j in SUB]))
         self.twist = LADRC(
-            1, b0_f, self.walk.twist_bandwidth_rad_s, self.walk.force_wo_rad_s, period_s,
+            1, b0_f, self.walk.twist_bandwidth_rad_s, self.walk.twist_observer_rad_s, period_s,
             rate_limit=ctl.ladrc.rate_limit_per_s,
         )  # fmt: skip
         self._twist_frame_now: tuple[int, ...] = ()
@@ -777,8 +781,8 @@ class WalkSequencer:
         pitch, and the twist's share of the four commands is a first-order LADRC on ``T``
         of the legs' forces (``f``, the checks' forces on the body) against the plan's
         (minimum norm: none), with the force loops' ``b0`` (the legs' stiffness in series
-        with the contact), crossover ``walking.twist_bandwidth_rad_s`` and the force
-        loops' observer bandwidth ``walking.force_wo_rad_s``. Each position loop's
+        with the contact), crossover ``walking.twist_bandwidth_rad_s`` and observer
+        bandwidth ``walking.twist_observer_rad_s``. Each position loop's
         observer is told the command applied (:meth:`LADRC.apply`). The state carries
         over from one phase to the next while the same frame stays controlled."""
         if len(frame) != 4:

@@ -18,7 +18,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from config import units
-from config.schema import Body, ProjectConfig
+from config.schema import WORKPIECE_BODY, Body, ProjectConfig
 from ipc_app.model.kinematics import Array, S, T, Vec, rotate, rotate_t
 
 
@@ -36,6 +36,20 @@ def lump(bodies: tuple[Body, ...]) -> MassProperties:
         return MassProperties(0.0, (0.0, 0.0, 0.0))
     c = tuple(sum(b.mass_kg * b.cog_m[k] for b in bodies) / m for k in range(3))
     return MassProperties(m, (c[0], c[1], c[2]))
+
+
+def unloaded_upper_bodies(cfg: ProjectConfig) -> tuple[Body, ...]:
+    """The upper layer's bodies without the workpiece (the body named
+    :data:`~config.schema.WORKPIECE_BODY`): what the platform carries once the part is
+    fixed in the ring. A project without such a body cannot say (ValueError)."""
+    bodies = cfg.layers.upper.bodies
+    rest = tuple(b for b in bodies if b.name != WORKPIECE_BODY)
+    if len(rest) == len(bodies):
+        raise ValueError(
+            f"the project's upper layer has no body named {WORKPIECE_BODY!r}: "
+            "it cannot walk unloaded"
+        )
+    return rest
 
 
 def gravity_in(roll: ArrayLike, pitch: ArrayLike, g_parent: Vec) -> Vec:
@@ -88,15 +102,18 @@ class MachineStatics:
 
     Heave is kept at zero during attitude adjustment (model.md section 3), so the platform
     origins sit at mid-stroke and the upper base centre stays at ``origin_in_lower_m``.
+    ``unloaded``: the upper platform without the workpiece (:func:`unloaded_upper_bodies`).
     """
 
-    def __init__(self, cfg: ProjectConfig) -> None:
+    def __init__(self, cfg: ProjectConfig, unloaded: bool = False) -> None:
         lo, up = cfg.layers.lower, cfg.layers.upper
         self.a_lower, self.b_lower = lo.a_m, lo.b_m
         self.a_upper, self.b_upper = up.a_m, up.b_m
         self.lower_own = lump(lo.bodies)
-        self.upper = lump(up.bodies)
+        self.upper = lump(unloaded_upper_bodies(cfg) if unloaded else up.bodies)
         self.origin_upper = up.origin_in_lower_m
+        #: an attitude cylinder's rod and piston (``hydraulics.rod_mass_kg``)
+        self.rod_mass_kg = cfg.hydraulics.rod_mass_kg
         g = np.asarray(-units.G)
         zero = np.asarray(0.0)
         self.g_base = gravity_in(cfg.base.roll_rad, cfg.base.pitch_rad, Vec(zero, zero, g))
@@ -129,3 +146,18 @@ class MachineStatics:
             lower_roll, lower_pitch, self.a_lower, self.b_lower, m, cog, self.g_base
         )
         return f_lower, f_upper
+
+    def upper_cylinder_forces(
+        self,
+        lower_roll: ArrayLike,
+        lower_pitch: ArrayLike,
+        upper_roll: ArrayLike,
+        upper_pitch: ArrayLike,
+    ) -> Array:
+        """The upper cylinders' hydraulic forces at rest, ``(..., 4)`` in N: the
+        platform's share of :meth:`forces` plus each cylinder's own rod and piston
+        (``hydraulics.rod_mass_kg``) along its axis, the upper base's z. What the rods'
+        pressures carry (``p_A A_A - p_B A_B``) when the platform stands still."""
+        _f_lower, f_upper = self.forces(lower_roll, lower_pitch, upper_roll, upper_pitch)
+        g_upper = gravity_in(lower_roll, lower_pitch, self.g_base)
+        return f_upper - self.rod_mass_kg * np.asarray(g_upper.z)[..., None]

@@ -27,23 +27,7 @@ import numpy as np
 
 from config.schema import Body, ProjectConfig
 from ipc_app.model.kinematics import Array, S, T, Vec, rotate
-from ipc_app.model.statics import MachineStatics, MassProperties, lump
-
-#: The upper layer's body that is the arc part (the YAML's ``layers.upper.bodies``).
-WORKPIECE_BODY = "workpiece"
-
-
-def unloaded_upper_bodies(cfg: ProjectConfig) -> tuple[Body, ...]:
-    """The upper layer's bodies without the workpiece; a project without a body named
-    :data:`WORKPIECE_BODY` cannot say what walking unloaded leaves (ValueError)."""
-    bodies = cfg.layers.upper.bodies
-    rest = tuple(b for b in bodies if b.name != WORKPIECE_BODY)
-    if len(rest) == len(bodies):
-        raise ValueError(
-            f"the project's upper layer has no body named {WORKPIECE_BODY!r}: "
-            "it cannot walk unloaded"
-        )
-    return rest
+from ipc_app.model.statics import MachineStatics, MassProperties, lump, unloaded_upper_bodies
 
 
 def cap_side_forces_n(p: Array, cap_m2: Array, rod_m2: Array) -> Array:
@@ -84,7 +68,7 @@ class WalkingMachine:
     the legs' own rods are not in it: a leg's force on the body is its cap-side force.
 
     ``unloaded``: without the workpiece, the upper layer's body named
-    :data:`WORKPIECE_BODY` (the ring cycle walks back once the part is fixed to the
+    :data:`~config.schema.WORKPIECE_BODY` (the ring cycle walks back once the part is fixed to the
     ring and the platform has lowered off it).
 
     ``standing``: the load measured on M's standing legs; M's lump (everything that

@@ -42,8 +42,9 @@ import structlog
 
 from config import units
 from config.schema import ProjectConfig
-from ipc_app.control.attitude import AttitudeController
+from ipc_app.control.attitude import AttitudeController, ConstantSpeedPath
 from ipc_app.control.placement import PlacementSequencer
+from ipc_app.control.release import ReleaseSequencer, platform_pressures_pa
 from ipc_app.control.slide import SLIDE_ROLES
 from ipc_app.control.walk import WalkSequencer
 from ipc_app.model.composition import check_attitude
@@ -64,12 +65,12 @@ from ipc_app.service.interlocks import (
     link_losses,
     motion_causes,
     present_causes,
+    release_cause,
     resume_cause,
 )
 from ipc_app.service.loop import ChangeGate
 from ipc_app.service.machine_io import (
     Handshake,
-    JogPath,
     MachineInputs,
     MachineOutputs,
     Reader,
@@ -246,6 +247,9 @@ class ServiceCore:
         self.placer: PlacementSequencer | None = None
         self.placement: dict[str, Any] | None = None  # the ring, plan and figures
         self._place_phase = -1
+        # the part's release: its sequencer while one runs (and holds after it)
+        self.releaser: ReleaseSequencer | None = None
+        self.release_info: dict[str, Any] | None = None  # the ring and the figures
         #: the ring cycle's present ring and phase, as its driver reports them (status)
         self.cycle: dict[str, Any] | None = None
         #: the ring cycle asked of the service (``request_cycle``), the last one
@@ -428,8 +432,8 @@ class ServiceCore:
         speed = units.mm(self.cfg.control.manual_jog_speed_mm_s)
         half = self.stroke / 2
         lo_i, up_i = self.attitude.layers["lower"], self.attitude.layers["upper"]
-        path = JogPath(
-            (x[lo_i] - half[lo_i]).tolist(), (x[up_i] - half[up_i]).tolist(), layer, k, d, speed
+        path = ConstantSpeedPath(
+            (x[lo_i] - half[lo_i]).tolist(), (x[up_i] - half[up_i]).tolist(), layer, (k,), d, speed
         )
         out = self.modes.jog(f"{cylinder} {distance_mm:+.2f} mm at {units.to_mm(speed):.1f} mm/s")
         if out.accepted:
@@ -593,6 +597,7 @@ class ServiceCore:
                 self._hmi_refused(inp.t, hmi_seq, out.message)
             return {"ok": False, "code": "refused", "error": out.message, "mode": str(out.mode)}
         self._end_place(inp.t)  # a walk from a placed pose: the placement's hold ends
+        self._end_release(inp.t)  # ... or from a release's
         self.handshake.serve(hmi_seq)
         self.handshake.ack(TargetAck.ACCEPTED)
         walker = WalkSequencer(self.cfg, self.period_s, plan)
@@ -777,6 +782,7 @@ class ServiceCore:
             return {"ok": False, "code": "refused", "error": out.message, "mode": str(out.mode)}
         self._end_walk()  # a placement from a walk's end state: the walk's hold ends
         self._end_place(inp.t)
+        self._end_release(inp.t)
         placer.start(inp.t, inp.positions.value)
         self.placer = placer
         self._place_phase = -1
@@ -842,12 +848,126 @@ class ServiceCore:
         if self.record is not None:
             self.record.event(now, "place_end", phase=p.phase_name, mode=str(self.modes.mode))
 
+    # ------------------------------------------------------------------ the release
+
+    def request_release(self, ring: int, wait_s: float = 0.0) -> dict[str, Any]:
+        """Lower the upper platform off ring ``ring``'s fixed part (placement.md section
+        4; :mod:`ipc_app.control.release`): the empty platform's pressures from the
+        statics at the measured attitudes (here, in the caller's thread), the stroke
+        checked; then the loop runs the :class:`ReleaseSequencer` (EXECUTE) until the
+        load is off and the clearance lowered (COMPLETE, holding), or the ``release``
+        interlock stops it."""
+        if self.cfg.cycle is None:
+            msg = "the project has no cycle section: it cannot release"
+            return {"ok": False, "code": "bad_request", "error": msg}
+        inp = self._inputs
+        if inp is None or not inp.positions_valid:
+            return {"ok": False, "code": "refused", "error": "release refused: no valid positions"}
+        x = inp.positions.value
+        try:
+            empty = platform_pressures_pa(
+                self.cfg, x, unloaded=True, lowering_speed_m_s=self.cfg.cycle.release_speed_m_s
+            )
+            at_rest = platform_pressures_pa(self.cfg, x, unloaded=True)
+        except ValueError as exc:  # no workpiece body
+            return {"ok": False, "code": "bad_request", "error": f"release refused: {exc}"}
+        releaser = ReleaseSequencer(self.cfg, self.attitude, empty, at_rest)
+        why = releaser.check(x)
+        if why:
+            msg = "release refused: " + "; ".join(why)
+            return {"ok": False, "code": "infeasible", "error": msg}
+        return self._in_loop(lambda i: self._do_release(i, ring, releaser), wait_s)
+
+    def _do_release(
+        self, inp: MachineInputs, ring: int, releaser: ReleaseSequencer
+    ) -> dict[str, Any]:
+        if not inp.positions_valid:
+            return {"ok": False, "code": "refused", "error": "release refused: no valid positions"}
+        out = self.modes.release(f"ring {ring}: the upper platform off the fixed part")
+        if not out.accepted:
+            return {"ok": False, "code": "refused", "error": out.message, "mode": str(out.mode)}
+        self._end_walk()
+        self._end_place(inp.t)  # the placed pose's hold ends: the release goes on from it
+        self._end_release(inp.t)
+        releaser.start(inp.t, inp.positions.value, inp.pressures.value)
+        self.releaser = releaser
+        self.release_info = {"ring": ring, "started_s": inp.t}
+        self.motion = MotionStats(started_s=inp.t)
+        if self.record is not None:
+            self.record.event(
+                inp.t, "release", ring=ring, **releaser.figures.to_dict(),
+                speed_mm_s=units.to_mm(releaser.speed_m_s),
+                tolerance_mpa=units.to_mpa(releaser.tolerance_pa),
+            )  # fmt: skip
+        log.info("release", ring=ring)
+        return {"ok": True, "mode": str(self.modes.mode), "ring": ring}
+
+    def _release_update(
+        self, inp: MachineInputs, releaser: ReleaseSequencer
+    ) -> tuple[np.ndarray, np.ndarray | None]:
+        """A release's cycle: the sequencer drives the attitude layers; its interlock."""
+        now = inp.t
+        if not (self.modes.valves_enabled and inp.positions_valid):
+            return np.zeros(len(self.cfg.cylinders)), None
+        was = (releaser.phase, releaser.done)
+        up = releaser.upper
+        p_valid = bool(inp.pressures.valid[up].all())
+        x = np.nan_to_num(inp.positions.value, nan=0.0)
+        u = releaser.update(now, x, np.nan_to_num(inp.pressures.value, nan=0.0), p_valid)
+        self._last_drive_t = now
+        self._motion_figures(now)
+        fig = releaser.figures
+        if self.modes.mode == Mode.EXECUTE:
+            if releaser.out_of_travel:
+                self.modes.fault(release_cause(releaser, self.limits.ids))
+            elif releaser.phase != was[0] and self.record is not None:
+                self.record.event(now, "release_phase", phase=releaser.phase_name, **fig.to_dict())
+            if releaser.done and not was[1]:
+                self.modes.motion_done()
+                self.motion.duration_s = now - self.motion.started_s
+                if self.record is not None:
+                    self.record.event(
+                        now, "release_done", phase_times_s=releaser.phase_times_s,
+                        **fig.to_dict(),
+                    )  # fmt: skip
+                log.info("release done", **fig.to_dict())
+        if not self.modes.valves_enabled:
+            return np.zeros(len(self.cfg.cylinders)), None
+        return u, self.attitude.last_references
+
+    def _end_release(self, now: float) -> None:
+        """The release's hold ends (stopped, or a new motion from where it left)."""
+        r = self.releaser
+        if r is None:
+            return
+        self.releaser = None
+        if self.record is not None:
+            self.record.event(now, "release_end", phase=r.phase_name, mode=str(self.modes.mode))
+
+    def release_status(self) -> dict[str, Any] | None:
+        """The release's phase and figures for ``wara ctl status`` (None: none)."""
+        r, info = self.releaser, self.release_info
+        if r is None or info is None:
+            return None
+        return {
+            "ring": info["ring"],
+            "phase": r.phase_name,
+            "done": r.done,
+            "phase_times_s": {k: round(v, 3) for k, v in r.phase_times_s.items()},
+            **r.figures.to_dict(),
+        }
+
     # ------------------------------------------------------------------ the ring cycle
 
     @property
     def now_s(self) -> float:
         """Machine time of the last cycle, s."""
         return self._now
+
+    @property
+    def inputs(self) -> MachineInputs | None:
+        """The last cycle's readings (one reference, replaced whole each cycle)."""
+        return self._inputs
 
     @property
     def requests_pending(self) -> int:
@@ -1050,6 +1170,9 @@ class ServiceCore:
         place = self.place_status()
         if place is not None:
             snap["place"] = place
+        release = self.release_status()
+        if release is not None:
+            snap["release"] = release
         if self.ring_cycle is not None:
             snap["cycle"] = self.ring_cycle.status()
         elif self.cycle is not None:
@@ -1154,6 +1277,12 @@ class ServiceCore:
             placer = None
         if placer is not None:
             return self._place_update(inp, placer)
+        releaser = self.releaser
+        if releaser is not None and self.modes.mode in (Mode.IDLE, Mode.STARTING):
+            self._end_release(now)  # stopped, or a new motion from the released pose
+            releaser = None
+        if releaser is not None:
+            return self._release_update(inp, releaser)
         if self.modes.mode == Mode.EXECUTE and self.attitude.motion_done(now):
             self.modes.motion_done()
             self.handshake.ack(TargetAck.COMPLETED)
@@ -1308,6 +1437,8 @@ class ServiceCore:
         self.attitude.resume(x, shift)
         if self.placer is not None:
             self.placer.resume(np.nan_to_num(x), shift)
+        if self.releaser is not None:
+            self.releaser.resume(shift)
         self.motion.started_s += shift
         event(reason)
         return shift

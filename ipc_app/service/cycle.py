@@ -1,12 +1,18 @@
 """The ring cycle as a request of the service (placement.md section 4; docs/placement.md).
 
-One ring's phases, in order: ``walk`` (``walk_steps`` steps to the ring), ``place`` (the
-target planned from the previous part's as-built pose), ``fixing`` (the pose held until
-an operator confirms the part is fixed: :meth:`RingCycle.confirm_fixed`, audited),
-``release`` (a controlled stop: valves closed), ``survey`` (waits for the as-built pose:
-survey points to fit, or a pose from the acceptance store), ``record`` (the ring's Table
-4 figures from the surveyed poses, handed to the :class:`RingRecords` sink that writes
-the acceptance record), ``walk_back`` (the same steps back; unloaded unless told).
+One ring's phases, in order: ``load`` (waits until the part is on the platform at the
+loading point: every upper cylinder's load pressure at its value of the statics with the
+part, within ``cycle.platform_pressure_tolerance_mpa``, for :data:`LOAD_SETTLED_S`),
+``walk`` (the target planned from the previous part's as-built pose first, so that an
+unreachable one moves nothing; then ``walk_steps`` steps to the ring), ``place`` (to
+that target), ``fixing`` (the pose held until an operator confirms the
+part is fixed: :meth:`RingCycle.confirm_fixed`, audited), ``release`` (the upper
+platform lowers off the fixed part until its pressures are the empty platform's, then
+clear of it: :meth:`ServiceCore.request_release`; then a controlled stop, valves
+closed), ``survey`` (waits for the as-built pose: survey points to fit, or a pose from
+the acceptance store), ``record`` (the ring's Table 4 figures from the surveyed poses,
+handed to the :class:`RingRecords` sink that writes the acceptance record),
+``walk_back`` (the same steps back; unloaded unless told).
 
 :meth:`RingCycle.tick` advances it. It is called outside the fixed-rate loop: by the
 service's cycle thread (``wara ctl cycle``), or by the HIL driver between its simulated
@@ -24,8 +30,11 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any, Protocol
 
+import numpy as np
+
 from config import units
 from config.schema import ProjectConfig
+from ipc_app.control.release import load_pressures_pa, platform_pressures_pa, upper_index
 from ipc_app.model.placement import Pose, design_pose, joint_figures, to_ring_frame
 from ipc_app.planner.placement import PlacementPlan
 from ipc_app.planner.survey import SurveyError, SurveyFit, SurveyPoint, fit_survey
@@ -36,7 +45,11 @@ if TYPE_CHECKING:
     from ipc_app.service.core import ServiceCore
 
 #: The phases of one ring, in order.
-PHASES: tuple[str, ...] = ("walk", "place", "fixing", "release", "survey", "record", "walk_back")
+PHASES: tuple[str, ...] = (
+    "load", "walk", "place", "fixing", "release", "survey", "record", "walk_back",
+)  # fmt: skip
+#: The part counts as loaded once the pressures have matched its statics this long, s.
+LOAD_SETTLED_S = 1.0
 #: The Table 4 items of a ring's acceptance record (acceptance keys).
 RECORD_KEYS: tuple[str, ...] = (
     "vertical_misalignment_mm",
@@ -101,6 +114,9 @@ class RingCycle:
     table4: dict[str, float | None] = field(default_factory=dict)
     #: what the phase waits for now ("" while it runs by itself)
     waiting_for: str = ""
+    #: the release's figures (travel, load pressures before and after, the empty ones)
+    release_figures: dict[str, Any] = field(default_factory=dict)
+    _loaded_since: float | None = None
     _since: float = 0.0
     _issued_at: float | None = None
     _before: Any = None
@@ -149,7 +165,7 @@ class RingCycle:
         self.core.end_cycle(self, msg)
 
     def start(self) -> None:
-        self._enter("walk", steps=self.walk_steps)
+        self._enter("load", waiting_for="a part on the platform (the upper cylinders' pressures)")
 
     def stop(self, reason: str) -> None:
         """An operator's stop (the machine already stopped by the caller). It never
@@ -187,7 +203,12 @@ class RingCycle:
         if mode in (Mode.ABORTED, Mode.STOPPED):
             raise CycleError(f"the service is {mode}: {'; '.join(core.modes.fault_reasons)}")
         ph = self.phase
-        if ph == "walk":
+        if ph == "load":
+            if self._part_on():
+                self._enter("walk", steps=self.walk_steps)
+        elif ph == "walk":
+            if self.plan is None:  # the target first: an unreachable one moves nothing
+                self._plan_target()
             if self.walk_steps == 0 or self._motion("walk", self._walk_forward):
                 self._enter("place")
         elif ph == "place":
@@ -198,6 +219,17 @@ class RingCycle:
             # it: the pose is held either way
             if mode not in (Mode.COMPLETE, Mode.SUSPENDED):
                 raise CycleError(f"the hold for fixing ended in {mode}")
+        elif ph == "release":
+            if self._issued_at is None and mode == Mode.SUSPENDED:
+                return  # the release starts once the link is back
+            if self._motion("release", self._release):
+                r = core.releaser
+                if r is not None:
+                    self.release_figures = r.figures.to_dict()
+                core.modes.stop(f"ring {self.ring} released: the platform is clear of the part")
+                self._enter(
+                    "survey", waiting_for="a survey (wara ctl survey FILE.csv | --from-store)"
+                )
         elif ph == "survey" and self.surveyed is not None:
             self._enter("record")
             self._record()
@@ -213,7 +245,7 @@ class RingCycle:
         """Issue the phase's motion once; True when it ended in COMPLETE."""
         core = self.core
         if self._issued_at is None:
-            self._before = (core.walker, core.placer)
+            self._before = (core.walker, core.placer, core.releaser)
             res = issue()
             if not res.get("ok"):
                 err = CycleError(f"{what} refused: {res.get('error')}")
@@ -223,7 +255,7 @@ class RingCycle:
             return False
         mode = core.modes.mode
         if not self._started:
-            if (core.walker, core.placer) != self._before and mode in (
+            if (core.walker, core.placer, core.releaser) != self._before and mode in (
                 Mode.EXECUTE, Mode.COMPLETE,
             ):  # fmt: skip
                 self._started = True
@@ -239,6 +271,31 @@ class RingCycle:
             raise CycleError(f"{what} ended in {mode}: {why}")
         return True
 
+    def _part_on(self) -> bool:
+        """The part is on the platform: every upper cylinder's load pressure within
+        ``cycle.platform_pressure_tolerance_mpa`` of the statics with the part, for
+        :data:`LOAD_SETTLED_S` (the pressures valid)."""
+        cfg, core = self.cfg, self.core
+        assert cfg.cycle is not None
+        inp = core.inputs
+        now = core.now_s
+        ok = False
+        if inp is not None and inp.positions_valid:
+            up = upper_index(cfg)
+            if bool(inp.pressures.valid[up].all()):
+                want = platform_pressures_pa(cfg, inp.positions.value, unloaded=False)
+                got = load_pressures_pa(cfg, inp.pressures.value)
+                ok = bool(np.all(np.abs(got - want) <= cfg.cycle.platform_pressure_tolerance_pa))
+        if not ok:
+            self._loaded_since = None
+            return False
+        if self._loaded_since is None:
+            self._loaded_since = now
+        return now - self._loaded_since >= LOAD_SETTLED_S
+
+    def _release(self) -> dict[str, Any]:
+        return self.core.request_release(self.ring)
+
     def _walk_forward(self) -> dict[str, Any]:
         return self.core.request_walk(self.walk_steps)
 
@@ -247,7 +304,9 @@ class RingCycle:
             self.walk_steps, direction="back", unloaded=self.walk_back_unloaded
         )
 
-    def _place(self) -> dict[str, Any]:
+    def _plan_target(self) -> None:
+        """The ring's target from the previous part's as-built pose, before the walk to
+        the ring (an unreachable target ends the cycle before anything moves)."""
         cfg = self.cfg
         previous = to_ring_frame(cfg, self.previous, self.ring - 1, self.ring)
         try:  # in the planner process, as the core's own placement planning
@@ -259,13 +318,16 @@ class RingCycle:
             err = CycleError(f"ring {self.ring}: " + "; ".join(plan.reasons))
             err.refused = True  # type: ignore[attr-defined]
             raise err
-        return self.core.request_place_plan(plan)
+
+    def _place(self) -> dict[str, Any]:
+        assert self.plan is not None
+        return self.core.request_place_plan(self.plan)
 
     # ----------------------------------------------------------------- requests
 
     def confirm_fixed(self, user: str) -> dict[str, Any]:
-        """The operator confirms the part is fixed: the hold ends with a controlled stop
-        (``release``), then the cycle waits for the survey."""
+        """The operator confirms the part is fixed: the cycle goes on to ``release`` (the
+        platform lowered off the part), then waits for the survey."""
         with self._lock:
             return self._confirm_fixed(user)
 
@@ -280,8 +342,6 @@ class RingCycle:
         self.fixed_by = user
         self.core.audit(user, "confirm_fixed", f"ring {self.ring} fixed")
         self._enter("release")
-        self.core.modes.stop(f"ring {self.ring} released: the part is fixed ({user})")
-        self._enter("survey", waiting_for="a survey (wara ctl survey FILE.csv | --from-store)")
         return {"ok": True, "ring": self.ring, "phase": self.phase}
 
     def submit_survey(
@@ -337,6 +397,7 @@ class RingCycle:
             "cycle": {
                 "phase_times_s": dict(self.phase_times_s),
                 "fixed_by": self.fixed_by,
+                "release": dict(self.release_figures),
                 "survey_rms_residual_mm": (
                     units.to_mm(self.fit.rms_residual_m) if self.fit is not None else None
                 ),

@@ -49,6 +49,7 @@ class Applies(StrEnum):
     EVENT = "when the planner answers"
     STARTUP = "start-up (STOPPED), until IDLE is first reached"
     WALK = "walking (EXECUTE in a walk), in the phases named"
+    RELEASE = "the part's release (EXECUTE in a ring cycle's release)"
 
 
 class Interlock(StrEnum):
@@ -73,6 +74,7 @@ class Interlock(StrEnum):
     STABILITY = "stability"
     SLIP = "slip"
     WALK_RESUME = "walk resume check"
+    RELEASE = "release"
 
 
 @dataclass(frozen=True)
@@ -232,6 +234,15 @@ SPECS: dict[Interlock, Spec] = {
         "`walking.resume_force_tolerance_percent` of its share, since the stop: the unhold "
         "refused (after a suspension: stop, latched); "
         "`wara ctl stop` and a new walk re-plan from the measured state",
+    ),
+    Interlock.RELEASE: Spec(
+        "cycle.release_max_travel_mm",
+        Applies.RELEASE,
+        "mm",
+        "the upper platform lowered the limit with an upper cylinder's load pressure still "
+        "more than `cycle.platform_pressure_tolerance_mpa` from its empty-platform value "
+        "(the part's weight still on the platform: the bolts not holding, or the part not "
+        "fixed); where: that cylinder, its pressure and the empty one in the detail",
     ),
 }
 
@@ -569,6 +580,35 @@ def resume_cause(inp: MachineInputs, stop_ref: Sequence[float] | None, lim: Limi
     if not bool(inp.pressures.valid[list(lim.active)].all()):
         return Cause(Interlock.RESUME_CHECK, where="pressures", detail="not valid")
     return None
+
+
+class ReleaseFigures(Protocol):
+    """What the release check reads of the release (:mod:`ipc_app.control.release`)."""
+
+    @property
+    def max_travel_m(self) -> float: ...
+    @property
+    def upper(self) -> list[int]: ...
+    @property
+    def figures(self) -> Any: ...
+
+
+def release_cause(release: ReleaseFigures, ids: Sequence[str]) -> Cause:
+    """The ``release`` interlock's cause: lowered the whole travel with the load on (the
+    worst cylinder, its load pressure against the empty platform's)."""
+    fig = release.figures
+    k = fig.worst
+    return Cause(
+        Interlock.RELEASE,
+        where=ids[release.upper[k]],
+        value=units.to_mm(fig.travel_m),
+        limit=units.to_mm(release.max_travel_m),
+        detail=(
+            f"lowered with its load pressure {units.to_mpa(fig.load_pressure_pa[k]):.2f} MPa, "
+            f"the empty platform's {units.to_mpa(fig.empty_pressure_pa[k]):.2f} MPa: "
+            "the part's weight still on the platform"
+        ),
+    )
 
 
 def _over(il: Interlock, where: str, value_m: float, limit_m: float) -> Cause:

@@ -210,39 +210,3 @@ class Handshake:
         and unit mode numbers. Returns the words to send, in order."""
         self._edit(mode=mode, enable=enable, state=state, unit_mode=unit_mode)
         return tuple(self._words)
-
-
-class JogPath:
-    """A jog as the controller's trajectory interface (``duration_s``, ``sample``,
-    ``positions``): the cylinder at ``k`` of layer ``layer`` moves ``distance_m`` at
-    ``speed_m_s`` (constant speed), every other cylinder keeps its start displacement.
-    Displacements from mid-stroke [m], four per layer."""
-
-    def __init__(
-        self,
-        start_lower: Sequence[float],
-        start_upper: Sequence[float],
-        layer: str,
-        k: int,
-        distance_m: float,
-        speed_m_s: float,
-    ) -> None:
-        self._start = {"lower": list(start_lower), "upper": list(start_upper)}
-        self._layer, self._k = layer, k
-        self._distance_m = distance_m
-        self._v = speed_m_s if distance_m >= 0 else -speed_m_s
-        self.duration_s = abs(distance_m) / speed_m_s
-
-    def positions(self, t: float) -> tuple[list[float], list[float]]:
-        lo, up = list(self._start["lower"]), list(self._start["upper"])
-        d = lo if self._layer == "lower" else up
-        tt = min(max(t, 0.0), self.duration_s)
-        d[self._k] += self._distance_m if tt >= self.duration_s else self._v * tt
-        return lo, up
-
-    def sample(self, t: float) -> tuple[list[float], list[float], list[float], list[float]]:
-        lo, up = self.positions(t)
-        vl, vu = [0.0] * 4, [0.0] * 4
-        if 0.0 <= t < self.duration_s:
-            (vl if self._layer == "lower" else vu)[self._k] = self._v
-        return lo, up, vl, vu

@@ -176,6 +176,10 @@ RULES: dict[str, Rule] = {
               "the part to its planned target pose (attitude and height, then yaw, "
               "lateral and gap), checked before anything moves",
               units=frozenset({UnitMode.PRODUCTION}), command="place"),
+        _rule("release", {Mode.IDLE, Mode.COMPLETE}, Mode.EXECUTE, "STARTING",
+              "the ring cycle's release: the upper platform lowers off the fixed part "
+              "until its pressures are the empty platform's, then clear of it",
+              units=frozenset({UnitMode.PRODUCTION})),
         _rule("jog", {Mode.IDLE, Mode.COMPLETE}, Mode.EXECUTE, "STARTING",
               "one cylinder at the jog speed, the others held (interlocks on)",
               units=frozenset({UnitMode.MANUAL}), command="jog"),
@@ -393,6 +397,15 @@ class ModeMachine:
         target), in PRODUCTION."""
         with self._lock:
             out = self._go_locked("place", f"place {what}")
+            if out.accepted:
+                self._s.target_deg = None
+            return out
+
+    def release(self, what: str) -> Outcome:
+        """IDLE or COMPLETE -> EXECUTE for the part's release (``what``: the ring), in
+        PRODUCTION."""
+        with self._lock:
+            out = self._go_locked("release", f"release {what}")
             if out.accepted:
                 self._s.target_deg = None
             return out
