@@ -743,9 +743,13 @@ class Walking(Strict):
     #: the other frame's lowering and preload): the crossover of its force loop on the
     #: legs' twist, which sets the twist mode's share of their valve commands
     twist_bandwidth_rad_s: Annotated[Finite, Field(gt=0, le=100)] = 6.0
-    #: and its observer's bandwidth: the legs' twist is measured from pressures up to one
-    #: pressure cycle (50 ms) old, which an observer much faster than the loop rings on
+    #: and its observer's bandwidth while the travel pair moves (phases 1, 6): the legs'
+    #: twist is measured from pressures up to one pressure cycle (50 ms) old, which an
+    #: observer much faster than the loop rings on
     twist_observer_rad_s: Annotated[Finite, Field(gt=0, le=1000)] = 6.0
+    #: its observer's bandwidth while the other frame lowers and preloads (2, 3, 7a, 7b):
+    #: the feet touching down change the standing frame's twist within a second
+    twist_observer_touchdown_rad_s: Annotated[Finite, Field(gt=0, le=1000)] = 16.0
 
     @property
     def step_length_m(self) -> float:

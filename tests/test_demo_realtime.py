@@ -1,6 +1,6 @@
-"""``wara demo`` as the README runs it: real time, one process (the simulator and the
-service's fixed-rate loop as threads of one interpreter, on the wall clock): the ring
-cycles exactly as the README writes the command, and the attitude examples shortened to
+"""``wara demo`` in real time, one process (the simulator and the service's fixed-rate
+loop as threads of one interpreter, on the wall clock): one ring cycle with its walks
+(``--realtime --rings 1``), the attitude examples (their default form) shortened to
 Example 1; and a demo that stops at once when the service latches a fault."""
 
 from __future__ import annotations
@@ -19,7 +19,7 @@ from config.loader import validate_data
 from ipc_app.service.modes import Mode
 from tests.cli_helpers import run_wara
 from tests.test_demo import check_ring_demo
-from wara.demo import RING_DEMO_RINGS, failure_reason
+from wara.demo import failure_reason, ring_failure_reason
 from wara.examples import ATTITUDE_TOL_DEG, SYNC_TOL_MM, TWIST_TOL_MM
 from wara.harness import Harness
 
@@ -27,19 +27,18 @@ REPO = Path(__file__).resolve().parents[1]
 
 
 @pytest.mark.slow
-def test_the_readme_main_command_passes(tmp_path: Path) -> None:
-    """``wara demo`` in its default form (the ring cycles in real time; ``--json`` only
-    to read the figures), run where a user runs it: the records and the report go to
-    ``./wara-demo``."""
-    proc = run_wara(["demo", "--json"], timeout_s=600, cwd=tmp_path)
+def test_one_ring_cycle_in_real_time(tmp_path: Path) -> None:
+    """``wara demo --realtime --rings 1``: one ring cycle on the wall clock (the loop and
+    the simulator as two threads of one process; some 4 min): the load, the 2 m walk to
+    the ring, the placement, the fixing, the release, the survey and the walk back
+    unloaded meet their goals beside the simulator on this machine's CPUs."""
+    proc = run_wara(["demo", "--realtime", "--rings", "1", "--json"], timeout_s=900, cwd=tmp_path)
     out = json.loads(proc.stdout)  # one JSON object on stdout, pass or fail
     assert out["mode"] == "realtime"
-    assert proc.returncode == 0, (failure_reason(out), proc.stderr[-3000:])
-    check_ring_demo(out, RING_DEMO_RINGS, tmp_path / "wara-demo" / "report" / "report.html")
-    assert out["steering"]["returned_within_1_mm"] is True
-    assert (tmp_path / "wara-demo" / "acceptance.sqlite").is_file()
+    assert proc.returncode == 0, (ring_failure_reason(out), proc.stderr[-3000:])
+    check_ring_demo(out, 1, tmp_path / "wara-demo" / "report" / "report.html")
     loop = out["loop"]
-    assert loop["cycles"] > 5000 and loop["jitter_p99_ms"] is not None
+    assert loop["cycles"] > 40_000 and loop["jitter_p99_ms"] is not None
     assert set(out["ride_through"]) == {"suspends", "resumes"}
 
 

@@ -80,7 +80,7 @@ def _ring_values() -> list[str]:
 @pytest.mark.parametrize(
     "argv",
     [
-        ["demo"],
+        ["demo", "--realtime"],
         ["demo", "--attitude"],
         ["demo", "--two-process"],
         ["hil", "--duration", "1"],

@@ -18,11 +18,17 @@ TWIST = np.array([1.0, -1.0, 1.0, -1.0])
 
 
 def sequencer(
-    bandwidth_rad_s: float | None = None, observer_rad_s: float | None = None
+    bandwidth_rad_s: float | None = None,
+    observer_rad_s: float | None = None,
+    touchdown_rad_s: float | None = None,
 ) -> WalkSequencer:
     cfg = load_project(None)
     assert cfg.walking is not None
-    upd = {"twist_bandwidth_rad_s": bandwidth_rad_s, "twist_observer_rad_s": observer_rad_s}
+    upd = {
+        "twist_bandwidth_rad_s": bandwidth_rad_s,
+        "twist_observer_rad_s": observer_rad_s,
+        "twist_observer_touchdown_rad_s": touchdown_rad_s,
+    }
     upd = {k: v for k, v in upd.items() if v is not None}
     walking = cfg.walking.model_copy(update=upd)
     cfg = ProjectConfig.model_validate({**cfg.model_dump(), "walking": walking.model_dump()})
@@ -103,6 +109,37 @@ def test_the_observer_key_governs_the_twist_loop() -> None:
     u_slow = commands_after(slow, 5e3, 40) - U_POS
     u_fast = commands_after(fast, 5e3, 40) - U_POS
     assert abs(u_fast[0]) > 1.2 * abs(u_slow[0]) and u_fast[0] < 0 and u_slow[0] < 0
+
+
+def test_the_touchdown_observer_key_governs_the_twist_loop_while_the_other_frame_sets_down() -> (
+    None
+):
+    """``walking.twist_observer_touchdown_rad_s`` is the observer's bandwidth in the
+    phases where the other frame lowers and preloads (2, 3, 7a, 7b),
+    ``twist_observer_rad_s`` in the travel phases (1, 6): switched at the phase's start
+    with the estimate and the command kept."""
+    seq = sequencer(observer_rad_s=3.0, touchdown_rad_s=12.0)
+    assert seq.plan.phases[0].key == "1"
+    commands_after(seq, 5e3, 10)
+    assert seq.twist.wo == 3.0
+    z, u = seq.twist.z.copy(), seq.twist.command
+    x = seq.half.copy()
+    p = np.zeros((seq.n, 2))
+    p[seq.legs, 0] = 5e6
+    seq.start(0.0, x, p)
+    for key, wo in (("7a", 12.0), ("7b", 12.0), ("6", 3.0), ("2", 12.0), ("3", 12.0)):
+        k = next(i for i, ph in enumerate(seq.plan.phases) if ph.key == key)
+        seq._begin(k, 1.0, x, p)
+        seq.twist.reset(float(z[0]), u)
+        z0 = seq.twist.z.copy()
+        commands_after(seq, 0.0, 1)
+        assert seq.twist.wo == wo, key
+        fresh = sequencer(observer_rad_s=wo, touchdown_rad_s=wo)
+        fresh.twist.reset(float(z[0]), u)
+        fresh._twist_started = True  # started: the loop goes on from the state set here
+        assert fresh.twist.z == pytest.approx(z0)
+        commands_after(fresh, 0.0, 1)
+        assert seq.twist.z == pytest.approx(fresh.twist.z, rel=1e-12), key  # same gains
 
 
 def test_the_position_loops_do_not_see_the_twist_and_a_frame_in_force_control_is_left_alone() -> (

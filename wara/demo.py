@@ -113,7 +113,7 @@ def run_ring_demo(
     config_path: str | None = None,
     *,
     out_dir: Path,
-    mode: str = "realtime",
+    mode: str = "lockstep",
     rings: int = RING_DEMO_RINGS,
     previous_deviation: Pose | None = None,
     progress: Callable[[str], None] | None = None,

@@ -187,6 +187,19 @@ class LADRC:
         self._u = u
         self._started = True
 
+    def set_observer(self, wo: float) -> None:
+        """Change the observer's bandwidth (rad/s) from the next sample on; the estimate
+        and the command carry over (bumpless: the state does not depend on ``wo``)."""
+        if not wo > 0:
+            raise ValueError(f"wo must be > 0, got {wo}")
+        if wo == self.wo:
+            return
+        phi, gamma, gain = eso_matrices(self.order, self.b0, wo, self.dt, self.discretization)
+        self.wo = float(wo)
+        self._phi = [[float(v) for v in row] for row in phi]
+        self._gamma = [float(v) for v in gamma]
+        self._gain = [float(v) for v in gain]
+
     def apply(self, command: float) -> float:
         """The command actually applied this period instead of the latest ``update``'s
         (a modal controller that sets one mode of several loops' commands itself):

@@ -380,11 +380,12 @@ class WalkSequencer:
         else:
             receiving = SUB if key in ("3", "4") else MAIN
             releasing = MAIN if receiving is SUB else SUB
+            # what the standing frame's legs carry alone (the overload's floor for them)
+            run.standing_share_n = self.share(x_s, releasing)
             if key in PRELOAD:
                 target = ph.leg_forces_n[-1].copy()
             else:
                 target = self.share(x_s, receiving)
-                run.standing_share_n = self.share(x_s, releasing)
                 for j in releasing:
                     cyl = self.cfg.cylinders_by_can_index[self.legs[j]]
                     run.k_oil_n_m[j] = hydraulic_stiffness_n_m(
@@ -709,9 +710,10 @@ class WalkSequencer:
         else:
             held = list(self._frame(ph.standing, self.leg_ids))
         expected = np.maximum(self._residual_share(x_s_now, share8, f_check, plan_f, held), share8)
-        if key in TRANSFER:
-            # a releasing leg sheds its load: it is overloaded only above what it carried
-            # standing; a lag behind the plan's release is the transfer check's to judge
+        if key in PRELOAD or key in TRANSFER:
+            # the standing frame's legs shed load to the other frame's preload and then its
+            # transfer: a leg is overloaded only above what it carried standing alone; a lag
+            # behind the plan's release is the preload and transfer checks' to judge
             expected = np.maximum(expected, run.standing_share_n)
         fig.expected_n = tuple(expected.tolist())
         # judged: a leg in force control its cap-side force (what its loop sets against
@@ -782,11 +784,19 @@ class WalkSequencer:
         of the legs' forces (``f``, the checks' forces on the body) against the plan's
         (minimum norm: none), with the force loops' ``b0`` (the legs' stiffness in series
         with the contact), crossover ``walking.twist_bandwidth_rad_s`` and observer
-        bandwidth ``walking.twist_observer_rad_s``. Each position loop's
+        bandwidth ``walking.twist_observer_rad_s`` while the travel pair moves and
+        ``walking.twist_observer_touchdown_rad_s`` while the other frame lowers and
+        preloads (switched with the state kept). Each position loop's
         observer is told the command applied (:meth:`LADRC.apply`). The state carries
         over from one phase to the next while the same frame stays controlled."""
         if len(frame) != 4:
             return
+        key = self.run.phase.key if self.run is not None else self.plan.phases[0].key
+        self.twist.set_observer(
+            self.walk.twist_observer_rad_s
+            if key in TRAVEL
+            else self.walk.twist_observer_touchdown_rad_s
+        )
         idx = [self.legs[j] for j in frame]
         tw = self._TWIST
         t_now = float(tw @ f[list(frame)]) / 4

@@ -1,9 +1,12 @@
 """``wara demo``: the end-to-end demo (HIL simulator + IPC service).
 
 The default: ring cycles (:func:`wara.demo.run_ring_demo`), ``--rings`` of them from a
-first ring 6 mm off the design axis, the acceptance report into ``--out``; exit 0 only
+first ring 6 mm off the design axis, each walking the 2 m step to its ring and back, in
+simulated time (``--realtime``: on the wall clock, some 4 min a ring), the acceptance
+report into ``--out``; exit 0 only
 if every ring met its goals on the simulator's truth (``wara cycle``'s), 3 when a ring's
-target is unreachable. ``--attitude``: Examples 1-3 of the attitude adjustment; exit 0
+target is unreachable. ``--attitude``: Examples 1-3 of the attitude adjustment, in real time
+(``--lockstep``: simulated time); exit 0
 only if every example met its tolerances (attitude error <= 0.01 deg, twist <= 0.5 mm
 during motion, sync error at standstill <= 0.07 mm). ``--two-process`` runs the attitude
 examples with the simulator and the service as two processes over UDP multicast in a
@@ -62,7 +65,14 @@ def register(sub: argparse._SubParsersAction) -> None:
     form.add_argument(
         "--lockstep",
         action="store_true",
-        help="simulated time in one thread (fast, no loop jitter figures)",
+        help="simulated time in one thread (fast, no loop jitter figures; the ring "
+        "cycles' default)",
+    )
+    form.add_argument(
+        "--realtime",
+        action="store_true",
+        help="on the wall clock, the loop and the simulator as two threads (the attitude "
+        "examples' default; the ring cycles about 17 min)",
     )
     form.add_argument(
         "--two-process",
@@ -129,6 +139,10 @@ def _run(args: argparse.Namespace) -> int:
         for opt in ("settle_s", "min_run_s", "inside_netns", "keep_dir", "transport"):
             if getattr(args, opt) is not None:
                 raise UsageError(f"--{opt.replace('_', '-')} goes with --two-process")
+    # the ring cycles walk 2 m to each ring and back (some 4 min of machine time a ring):
+    # simulated time unless asked; the attitude examples (a minute) on the wall clock
+    if not attitude:
+        args.lockstep = not args.realtime
     if not args.lockstep:
         require_realtime_simulator()
     if not attitude:
