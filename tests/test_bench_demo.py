@@ -32,6 +32,11 @@ def test_the_command_is_the_readme_main_command() -> None:
     ]
 
 
+def test_the_ring_cycles_on_the_wall_clock_on_request() -> None:
+    cmd = bench.demo_command(None, quick=True, realtime=True)
+    assert cmd[3:] == ["demo", "--json", "--realtime", "--rings", "1"]
+
+
 def test_the_attitude_examples_on_request() -> None:
     cmd = bench.demo_command(None, quick=True, attitude=True)
     assert cmd[3:] == ["demo", "--json", "--attitude", "--examples", "1"]
@@ -101,5 +106,7 @@ def test_runs_and_cpu_hog_belong_to_the_demo_bench() -> None:
     assert main(["bench", "can", "--runs", "3"]) == 2
     assert main(["bench", "planner", "--cpu-hog"]) == 2
     assert main(["bench", "planner", "--attitude"]) == 2
+    assert main(["bench", "planner", "--realtime"]) == 2
+    assert main(["bench", "demo", "--attitude", "--realtime"]) == 2
     with pytest.raises(SystemExit):
         main(["bench", "demo", "--runs", "x"])

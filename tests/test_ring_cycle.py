@@ -331,6 +331,13 @@ def test_a_cycle_that_walks_goes_to_the_ring_and_back(tmp_path: Path) -> None:
         # compression (0.9 mm) below it
         assert abs(row["error_from_target"]["z_mm"]) < 0.1
         assert row["platform_part_load_kn"]["released"] == 0.0
+        # each walk's step judged as `wara walk` judges it, in the ring's figures
+        assert set(row["walks"]) == {"walk", "walk_back"}
+        for steps in row["walks"].values():
+            (step,) = steps
+            assert 1.0 < step["max_leg_force_ratio"] <= 1.10
+            assert step["min_stability_margin_m"] >= 0.25
+            assert 10 < step["duration_s"] < 120
     assert out["rings"][1]["phase_times_s"]["load"] > 5.0  # the crane's 5 s, then settled
     walks = [e for e in map(json.loads, (tmp_path / "run" / "events.jsonl").open())
              if e["kind"] == "walk"]  # fmt: skip

@@ -242,6 +242,7 @@ class _Cycle:
             "place_settled": settled,
             "phase_times_s": times,
             "release": cyc.release_figures,
+            "walks": cyc.walk_figures,
             "platform_part_load_kn": part_load_kn,
         }
         goals = {

@@ -116,6 +116,8 @@ class RingCycle:
     waiting_for: str = ""
     #: the release's figures (travel, load pressures before and after, the empty ones)
     release_figures: dict[str, Any] = field(default_factory=dict)
+    #: each walk's steps' figures (``walk``, ``walk_back``: StepFigures.to_dict() per step)
+    walk_figures: dict[str, list[dict[str, Any]]] = field(default_factory=dict)
     _loaded_since: float | None = None
     _since: float = 0.0
     _issued_at: float | None = None
@@ -210,6 +212,7 @@ class RingCycle:
             if self.plan is None:  # the target first: an unreachable one moves nothing
                 self._plan_target()
             if self.walk_steps == 0 or self._motion("walk", self._walk_forward):
+                self._note_walk("walk")
                 self._enter("place")
         elif ph == "place":
             if self._motion("place", self._place):
@@ -237,9 +240,16 @@ class RingCycle:
         elif ph == "walk_back" and (
             self.walk_steps == 0 or self._motion("walk back", self._walk_back)
         ):
+            self._note_walk("walk_back")
             self.phase_times_s[ph] = core.now_s - self._since
             self.phase, self.waiting_for, self.done = "done", "", True
             core.end_cycle(self, None)
+
+    def _note_walk(self, phase: str) -> None:
+        """The figures of the walk that just ended (none when the cycle does not walk)."""
+        w = self.core.walker
+        if self.walk_steps and w is not None:
+            self.walk_figures[phase] = [st.to_dict() for st in w.steps]
 
     def _motion(self, what: str, issue: Callable[[], dict[str, Any]]) -> bool:
         """Issue the phase's motion once; True when it ended in COMPLETE."""

@@ -1,7 +1,8 @@
 """``wara bench demo --runs N [--cpu-hog] --json``: the README's main command, N times.
 
-Each run is ``wara demo --json`` (the default form: the ring cycles in real time, one
-process) started as a user starts it, a new interpreter through ``sys.executable -m
+Each run is ``wara demo --json`` (the default form: the ring cycles in simulated time;
+``--realtime``: ``wara demo --realtime --json``, on the wall clock, one process) started
+as a user starts it, a new interpreter through ``sys.executable -m
 wara``, in a directory of its own (the demo writes ``./wara-demo``), one after another.
 Per run: exit code, wall time, the verdict and, for a run that did not pass, the reason
 (the demo's own one-line reason: the cycle's error or the service's latched faults, or
@@ -43,11 +44,15 @@ RUN_TIMEOUT_S = 900.0
 _HOG = "import os, sys\nos.sched_setaffinity(0, {int(sys.argv[1])})\nwhile True:\n    pass\n"
 
 
-def demo_command(config: str | None, *, quick: bool, attitude: bool = False) -> list[str]:
+def demo_command(
+    config: str | None, *, quick: bool, attitude: bool = False, realtime: bool = False
+) -> list[str]:
     """The README's main command as this interpreter runs it, with ``--json``."""
     cmd = [sys.executable, "-m", "wara", "demo", "--json"]
     if attitude:
         cmd += ["--attitude"]
+    elif realtime:
+        cmd += ["--realtime"]
     if config:
         cmd += ["--config", config]
     if quick:
@@ -126,6 +131,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         getattr(args, "config", None),
         quick=bool(getattr(args, "quick", False)),
         attitude=bool(getattr(args, "attitude", False)),
+        realtime=bool(getattr(args, "realtime", False)),
     )
     repo = str(Path(__file__).resolve().parents[2])
     env = dict(os.environ)

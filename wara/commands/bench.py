@@ -56,6 +56,11 @@ def register(sub: argparse._SubParsersAction) -> None:
         action="store_true",
         help="demo: the demo's attitude examples (wara demo --attitude) instead of the rings",
     )
+    p.add_argument(
+        "--realtime",
+        action="store_true",
+        help="demo: the ring cycles on the wall clock (wara demo --realtime)",
+    )
     # Hidden: the re-execution inside the namespace (opcua).
     p.add_argument("--inside-netns", default=None, help=argparse.SUPPRESS)
     p.set_defaults(func=_run)
@@ -64,9 +69,12 @@ def register(sub: argparse._SubParsersAction) -> None:
 def _run(args: argparse.Namespace) -> int:
     from wara.cli import UsageError
 
-    if args.name != "demo" and (args.cpu_hog or args.attitude):
+    for opt in ("cpu_hog", "attitude", "realtime"):
+        if args.name != "demo" and getattr(args, opt):
+            raise UsageError(f"--{opt.replace('_', '-')} goes with `wara bench demo`")
+    if args.attitude and args.realtime:
         raise UsageError(
-            f"--{'cpu-hog' if args.cpu_hog else 'attitude'} goes with `wara bench demo`"
+            "--realtime goes with the ring cycles (the attitude examples run in real time)"
         )
     if args.baseline is not None and args.name != "step":
         raise UsageError("--baseline goes with `wara bench step`")
