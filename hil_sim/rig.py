@@ -855,10 +855,7 @@ class Rig:
         present commands, ports, loads and pads, the mass matrix taken at ``y`` (what
         one RK4 stage evaluates: for checks of the integration, e.g. its stability)."""
         yy = np.array(self.y if y is None else y, dtype=np.float64)
-        m_mat, q_g = _mass_and_gravity(
-            yy[_Q : _Q + 6], self._body_m, self._body_c, self._body_i, self._body_layer,
-            self._rod_xy, self._rod_m, self._origin_u, self.g_base,
-        )  # fmt: skip
+        m_mat, q_g = self.generalized_gravity(yy[_Q : _Q + 6])
         dy = np.zeros_like(yy)
         _derivative(
             yy, dy, self.command, self.ports_open, self.valve_leak, self.external_force_n,

@@ -357,10 +357,7 @@ class WalkingRig(Rig):
         y[_XW + 2] = x_s
         self._anchor[:] = (0.0, x_s)
         self._place_sub_bodies(x_s)
-        _m, q_g = _mass_and_gravity(
-            np.zeros(6), self._body_m, self._body_c, self._body_i, self._body_layer,
-            self._rod_xy, self._rod_m, self._origin_u, self.g_base,
-        )  # fmt: skip
+        _m, q_g = self.generalized_gravity(np.zeros(6))
         g_z = self.g_base[2]
         jac = np.zeros((8, 3))
         for j in range(8):
@@ -477,10 +474,7 @@ class WalkingRig(Rig):
 
     def derivative(self, y: FloatArray | None = None) -> FloatArray:
         yy = np.array(self.y if y is None else y, dtype=np.float64)
-        m_mat, q_g = _mass_and_gravity(
-            yy[_Q : _Q + 6], self._body_m, self._body_c, self._body_i, self._body_layer,
-            self._rod_xy, self._rod_m, self._origin_u, self.g_base,
-        )  # fmt: skip
+        m_mat, q_g = self.generalized_gravity(yy[_Q : _Q + 6])
         dy = np.zeros_like(yy)
         _walk_derivative(
             yy, dy, self.command, self.ports_open, self.valve_leak, self.external_force_n,

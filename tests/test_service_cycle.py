@@ -21,6 +21,7 @@ from ipc_app.service.core import ServiceCore
 from ipc_app.service.ctl import CtlHandlers, Request, dispatch, parse
 from ipc_app.service.cycle import PHASES, RECORD_KEYS, RingCycle, previous_from_deviation
 from ipc_app.service.modes import Mode
+from ipc_app.service.record import RunRecorder
 from tests.test_ring_cycle import _place_harness
 from wara.cycle import simulated_survey
 from wara.harness import Harness
@@ -129,21 +130,28 @@ def test_the_cycle_waits_for_the_operator_and_the_survey(tmp_path: Path) -> None
     assert {"release", "release_phase", "release_done"} <= set(kinds)
 
 
+def _cycle_in_fixing(tmp_path: Path) -> tuple[Harness, RunRecorder, _Records, RingCycle]:
+    """A ring cycle standing at its ring (no walk) on the placement harness, run until
+    its part waits in ``fixing``."""
+    cfg = load_project(None)
+    h, rec = _place_harness(tmp_path)
+    records = _Records()
+    previous = previous_from_deviation(cfg, 2, Pose())
+    assert h.core.request_cycle(2, previous, records, drive=False, walk_steps=0)["ok"]
+    cyc = h.core.ring_cycle
+    assert cyc is not None
+    _run_until(h, cyc, "fixing")
+    return h, rec, records, cyc
+
+
 @pytest.mark.slow
 def test_a_part_not_fixed_stops_the_release_with_its_interlock(tmp_path: Path) -> None:
     """The operator confirms a part whose bolts do not hold (here: none): the platform
     lowers its whole travel with the part's weight still on it, the ``release``
     interlock stops the machine (ABORTED, valves closed, the part held on the
     platform), and the cycle ends in ``release`` with that cause, nothing recorded."""
-    cfg = load_project(None)
-    h, rec = _place_harness(tmp_path)
-    records = _Records()
+    h, rec, records, cyc = _cycle_in_fixing(tmp_path)
     try:
-        previous = previous_from_deviation(cfg, 2, Pose())
-        assert h.core.request_cycle(2, previous, records, drive=False, walk_steps=0)["ok"]
-        cyc = h.core.ring_cycle
-        assert cyc is not None
-        _run_until(h, cyc, "fixing")
         x0 = h.sim.rig.rod_positions_m[h.sim.rig.upper_index].mean()
         assert h.core.confirm_fixed("operator A")["ok"]  # but nobody bolted it
         t_end = h.sim.t_s + 30.0
@@ -167,15 +175,8 @@ def test_a_part_not_fixed_stops_the_release_with_its_interlock(tmp_path: Path) -
 def test_a_stop_in_fixing_ends_the_cycle_holding_safely(tmp_path: Path) -> None:
     """``wara ctl stop`` while the part waits for its bolts: the valves close, the
     cycle ends in ``fixing`` (named), nothing is recorded, a confirmation is refused."""
-    cfg = load_project(None)
-    h, rec = _place_harness(tmp_path)
-    records = _Records()
+    h, rec, records, cyc = _cycle_in_fixing(tmp_path)
     try:
-        previous = previous_from_deviation(cfg, 2, Pose())
-        assert h.core.request_cycle(2, previous, records, drive=False, walk_steps=0)["ok"]
-        cyc = h.core.ring_cycle
-        assert cyc is not None
-        _run_until(h, cyc, "fixing")
         h.core.stop("operator stop (test)")
         h.advance(0.2)
         assert h.core.modes.mode == Mode.IDLE and not h.core.modes.valves_enabled

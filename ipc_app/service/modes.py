@@ -369,8 +369,13 @@ class ModeMachine:
     def plan_failed(self, reasons: Sequence[str]) -> Outcome:
         """STARTING -> IDLE: the target is infeasible; ``reasons`` are the planner's."""
         why = "target refused: " + ("; ".join(reasons) if reasons else "no reason given")
+        return self._go_clearing_target("plan_failed", why)
+
+    def _go_clearing_target(self, event: str, reason: str) -> Outcome:
+        """Rule ``event``; once accepted the status shows no attitude target (a motion
+        that is not one, or a refused one)."""
         with self._lock:
-            out = self._go_locked("plan_failed", why)
+            out = self._go_locked(event, reason)
             if out.accepted:
                 self._s.target_deg = None
             return out
@@ -378,37 +383,21 @@ class ModeMachine:
     def jog(self, what: str) -> Outcome:
         """IDLE or COMPLETE -> EXECUTE for a jog (``what``: which cylinder, how far), in
         MANUAL."""
-        with self._lock:
-            out = self._go_locked("jog", f"jog {what}")
-            if out.accepted:
-                self._s.target_deg = None
-            return out
+        return self._go_clearing_target("jog", f"jog {what}")
 
     def walk(self, what: str) -> Outcome:
         """IDLE or COMPLETE -> EXECUTE for a walk (``what``: the steps), in PRODUCTION."""
-        with self._lock:
-            out = self._go_locked("walk", f"walk {what}")
-            if out.accepted:
-                self._s.target_deg = None
-            return out
+        return self._go_clearing_target("walk", f"walk {what}")
 
     def place(self, what: str) -> Outcome:
         """IDLE or COMPLETE -> EXECUTE for a placement move (``what``: the ring and its
         target), in PRODUCTION."""
-        with self._lock:
-            out = self._go_locked("place", f"place {what}")
-            if out.accepted:
-                self._s.target_deg = None
-            return out
+        return self._go_clearing_target("place", f"place {what}")
 
     def release(self, what: str) -> Outcome:
         """IDLE or COMPLETE -> EXECUTE for the part's release (``what``: the ring), in
         PRODUCTION."""
-        with self._lock:
-            out = self._go_locked("release", f"release {what}")
-            if out.accepted:
-                self._s.target_deg = None
-            return out
+        return self._go_clearing_target("release", f"release {what}")
 
     def motion_done(self) -> Outcome:
         """EXECUTE -> COMPLETE: the trajectory ended and the target is reached."""
