@@ -242,6 +242,9 @@ class ServiceCore:
         #: the rods and pressures of the walk's last driven cycle, each at its last valid
         #: value (the stop state; what a reading not valid this cycle stands at)
         self._walk_driven: tuple[np.ndarray, np.ndarray] | None = None
+        #: M's legs where they stand (x, y) and their cap and rod areas, from the project
+        #: alone: what :meth:`walk_start` reads the standing load with (made at its first)
+        self._main_legs: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
         self._attitude_limits = self.limits
         # the placement move: its sequencer while one runs (and holds after it)
         self.placer: PlacementSequencer | None = None
@@ -463,13 +466,17 @@ class ServiceCore:
         press = inp.pressures
         if not press.all_valid(lo):
             return "walk refused: the standing legs' pressures not valid (yet)"
-        legs = [cfg.cylinders_by_can_index[i] for i in lo]
-        forces = cap_side_forces_n(
-            press.value[lo], np.array([c.cap_area_m2 for c in legs]),
-            np.array([c.rod_area_m2 for c in legs]),
-        )  # fmt: skip
+        if self._main_legs is None:
+            legs = [cfg.cylinders_by_can_index[i] for i in lo]
+            self._main_legs = (
+                WalkingMachine(cfg).main_legs_xy,
+                np.array([c.cap_area_m2 for c in legs]),
+                np.array([c.rod_area_m2 for c in legs]),
+            )
+        legs_xy, cap, rod = self._main_legs
+        forces = cap_side_forces_n(press.value[lo], cap, rod)
         try:  # M stands: its legs measure the machine's weight and COG
-            standing = standing_load(WalkingMachine(cfg).main_legs_xy, forces, x_s)
+            standing = standing_load(legs_xy, forces, x_s)
         except ValueError as exc:
             return f"walk refused: {exc}"
         return WalkStart(
