@@ -101,6 +101,27 @@ def test_a_hole_under_a_foot_stops_the_lowering(tmp_path: Path) -> None:
     assert f["t_s"] - t2 >= lowering_s - 0.5  # not before the lowering ran out
 
 
+def test_an_obstacle_under_a_foot_stops_the_lowering_before_any_overload(
+    tmp_path: Path,
+) -> None:
+    """The invert 25 mm higher under sub_leg_1 (an obstacle): its foot meets it in the
+    fast part of S's lowering, 25 mm above the expected ground, above the 10 mm window.
+    The touch-down interlock stops the walk on that leg with its height, and no overload
+    of M's legs comes first (the pressing foot is in the body's equilibrium: without it
+    the M leg across took the foot's push over its share and tripped the overload)."""
+    bump = {"kind": "ground", "x_from_m": 1.8, "x_to_m": 2.2, "y_from_m": 0.6, "y_to_m": 1.3,
+            "offset_mm": 25.0}  # fmt: skip
+    out, evs = walk(tmp_path, project(tmp_path), {"events": [bump]})
+    assert out["final_mode"] == "ABORTED"
+    faults = [e for e in evs if e["kind"] == "fault"]
+    assert {e["interlock"] for e in faults} == {str(Interlock.TOUCHDOWN)}, out["fault_reasons"]
+    f = faults[0]
+    assert f["where"] == "sub_leg_1"
+    assert 20.0 <= f["first"] <= 26.0  # its height above the expected ground, mm
+    assert "obstacle" in f["text"]
+    assert f["t_s"] < phase_starts(evs)["2"] + (50 - 10) / 20 + 20 / 20  # in the fast part
+
+
 def test_slip_when_the_travel_force_passes_the_feet_friction(tmp_path: Path) -> None:
     """An obstacle against S (180 kN on each travel rod from 2 s): the travel force
     passes the standing feet's friction (0.4 x 710 kN); stop within 400 cycles."""

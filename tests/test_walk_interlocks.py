@@ -91,6 +91,12 @@ def test_touchdown_transfer_stability_and_slip(lim: WalkLimits) -> None:
     (c,) = walk_causes(fig(phase="2", no_touchdown="sub_leg_3"), LEGS, lim)
     assert c.interlock is Interlock.TOUCHDOWN and c.where == "sub_leg_3"
     assert walk_causes(fig(phase="1", no_touchdown="sub_leg_3"), LEGS, lim) == []
+    # a foot on the invert above the window: an obstacle, its height above the ground
+    (c,) = walk_causes(fig(phase="7a", obstacle=("main_leg_2", 0.0112)), LEGS, lim)
+    assert c.interlock is Interlock.TOUCHDOWN and c.where == "main_leg_2"
+    assert c.value == pytest.approx(11.2) and c.limit == lim.touchdown_travel_mm
+    assert "obstacle" in c.text() and "11.2 mm above the expected ground" in c.text()
+    assert walk_causes(fig(phase="3", obstacle=("main_leg_2", 0.0112)), LEGS, lim) == []
     (c,) = walk_causes(fig(phase="4", overdue_s=0.1, share_off=("sub_leg_1", 0.7)), LEGS, lim)
     assert c.interlock is Interlock.TRANSFER and c.where == "sub_leg_1"
     (c,) = walk_causes(fig(margin_ahead_m=0.2), LEGS, lim)

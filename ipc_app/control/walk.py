@@ -114,6 +114,10 @@ class WalkFigures:
     friction_capacity_n: float = math.inf
     #: a leg whose lowering ended without a touch-down (its id), else ""
     no_touchdown: str = ""
+    #: a lowering leg whose foot met the invert above the touch-down window (in the fast
+    #: part of its lowering: more than ``touchdown_travel_mm`` above the expected ground):
+    #: its id and its height above the expected ground then, m; else ("", 0.0)
+    obstacle: tuple[str, float] = ("", 0.0)
     #: preload/transfer still not done after this long (0 while in time)
     overdue_s: float = 0.0
     #: the worst receiving leg's share at a transfer's end (id, ratio), else ("", 1.0)
@@ -195,6 +199,11 @@ class WalkSequencer:
     #: in the slow part of a lowering, the free rod's pressure follows while within this
     #: fraction of the touch rise above its baseline
     FREE_BAND = 0.1
+    #: in the fast part of a lowering, a leg's force on the body above this fraction of
+    #: its touch force (``walking.touch_mpa`` over its cap area) is a foot pressing the
+    #: invert: it enters the body's equilibrium (:meth:`contact_n`); above the touch
+    #: force itself it is an obstacle (the touch-down interlock)
+    PRESSING = 0.25
     #: a rod's Coulomb friction is taken full above this speed, linear below, m/s: near
     #: standstill its sign is not known (the speed over :attr:`MOTION_WINDOW_S` of 1 um
     #: positions, a rod stopping or reversing within the window; the rig's friction is
@@ -510,6 +519,7 @@ class WalkSequencer:
         fig.step, fig.phase = ph.step, key
         fig.leg_sync_m = fig.travel_sync_m = 0.0
         fig.no_touchdown, fig.overdue_s, fig.share_off = "", 0.0, ("", 1.0)
+        fig.obstacle = ("", 0.0)
         f_ref: dict[int, tuple[float, float]] = {}
         known: dict[int, float] = {}
         moving: list[int] = []
@@ -564,7 +574,17 @@ class WalkSequencer:
                     if run.touched[k]:
                         continue
                     pa = float(p[i, 0])
-                    if near and pa - run.baseline_pa[k] > self.touch_pa:
+                    # a foot on the invert above the window (an obstacle, or the ground
+                    # higher than expected by more than the window), judged on its force
+                    # on the body, not the cap pressure's rise (a free rod lowering fast
+                    # needs some 1.6 MPa more cap pressure than at rest, the touch rise
+                    # is 1 MPa): it stops as at a touch-down, and the touch-down
+                    # interlock stops the walk
+                    obstacle = not near and float(f_check[j]) > self._touch_n[j]
+                    if obstacle:
+                        height = self.walk.clearance_m - float(x[i] - run.start_x[i])
+                        fig.obstacle = (self.leg_ids[j], height)
+                    if obstacle or (near and pa - run.baseline_pa[k] > self.touch_pa):
                         run.touched[k] = True
                         run.frozen_x[k] = float(x[i])
                         run.touch_f[k] = float(f[j])
@@ -880,8 +900,10 @@ class WalkSequencer:
         - a leg of a frame hanging while the travel pair moves: its rod's weight
           (``hydraulics.rod_mass_kg``) pulling down;
         - a lowering leg not touched down: in the fast part of its lowering (in the air)
-          its rod's weight; in the slow part ``f`` (a foot that presses the invert before
-          its touch-down is declared carries that load), at least its rod's weight;
+          its rod's weight, unless ``f`` is above :attr:`PRESSING` of its touch force (a
+          foot pressing the invert above the window: that load is not on the standing
+          legs); in the slow part ``f`` (a foot that presses the invert before its
+          touch-down is declared carries that load), at least its rod's weight;
         - any other leg (a lifting frame): ``f``, at least its rod's weight."""
         w_rod = self.machine.rod_weight_n
         out = np.maximum(f, -w_rod)
@@ -896,9 +918,11 @@ class WalkSequencer:
                     out[j] = -w_rod
         elif key in LOWER:
             frame = MAIN if key == "7a" else SUB
+            touch = self._touch_n
             for k, j in enumerate(frame):
                 if not run.near and not run.touched[k]:
-                    out[j] = -w_rod
+                    fj = float(f[j])
+                    out[j] = fj if fj > self.PRESSING * touch[j] else -w_rod
                 else:
                     out[j] = max(-w_rod, float(f[j]))
         return out

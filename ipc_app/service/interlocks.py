@@ -197,9 +197,11 @@ SPECS: dict[Interlock, Spec] = {
     Interlock.TOUCHDOWN: Spec(
         "walking.touchdown_travel_mm",
         Applies.WALK,
-        "",
+        "mm",
         "phases 2, 7a: a foot not touched down (cap pressure `walking.touch_mpa` above its "
-        "free-rod value) within the travel below the expected ground: a hole or an obstacle",
+        "free-rod value) within the travel below the expected ground (a hole), or meeting "
+        "the invert (its force on the body above the touch force) further above it than "
+        "the travel (an obstacle; the value: its height above the expected ground)",
     ),
     Interlock.TRANSFER: Spec(
         "walking.transfer_timeout_s",

@@ -107,6 +107,20 @@ def walk_causes(fig: WalkFigures, leg_ids: Sequence[str], lim: WalkLimits) -> li
                 f"ground (step {fig.step} phase {ph}): a hole or an obstacle",
             )
         )
+    if on(Interlock.TOUCHDOWN) and fig.obstacle[0]:
+        who, height_m = fig.obstacle
+        out.append(
+            Cause(
+                Interlock.TOUCHDOWN,
+                where=who,
+                value=units.to_mm(height_m),
+                limit=lim.touchdown_travel_mm,
+                detail=f"the foot met the invert {units.to_mm(height_m):.1f} mm above the "
+                f"expected ground, above the touch-down window of {lim.touchdown_travel_mm:g} "
+                f"mm (step {fig.step} phase {ph}): an obstacle, or the ground higher than "
+                "expected",
+            )
+        )
     if on(Interlock.TRANSFER) and fig.overdue_s > 0.0:
         who, ratio = fig.share_off
         out.append(
