@@ -173,10 +173,11 @@ class _PhaseRun:
     standing_share_n: FloatArray = field(default_factory=lambda: np.zeros(8))
     #: each leg's oil-column stiffness at its rod's position at the phase's start, N/m
     k_oil_n_m: FloatArray = field(default_factory=lambda: np.full(8, math.inf))
-    #: a transfer's releasing legs: their force rate while the receiving legs ramp, N/s
+    #: a preload's or transfer's releasing legs: their force rate while the receiving
+    #: legs ramp, N/s
     release_rate_n_s: FloatArray = field(default_factory=lambda: np.zeros(8))
-    #: a transfer's releasing legs' forces where their rates start (the phase's start;
-    #: after a resume, the forces then), N
+    #: a preload's or transfer's releasing legs' forces where their rates start (the
+    #: phase's start; after a resume, the forces then), N
     release_from_f: FloatArray = field(default_factory=lambda: np.zeros(8))
     #: a transfer's plan line starts here (the plan's preload; after a resume, where
     #: the line stood at the stop) and runs to ``target_f`` with the ramp, N
@@ -405,7 +406,7 @@ class WalkSequencer:
             run.duration_s = delta / self.walk.force_ramp_n_s
             if key in TRANSFER:
                 run.plan_start_f = ph.leg_forces_n[0].copy()
-                self._set_release_rate(run, x_s, f)
+            self._set_release_rate(run, x_s, f)
             for j in receiving:
                 i = self.legs[j]
                 if i not in self.force_mode:
@@ -478,8 +479,7 @@ class WalkSequencer:
                 run.start_f[j] = f[j]
             delta = max(abs(float(run.target_f[j] - f[j])) for j in receiving)
             run.tau, run.duration_s = 0.0, delta / self.walk.force_ramp_n_s
-            if run.phase.key in TRANSFER:
-                self._set_release_rate(run, self.x_s(x), f)
+            self._set_release_rate(run, self.x_s(x), f)
 
     # ----------------------------------------------------------------- the cycle
 
@@ -832,11 +832,12 @@ class WalkSequencer:
             u[i] = self.pos[i].apply(float(u_all[k]))
 
     def _set_release_rate(self, run: _PhaseRun, x_s: float, f: FloatArray) -> None:
-        """A transfer's releasing legs' force rates (``run.release_rate_n_s``, N/s) while
-        the receiving legs' references ramp from ``f`` to ``run.target_f``: the body's
-        equilibrium (heave, roll, pitch) with the load constant, minimum norm over the
-        releasing legs (no twist)."""
-        receiving = SUB if run.phase.key == "4" else MAIN
+        """A preload's or transfer's releasing legs' force rates (``run.release_rate_n_s``,
+        N/s) while the receiving legs' references ramp from ``f`` to ``run.target_f``: the
+        body's equilibrium (heave, roll, pitch) with the load constant, minimum norm over
+        the releasing legs (no twist); and their forces where the rates start
+        (``run.release_from_f``: ``f``), from which their references follow."""
+        receiving = SUB if run.phase.key in ("3", "4") else MAIN
         rec, rel = list(receiving), list(MAIN if receiving is SUB else SUB)
         run.release_rate_n_s = np.zeros(8)
         run.release_from_f = np.array(f, dtype=float)
