@@ -200,6 +200,26 @@ def test_a_legs_friction_estimate_is_linear_below_half_a_mm_per_s(speed_mm_s: fl
     n = seq._x_hist.shape[0]
     v = speed_mm_s * 1e-3
     seq._x_hist[:] = (np.arange(n) * v * PERIOD_S)[:, None]  # each leg extending at v
+    seq._t_hist = [k * PERIOD_S for k in range(n)]
     seq._x_k = 0  # the oldest sample next: row 0
     coulomb = seq.coulomb_n * min(1.0, speed_mm_s / 0.5)
     assert seq.friction_n() == pytest.approx(coulomb + seq.viscous_n_s_m * v, rel=1e-9)
+
+
+def test_a_legs_speed_across_a_stop_is_over_the_samples_times() -> None:
+    """A stop of 140 ms (a suspension: no cycle runs) inside the window: the rods crept
+    0.2 mm/s all along. The speed is the creep over the samples' own times, not 4 times
+    it (the window taken as one cycle per sample: 10-20 kN of viscous friction on a
+    standing leg in campaign run 48, an overload)."""
+    seq = sequencer()
+    n = seq._x_hist.shape[0]
+    v = 0.2e-3
+    times = [k * PERIOD_S for k in range(n)]
+    times[1:] = [t + 0.140 for t in times[1:]]  # the stop between the first two samples
+    seq._t_hist = times
+    seq._x_hist[:] = (np.array(times) * v)[:, None]
+    seq._x_k = 0
+    coulomb = seq.coulomb_n * min(1.0, 0.2 / 0.5)
+    assert seq.friction_n() == pytest.approx(coulomb + seq.viscous_n_s_m * v, rel=1e-9)
+    seq._t_hist = [0.0] * n  # no time between the samples (the start): at rest
+    assert not np.any(seq.friction_n())

@@ -302,8 +302,10 @@ class WalkSequencer:
         self._f_prev = [0.0] * 8
         self._t_last = [-math.inf] * 8
         self._t_prev = [-math.inf] * 8
-        #: the legs' last rod positions over :attr:`MOTION_WINDOW_S` (a ring), m
+        #: the legs' last rod positions over :attr:`MOTION_WINDOW_S` (a ring), m, and
+        #: the machine time of each row, s
         self._x_hist = np.zeros((max(2, round(self.MOTION_WINDOW_S / period_s) + 1), 8))
+        self._t_hist = [0.0] * self._x_hist.shape[0]
         self._x_k = 0
 
     # ----------------------------------------------------------------- helpers
@@ -359,6 +361,7 @@ class WalkSequencer:
         self.set_upper(x)
         self.hold_ref = np.array(x, dtype=float)
         self._x_hist[:] = x[self.legs]
+        self._t_hist = [now] * len(self._t_hist)
         for i, c in self.pos.items():
             c.reset(float(x[i]))
         self._begin(0, now, x, p)
@@ -502,6 +505,7 @@ class WalkSequencer:
         f = self.forces_n(p)
         self.leg_force_n = f
         self._x_hist[self._x_k % self._x_hist.shape[0]] = x[self.legs]
+        self._t_hist[self._x_k % self._x_hist.shape[0]] = now
         self._x_k += 1
         # the checks' forces: at one instant, less each rod's friction (what the legs
         # put on the body, the statics' terms)
@@ -933,13 +937,21 @@ class WalkSequencer:
         positive): its plant's Coulomb friction (full above :attr:`COULOMB_SPEED_M_S`)
         and viscous damping (``config.derived.viscous_damping_n_s_m``) at the rod's speed
         over :attr:`MOTION_WINDOW_S`. The pressures carry it on top of what the leg
-        puts on the body. On plain floats, element by element as numpy would."""
+        puts on the body. On plain floats, element by element as numpy would.
+
+        The speed is over the samples' own times: across a stop (a suspension, a hold)
+        the window's oldest sample is from before it, and taken as one window old it
+        read a standing leg's creep as several times as fast (campaign run 48: 10-20 kN
+        of viscous friction after a 140 ms suspension, an overload)."""
         n = self._x_hist.shape[0]
-        newest = self._x_hist[(self._x_k - 1) % n].tolist()
-        oldest = self._x_hist[self._x_k % n].tolist()
-        span = (n - 1) * self.period_s
+        k_new, k_old = (self._x_k - 1) % n, self._x_k % n
+        newest = self._x_hist[k_new].tolist()
+        oldest = self._x_hist[k_old].tolist()
+        span = self._t_hist[k_new] - self._t_hist[k_old]
         c_speed = self.COULOMB_SPEED_M_S
         out = [0.0] * 8
+        if not span > 0.0:
+            return np.array(out)
         for j, (coulomb, viscous) in enumerate(self._friction):
             v = (newest[j] - oldest[j]) / span
             c = v / c_speed
