@@ -104,7 +104,7 @@ def walk_causes(fig: WalkFigures, leg_ids: Sequence[str], lim: WalkLimits) -> li
                 Interlock.TOUCHDOWN,
                 where=fig.no_touchdown,
                 detail=f"no touch-down within {lim.touchdown_travel_mm:g} mm below the expected "
-                f"ground (step {fig.step} phase {ph}): a hole or an obstacle",
+                f"ground (step {fig.step} phase {ph}): a hole under the foot",
             )
         )
     if on(Interlock.TOUCHDOWN) and fig.obstacle[0]:
