@@ -75,6 +75,12 @@ MAIN = (0, 1, 2, 3)
 SUB = (4, 5, 6, 7)
 
 
+def transfer_frames(key: str) -> tuple[tuple[int, ...], tuple[int, ...]]:
+    """A preload's or transfer's (receiving, releasing) frames: S takes the load in 3
+    and 4, M in 7b and 7c."""
+    return (SUB, MAIN) if key in ("3", "4") else (MAIN, SUB)
+
+
 def walk_active_group(cfg: ProjectConfig, key: str) -> list[int]:
     """``can_index`` of the cylinders whose frames run at the loop rate in phase ``key``
     (the active group changes with the phase): while the travel pair moves, it and the
@@ -391,8 +397,7 @@ class WalkSequencer:
         elif key in LIFT:
             run.duration_s = Move(-self.walk.clearance_m, self.leg_v, self.leg_a).duration_s
         else:
-            receiving = SUB if key in ("3", "4") else MAIN
-            releasing = MAIN if receiving is SUB else SUB
+            receiving, releasing = transfer_frames(key)
             # what the standing frame's legs carry alone (the overload's floor for them)
             run.standing_share_n = self.share(x_s, releasing)
             if key in PRELOAD:
@@ -474,7 +479,7 @@ class WalkSequencer:
             # the receiving legs' ramp restarts from their forces now (while stopped they
             # held what they had, the ramp's reference stood where the clock stopped;
             # a loop reset at the one and driven to the other takes the step at once)
-            receiving = SUB if run.phase.key in ("3", "4") else MAIN
+            receiving, _ = transfer_frames(run.phase.key)
             if run.phase.key in TRANSFER:  # the plan's line goes on from where it stood
                 lam = 1.0 if run.duration_s <= 0 else min(1.0, run.tau / run.duration_s)
                 run.plan_start_f = run.plan_start_f + lam * (run.target_f - run.plan_start_f)
@@ -621,8 +626,7 @@ class WalkSequencer:
                     abs(x[self.legs[j]] - refs[self.legs[j]]) <= self.END_TOLERANCE_M for j in frame
                 )
         else:
-            receiving = SUB if key in ("3", "4") else MAIN
-            releasing = MAIN if receiving is SUB else SUB
+            receiving, releasing = transfer_frames(key)
             lam = 1.0 if run.duration_s <= 0 else min(1.0, run.tau / run.duration_s)
             for j in receiving:
                 i = self.legs[j]
@@ -730,7 +734,7 @@ class WalkSequencer:
         x_s_now = x_s if key in TRAVEL else float(ph.x_s_m[0])
         share8 = self._share8(x_s_now)
         if key in PRELOAD or key in TRANSFER:
-            held = list(MAIN if key in ("3", "4") else SUB)
+            held = list(transfer_frames(key)[1])
         else:
             held = list(self._frame(ph.standing, self.leg_ids))
         expected = np.maximum(self._residual_share(x_s_now, share8, f_check, plan_f, held), share8)
@@ -841,8 +845,8 @@ class WalkSequencer:
         body's equilibrium (heave, roll, pitch) with the load constant, minimum norm over
         the releasing legs (no twist); and their forces where the rates start
         (``run.release_from_f``: ``f``), from which their references follow."""
-        receiving = SUB if run.phase.key in ("3", "4") else MAIN
-        rec, rel = list(receiving), list(MAIN if receiving is SUB else SUB)
+        receiving, releasing = transfer_frames(run.phase.key)
+        rec, rel = list(receiving), list(releasing)
         run.release_rate_n_s = np.zeros(8)
         run.release_from_f = np.array(f, dtype=float)
         if run.duration_s <= 0:
