@@ -31,6 +31,7 @@ import json
 import math
 import os
 import sqlite3
+import stat
 from collections.abc import Iterator, Mapping, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, field
@@ -40,6 +41,7 @@ from types import TracebackType
 from typing import Any
 
 from acceptance.items import ITEMS, ITEMS_BY_KEY, check_ring
+from config.files import file_kind
 
 #: Bumped when the table layout changes; a newer database is refused, not guessed at.
 SCHEMA_VERSION = 1
@@ -48,6 +50,9 @@ SCHEMA_VERSION = 1
 BUSY_TIMEOUT_S = 10.0
 
 DB_FILENAME = "acceptance.sqlite"
+
+#: The first bytes of every SQLite database file.
+SQLITE_HEADER = b"SQLite format 3\x00"
 
 
 class StoreError(Exception):
@@ -64,6 +69,86 @@ def default_db_path(environ: Mapping[str, str] | None = None) -> Path:
     env = os.environ if environ is None else environ
     base = env.get("WARA_DATA_DIR") or "wara-data"
     return Path(base) / DB_FILENAME
+
+
+def _newer(path: Path, version: int) -> StoreError:
+    return StoreError(
+        f"{path}: database schema version {version} is newer than this "
+        f"software understands ({SCHEMA_VERSION}); update wara"
+    )
+
+
+def check_store(path: str | Path, *, create: bool) -> Path:
+    """Check, before anything moves or is written, that ``path`` can be used as the
+    acceptance store; the path, or :class:`StoreError` (one line naming the path).
+
+    Every command with ``--db`` calls it first (and :meth:`AcceptanceStore.open` again).
+    An existing path must be a regular file that is empty or an SQLite database of this
+    software's schema (not newer, not another program's); ``create``: the command writes
+    (the file writable, or its directory: the nearest existing one must be a writable
+    directory). Without ``create`` the database must exist. Nothing is created here.
+    """
+    p = Path(path)
+    try:
+        st = os.stat(p)
+    except FileNotFoundError:
+        st = None
+    except OSError as exc:
+        raise StoreError(f"{p}: cannot use as acceptance database: {exc.strerror}") from None
+    if st is None:
+        if not create:
+            raise StoreError(
+                f"{p}: no acceptance database here (record rings with `wara acceptance add` "
+                "or `wara acceptance import` first, or pass --db)"
+            )
+        parent = p.absolute().parent
+        while not parent.exists() and parent != parent.parent:
+            parent = parent.parent
+        if not parent.is_dir():
+            raise StoreError(f"{p}: cannot create the acceptance database: {parent} is a file")
+        if not os.access(parent, os.W_OK | os.X_OK):
+            raise StoreError(
+                f"{p}: cannot create the acceptance database: no permission to write in {parent}"
+            )
+        return p
+    if not stat.S_ISREG(st.st_mode):
+        raise StoreError(
+            f"{p}: cannot use as acceptance database: {file_kind(st.st_mode)}, "
+            "expected a database file"
+        )
+    try:
+        fd = os.open(p, os.O_RDONLY | os.O_NONBLOCK | getattr(os, "O_CLOEXEC", 0))
+        try:
+            head = os.read(fd, len(SQLITE_HEADER))
+        finally:
+            os.close(fd)
+    except OSError as exc:
+        raise StoreError(f"{p}: cannot use as acceptance database: {exc.strerror}") from None
+    if create and not os.access(p, os.W_OK):
+        raise StoreError(f"{p}: no permission to write the acceptance database")
+    if not head:
+        return p  # an empty file: SQLite makes it a database
+    if head != SQLITE_HEADER:
+        raise StoreError(
+            f"{p}: cannot use as acceptance database: not an SQLite database (a survey CSV "
+            "goes to `wara acceptance import FILE`, the database to --db)"
+        )
+    try:
+        conn = sqlite3.connect(f"{p.absolute().as_uri()}?mode=ro", uri=True, timeout=BUSY_TIMEOUT_S)
+        try:
+            version = conn.execute("PRAGMA user_version").fetchone()[0]
+            tables = conn.execute("SELECT COUNT(*) FROM sqlite_master").fetchone()[0]
+        finally:
+            conn.close()
+    except sqlite3.DatabaseError as exc:
+        raise StoreError(f"{p}: cannot use as acceptance database: {exc}") from None
+    if version > SCHEMA_VERSION:
+        raise _newer(p, version)
+    if version == 0 and tables:
+        raise StoreError(
+            f"{p}: cannot use as acceptance database: an SQLite database of another program"
+        )
+    return p
 
 
 def _now_utc() -> str:
@@ -268,14 +353,12 @@ class AcceptanceStore:
     """The acceptance database. One instance per thread; open with :meth:`open`."""
 
     def __init__(self, path: str | Path, *, create: bool = True) -> None:
-        self.path = Path(path)
+        self.path = check_store(path, create=create)
         if not self.path.exists():
-            if not create:
-                raise StoreError(
-                    f"{self.path}: no acceptance database here (record rings with "
-                    "`wara acceptance add` or `wara acceptance import` first, or pass --db)"
-                )
-            self.path.parent.mkdir(parents=True, exist_ok=True)
+            try:
+                self.path.parent.mkdir(parents=True, exist_ok=True)
+            except OSError as exc:
+                raise StoreError(f"{self.path}: cannot create: {exc.strerror}") from None
         try:
             # isolation_level=None: no implicit transactions; we BEGIN/COMMIT explicitly.
             self._conn = sqlite3.connect(self.path, timeout=BUSY_TIMEOUT_S, isolation_level=None)
@@ -289,7 +372,8 @@ class AcceptanceStore:
 
     @classmethod
     def open(cls, path: str | Path, *, create: bool = True) -> AcceptanceStore:
-        """Open (and with ``create`` make) the database at ``path``."""
+        """Open (and with ``create`` make) the database at ``path``, checked first
+        (:func:`check_store`)."""
         return cls(path, create=create)
 
     def __enter__(self) -> AcceptanceStore:
@@ -313,10 +397,7 @@ class AcceptanceStore:
         if version == SCHEMA_VERSION:
             return
         if version > SCHEMA_VERSION:
-            raise StoreError(
-                f"{self.path}: database schema version {version} is newer than this "
-                f"software understands ({SCHEMA_VERSION}); update wara"
-            )
+            raise _newer(self.path, version)
         with self._transaction():
             # Re-check under the write lock: another process may have created it.
             if self._conn.execute("PRAGMA user_version").fetchone()[0] == 0:

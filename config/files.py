@@ -24,7 +24,8 @@ class InputFileError(Exception):
     """
 
 
-def _kind(mode: int) -> str:
+def file_kind(mode: int) -> str:
+    """What a file that is not a regular file is, for a message ("a directory", ...)."""
     if stat.S_ISDIR(mode):
         return "a directory"
     if stat.S_ISFIFO(mode):
@@ -49,7 +50,7 @@ def read_input_file(path: str | Path, max_bytes: int) -> bytes:
     try:
         mode = os.fstat(fd).st_mode
         if not stat.S_ISREG(mode):
-            raise InputFileError(f"{p}: {_kind(mode)}, expected a regular file")
+            raise InputFileError(f"{p}: {file_kind(mode)}, expected a regular file")
         chunks: list[bytes] = []
         size = 0
         while size <= max_bytes:

@@ -276,7 +276,7 @@ def test_wara_ctl_cycle_bad_input_exits_2_before_anything_is_sent(
         (["ctl", "cycle", "--ring", "3", "--previous-deviation", "1,2"], "five finite numbers"),
         (
             ["ctl", "cycle", "--ring", "3", "--from-store", "--db", str(tmp_path / "x.sqlite")],
-            "no acceptance store",
+            "no acceptance database here",
         ),
         (["ctl", "survey", str(bad)], "line 2: x_m: 'abc' is not a number"),
         (["ctl", "survey", str(tmp_path / "missing.csv")], "missing.csv"),

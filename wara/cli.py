@@ -49,7 +49,8 @@ COMMANDS: tuple[str, ...] = (
 
 
 class UsageError(Exception):
-    """Arguments that parse but make no sense (e.g. four start extensions expected)."""
+    """Arguments that parse but make no sense (e.g. four start extensions expected).
+    One problem per line of the message (each line printed as its own error line)."""
 
 
 class _Parser(argparse.ArgumentParser):
@@ -103,7 +104,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             print(f"wara: configuration error: {line}", file=sys.stderr)
         return EXIT_USAGE
     except UsageError as exc:
-        print(f"wara {args.command}: error: {exc}", file=sys.stderr)
+        for line in str(exc).splitlines() or [""]:
+            print(f"wara {args.command}: error: {line}", file=sys.stderr)
         return EXIT_USAGE
     except KeyboardInterrupt:
         print("wara: interrupted", file=sys.stderr)

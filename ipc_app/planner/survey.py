@@ -11,11 +11,22 @@ run over a line break):
 - ``x_m``, ``y_m``, ``z_m``: the point as the total station or laser tracker measured
   it, in the project frame of ``tunnel.alignment``.
 
-At least :data:`MIN_POINTS` points, not all on one line. The fit is the least-squares
-rigid pose (:func:`~ipc_app.model.placement.fit_pose`) of the part in its ring's tunnel
-frame; it is refused when the RMS point residual is above
-``placement.survey_max_residual_mm`` or the part lies further from its design pose than
-:data:`PLAUSIBLE_DEVIATION_MM` (a survey of another ring, or another frame).
+At least :data:`MIN_POINTS` points, not all on one line. A point's name is 1..
+:data:`MAX_NAME_CHARS` printable characters (no control or format characters: names are
+printed); ``face_y_m`` and ``face_z_m`` lie within the configuration's coordinate range
+(``CoordM``, -100..100 m), ``x_m``, ``y_m``, ``z_m`` within the range of
+``tunnel.alignment``'s points (:data:`MEASURED_RANGE_M`). The file is read by
+:func:`read_survey_points` (``wara survey import``, ``wara place plan --survey`` and
+``wara ctl survey`` alike): a regular UTF-8 file of at most :data:`MAX_SURVEY_BYTES`.
+
+The fit is the least-squares rigid pose (:func:`~ipc_app.model.placement.fit_pose`) of
+the part in its ring's tunnel frame; it is refused when the RMS point residual is above
+``placement.survey_max_residual_mm`` (or not a finite number) or the pose is not a
+plausible as-built pose of the ring (:func:`as_built_problems`: further from its design
+than :data:`PLAUSIBLE_DEVIATION_MM` across, half a ring along or
+:data:`PLAUSIBLE_ANGLE_DEG` in an angle, or not finite: a survey of another ring, or
+another frame). The same check holds for a pose given instead of a survey (the
+acceptance store's, ``wara ctl survey --from-store``, and a cycle's previous part).
 """
 
 from __future__ import annotations
@@ -30,8 +41,8 @@ from typing import Any
 import numpy as np
 
 from config import units
-from config.files import read_text_file
-from config.schema import ProjectConfig
+from config.files import InputFileError, read_text_file
+from config.schema import AlignmentPoint, CoordM, ProjectConfig
 from ipc_app.model.placement import (
     Pose,
     compose,
@@ -49,6 +60,36 @@ MAX_SURVEY_BYTES = 1024 * 1024
 #: A fitted part further than this from its design across the axis (y, z), or more than
 #: half a ring width along it, is not this ring's.
 PLAUSIBLE_DEVIATION_MM = 50.0
+#: ... nor one turned further than this from its design in roll, pitch or yaw (the
+#: bound of a deviation as a survey sheet gives it, ``--previous-deviation``).
+PLAUSIBLE_ANGLE_DEG = 10.0
+#: The longest point name (as the control channel's names).
+MAX_NAME_CHARS = 40
+#: At most this many bad lines are listed (then how many more there are).
+MAX_ERRORS_LISTED = 20
+
+
+def _field_range(annotated: Any) -> tuple[float, float]:
+    """The ``ge``/``le`` bounds a schema type or field states (one source of the ranges)."""
+    metadata = getattr(annotated, "metadata", None)
+    if metadata is None:  # an Annotated type: its FieldInfo parts
+        metadata = [m for f in getattr(annotated, "__metadata__", ()) for m in f.metadata]
+    lo = next(m.ge for m in metadata if hasattr(m, "ge"))
+    hi = next(m.le for m in metadata if hasattr(m, "le"))
+    return float(lo), float(hi)
+
+
+#: Where a target may sit on the face (part frame, m): the configuration's coordinates.
+FACE_RANGE_M = _field_range(CoordM)
+#: Where a measured point may lie (project frame, m): ``tunnel.alignment``'s points' range.
+MEASURED_RANGE_M: dict[str, tuple[float, float]] = {
+    c: _field_range(AlignmentPoint.model_fields[c]) for c in ("x_m", "y_m", "z_m")
+}
+_RANGES: dict[str, tuple[float, float]] = {
+    "face_y_m": FACE_RANGE_M,
+    "face_z_m": FACE_RANGE_M,
+    **MEASURED_RANGE_M,
+}
 
 
 class SurveyError(Exception):
@@ -56,12 +97,49 @@ class SurveyError(Exception):
     file's line number where a row is at fault)."""
 
 
+def _shown(text: str) -> str:
+    """A user's text in a message: escaped (``repr``) and at most 40 characters."""
+    return repr(text) if len(text) <= 40 else repr(text[:37]) + "..."
+
+
+def check_name(name: str) -> str:
+    """A point's name, or ValueError: 1..MAX_NAME_CHARS printable characters."""
+    if not isinstance(name, str) or not name.strip():
+        raise ValueError("point: empty name")
+    if len(name) > MAX_NAME_CHARS:
+        raise ValueError(f"point: name {_shown(name)} longer than {MAX_NAME_CHARS} characters")
+    bad = next((c for c in name if not c.isprintable()), None)
+    if bad is not None:
+        raise ValueError(
+            f"point: name {_shown(name)} contains the control character U+{ord(bad):04X}"
+        )
+    return name
+
+
+def check_coordinate(column: str, value: float) -> float:
+    """A point's coordinate, or ValueError naming the column: finite, in its range."""
+    lo, hi = _RANGES[column]
+    if not math.isfinite(value):
+        raise ValueError(f"{column}: {value!r} is not a finite number")
+    if not lo <= value <= hi:
+        raise ValueError(f"{column}: {value:g} m is outside {lo:g}..{hi:g} m")
+    return value
+
+
 @dataclass(frozen=True)
 class SurveyPoint:
+    """One surveyed target; construction checks it (ValueError with the reason): the
+    name (:func:`check_name`) and each coordinate (:func:`check_coordinate`)."""
+
     line: int
     name: str
     face: tuple[float, float]  # part frame y, z (m)
     measured: tuple[float, float, float]  # project frame (m)
+
+    def __post_init__(self) -> None:
+        check_name(self.name)
+        for column, v in zip(COLUMNS[1:], (*self.face, *self.measured), strict=True):
+            check_coordinate(column, v)
 
 
 @dataclass(frozen=True)
@@ -96,10 +174,10 @@ def _number(text: str, column: str) -> float:
     try:
         v = float(text)
     except ValueError:
-        raise ValueError(f"{column}: {text.strip()!r} is not a number") from None
+        raise ValueError(f"{column}: {_shown(text.strip())} is not a number") from None
     if not math.isfinite(v) or "_" in text:
-        raise ValueError(f"{column}: {text.strip()!r} is not a finite number")
-    return v
+        raise ValueError(f"{column}: {_shown(text.strip())} is not a finite number")
+    return check_coordinate(column, v)
 
 
 def parse_survey_text(text: str, source: str = "<survey>") -> list[SurveyPoint]:
@@ -145,8 +223,7 @@ def parse_survey_text(text: str, source: str = "<survey>") -> list[SurveyPoint]:
             row = dict(zip(header, cells, strict=True))
             name = row["point"].strip()
             try:
-                if not name:
-                    raise ValueError("point: empty name")
+                check_name(name)
                 vals = {c: _number(row[c], c) for c in COLUMNS[1:]}
             except ValueError as exc:
                 errors.append(f"{source}: line {line}: {exc}")
@@ -169,6 +246,9 @@ def parse_survey_text(text: str, source: str = "<survey>") -> list[SurveyPoint]:
         errors.append(f"{source}: line {rows.line_num}: {exc}")
     if header is None and not errors:
         raise SurveyError(f"{source}: no header row (expected columns: {', '.join(COLUMNS)})")
+    if len(errors) > MAX_ERRORS_LISTED:
+        more = len(errors) - MAX_ERRORS_LISTED
+        errors = [*errors[:MAX_ERRORS_LISTED], f"{source}: {more} more bad line(s) not listed"]
     if errors:
         raise SurveyError("\n".join(errors))
     if len(points) < MIN_POINTS:
@@ -176,42 +256,71 @@ def parse_survey_text(text: str, source: str = "<survey>") -> list[SurveyPoint]:
     return points
 
 
+def as_built_problems(cfg: ProjectConfig, ring: int, pose: Pose) -> list[str]:
+    """Why ``pose`` (in ring ``ring``'s own tunnel frame) is not a plausible as-built pose
+    of that ring's part (empty: it is): not finite, or further from the ring's design
+    than :data:`PLAUSIBLE_DEVIATION_MM` across the axis, half a ring along it or
+    :data:`PLAUSIBLE_ANGLE_DEG` in roll, pitch or yaw. One check for a fitted survey, a
+    pose from the acceptance store and a cycle's previous part."""
+    if not all(math.isfinite(v) for v in pose):
+        return [f"the pose of ring {ring}'s part is not finite: {pose.to_dict()}"]
+    dev = deviation(pose, design_pose(cfg, ring))
+    if not all(math.isfinite(v) for v in dev):
+        return [f"the pose of ring {ring}'s part is not finite: {pose.to_dict()}"]
+    off = units.to_mm(math.hypot(dev.y, dev.z))
+    along = abs(dev.x)
+    out: list[str] = []
+    if off > PLAUSIBLE_DEVIATION_MM or along > cfg.tunnel.ring_width_m / 2.0:
+        out.append(
+            f"the part is {off:.0f} mm across and {units.to_mm(along):.0f} mm along "
+            f"the axis off its design position in ring {ring} (limits "
+            f"{PLAUSIBLE_DEVIATION_MM:g} mm across, half a ring along: another ring's "
+            "survey, or another frame?)"
+        )
+    angles = {"roll": dev.roll, "pitch": dev.pitch, "yaw": dev.yaw}
+    turned = {k: units.to_deg(v) for k, v in angles.items()}
+    turned = {k: v for k, v in turned.items() if abs(v) > PLAUSIBLE_ANGLE_DEG}
+    if turned:
+        out.append(
+            "the part is turned "
+            + ", ".join(f"{k} {v:+.1f} deg" for k, v in turned.items())
+            + f" from its design in ring {ring} (limit {PLAUSIBLE_ANGLE_DEG:g} deg: "
+            "another ring's survey, or another frame?)"
+        )
+    return out
+
+
 def fit_survey(cfg: ProjectConfig, ring: int, points: list[SurveyPoint]) -> SurveyFit:
-    """The as-built pose of ring ``ring``'s part from points on its front joint face."""
+    """The as-built pose of ring ``ring``'s part from points on its front joint face
+    (each point checked as it is built: :class:`SurveyPoint`)."""
     if cfg.placement is None:
         raise ValueError("the project has no placement section")
     half = cfg.workpiece.width_m / 2.0
     nominal = np.array([[half, p.face[0], p.face[1]] for p in points])
     world = np.array([p.measured for p in points])
-    local = inverse(tunnel_frame(cfg, ring)).apply(world)
     try:
-        fit = fit_pose(nominal, local)
+        with np.errstate(over="raise", invalid="raise", divide="raise"):
+            local = inverse(tunnel_frame(cfg, ring)).apply(world)
+            fit = fit_pose(nominal, local)
+    except FloatingPointError as exc:  # not with coordinates in their ranges; if ever
+        raise SurveyError(f"survey: the fit failed numerically ({exc})") from None
     except ValueError as exc:
         raise SurveyError(f"survey: {exc} (face_y_m, face_z_m of the points)") from None
-    dev = deviation(fit.pose, design_pose(cfg, ring))
     reasons: list[str] = []
     limit = cfg.placement.survey_max_residual_m
-    if fit.rms_residual_m > limit:
-        worst = int(np.argmax(fit.residuals_m))
+    if not fit.rms_residual_m <= limit:  # NaN too
+        worst = int(np.nanargmax(fit.residuals_m)) if np.isfinite(fit.residuals_m).any() else 0
         reasons.append(
             f"RMS residual {units.to_mm(fit.rms_residual_m):.2f} mm above "
             f"placement.survey_max_residual_mm {cfg.placement.survey_max_residual_mm:g}; "
             f"worst line {points[worst].line} ({points[worst].name}): "
             f"{units.to_mm(float(fit.residuals_m[worst])):.2f} mm"
         )
-    off = units.to_mm(math.hypot(dev.y, dev.z))
-    along = abs(dev.x)
-    if off > PLAUSIBLE_DEVIATION_MM or along > cfg.tunnel.ring_width_m / 2.0:
-        reasons.append(
-            f"the fitted part is {off:.0f} mm across and {units.to_mm(along):.0f} mm along "
-            f"the axis off its design position in ring {ring} (limits "
-            f"{PLAUSIBLE_DEVIATION_MM:g} mm across, half a ring along: another ring's "
-            "survey, or another frame?)"
-        )
+    reasons += [f"the fitted pose: {r}" for r in as_built_problems(cfg, ring, fit.pose)]
     return SurveyFit(
         ring,
         fit.pose,
-        dev,
+        deviation(fit.pose, design_pose(cfg, ring)),
         tuple(points),
         tuple(float(r) for r in fit.residuals_m),
         fit.rms_residual_m,
@@ -220,9 +329,22 @@ def fit_survey(cfg: ProjectConfig, ring: int, points: list[SurveyPoint]) -> Surv
     )
 
 
+def read_survey_points(path: str | Path) -> list[SurveyPoint]:
+    """The points of the survey file ``path``: the one reader of survey files (``wara
+    survey import``, ``wara place plan --survey``, ``wara ctl survey``). The file is
+    opened as :func:`config.files.read_text_file` opens it (a regular file, at most
+    :data:`MAX_SURVEY_BYTES`, UTF-8: a FIFO, a device or a directory is refused before
+    it is read); every problem is a :class:`SurveyError`, one line each."""
+    try:
+        text = read_text_file(path, MAX_SURVEY_BYTES, hint="export the survey as 'CSV UTF-8'")
+    except InputFileError as exc:
+        raise SurveyError(str(exc)) from None
+    return parse_survey_text(text, str(path))
+
+
 def read_survey(cfg: ProjectConfig, ring: int, path: str | Path) -> SurveyFit:
-    text = read_text_file(path, MAX_SURVEY_BYTES)
-    return fit_survey(cfg, ring, parse_survey_text(text, str(path)))
+    """:func:`read_survey_points` fitted (:func:`fit_survey`)."""
+    return fit_survey(cfg, ring, read_survey_points(path))
 
 
 def format_survey(

@@ -31,7 +31,7 @@ import structlog
 
 from config import ProjectConfig, load_project, units
 from ipc_app.model.placement import POSE_DICT_KEYS, Pose, sheet_deviation
-from ipc_app.planner.survey import SurveyPoint
+from ipc_app.planner.survey import SurveyPoint, as_built_problems
 from ipc_app.service.core import ServiceCore
 from ipc_app.service.ctl import CtlError, CtlHandlers, CtlServer
 from ipc_app.service.cycle import RingRecords, previous_from_deviation
@@ -116,6 +116,10 @@ def _cycle(
         return {"ok": False, "code": "refused", "error": msg}
     if len(prev) == 6:
         previous = _pose(prev)
+        problems = as_built_problems(core.cfg, ring - 1, previous)
+        if problems:  # in ring - 1's own T: a pose of another ring, or another frame
+            msg = f"cycle refused: previous_pose: {'; '.join(problems)}"
+            return {"ok": False, "code": "bad_request", "error": msg}
     else:
         previous = previous_from_deviation(core.cfg, ring, sheet_deviation(*prev))
     return core.request_cycle(
@@ -135,10 +139,12 @@ def _survey(
     if pose is not None:
         return core.submit_survey(pose=_pose(pose))
     assert pts is not None
-    points = [
-        SurveyPoint(k, name, (fy, fz), (x, y, z))
-        for k, (name, fy, fz, x, y, z) in enumerate(pts, start=1)
-    ]
+    points = []
+    for k, (name, fy, fz, x, y, z) in enumerate(pts, start=1):
+        try:  # each point checked as a file's line is (name, coordinate ranges)
+            points.append(SurveyPoint(k, name, (fy, fz), (x, y, z)))
+        except ValueError as exc:
+            return {"ok": False, "code": "bad_request", "error": f"survey: point {k}: {exc}"}
     return core.submit_survey(points=points)
 
 

@@ -303,8 +303,10 @@ def parse(line: bytes) -> Request | Reply:
             )
         except ValueError as exc:
             return _error("bad_request", f"previous_deviation: {exc}")
-        if max(abs(vals[0]), abs(vals[1])) > 50 or max(abs(v) for v in vals[2:]) > 10:
-            return _error("bad_request", "previous_deviation: at most 50 mm and 10 deg")
+        try:
+            check_sheet_deviation(vals, "previous_deviation")
+        except ValueError as exc:
+            return _error("bad_request", str(exc))
         return Request(cmd, (ring, vals))
     if cmd in ("cycle", "confirm_fixed", "survey"):
         try:
@@ -343,8 +345,23 @@ def _status_wait(req: Mapping[str, Any]) -> tuple[int, float]:
     return after, wait_ms / 1000.0
 
 
-#: The most survey points one request carries.
+#: The most survey points one request carries (``wara ctl survey`` checks it first).
 MAX_SURVEY_POINTS = 200
+#: A deviation as a survey sheet gives it (``previous_deviation``): at most this far
+#: across the axis (y, z) and turned (roll, pitch, yaw); more is a typo, not a survey.
+MAX_SHEET_DEVIATION_MM, MAX_SHEET_DEVIATION_DEG = 50.0, 10.0
+
+
+def check_sheet_deviation(vals: tuple[float, ...], what: str) -> None:
+    """ValueError unless ``vals`` (y mm, z mm, roll, pitch, yaw deg) is within the bounds."""
+    if (
+        max(abs(vals[0]), abs(vals[1])) > MAX_SHEET_DEVIATION_MM
+        or max(abs(v) for v in vals[2:]) > MAX_SHEET_DEVIATION_DEG
+    ):
+        raise ValueError(
+            f"{what}: at most {MAX_SHEET_DEVIATION_MM:g} mm and {MAX_SHEET_DEVIATION_DEG:g} deg "
+            "(a typo, not a survey)"
+        )
 
 
 def _numbers(v: Any, n: int, what: str) -> tuple[float, ...]:
@@ -380,6 +397,8 @@ def _cycle_request(cmd: str, req: Mapping[str, Any]) -> Request:
         raise ValueError("give 'previous_deviation' or 'previous_pose', not both")
     prev = _numbers(pose, 6, "'previous_pose'") if pose is not None else (
         _numbers(dev if dev is not None else [0.0] * 5, 5, "'previous_deviation'"))  # fmt: skip
+    if pose is None:  # a pose's plausibility needs the project: the service checks it
+        check_sheet_deviation(prev, "'previous_deviation'")
     steps = req.get("walk_steps")
     if steps is not None and (
         isinstance(steps, bool) or not isinstance(steps, int) or not 0 <= steps <= MAX_WALK_STEPS
@@ -434,11 +453,14 @@ def _why(exc: OSError) -> str:
 
 
 def _line(obj: Reply) -> bytes:
+    """One JSON line; strict JSON only (``allow_nan=False``): a reply carrying NaN or
+    infinity, which no JSON reader need take, becomes an ``internal`` error reply."""
     try:
-        text = json.dumps(obj, default=str)
+        text = json.dumps(obj, default=str, allow_nan=False)
     except (ValueError, TypeError, RecursionError) as exc:  # a handler's odd reply
         log.error("ctl_reply_not_json", error=repr(exc))
-        text = json.dumps(_error("internal", f"reply could not be encoded: {exc}"))
+        why = "a value that is not a finite number" if "Out of range float" in str(exc) else exc
+        text = json.dumps(_error("internal", f"reply could not be encoded: {why}"))
     return (text + "\n").encode()
 
 
@@ -999,8 +1021,14 @@ def _request_once(path: Path, cmd: str, timeout_s: float, args: Mapping[str, Any
             return None  # the listen queue is full (EAGAIN)
         except OSError as exc:
             raise CtlUnavailable(f"cannot connect to {path}: {_why(exc)}") from None
+        line = _line({"cmd": cmd, **args})
+        if len(line) > MAX_LINE_BYTES:  # the server would refuse it: say so, send nothing
+            raise CtlError(
+                f"the {cmd} request is {len(line)} bytes, over the control channel's "
+                f"limit of {MAX_LINE_BYTES}"
+            )
         try:
-            sock.sendall(_line({"cmd": cmd, **args}))
+            sock.sendall(line)
             with sock.makefile("rb") as rfile:
                 raw = rfile.readline(MAX_REPLY_BYTES)
         except TimeoutError:

@@ -37,7 +37,13 @@ from config.schema import ProjectConfig
 from ipc_app.control.release import load_pressures_pa, platform_pressures_pa, upper_index
 from ipc_app.model.placement import Pose, design_pose, joint_figures, to_ring_frame
 from ipc_app.planner.placement import PlacementPlan
-from ipc_app.planner.survey import SurveyError, SurveyFit, SurveyPoint, fit_survey
+from ipc_app.planner.survey import (
+    SurveyError,
+    SurveyFit,
+    SurveyPoint,
+    as_built_problems,
+    fit_survey,
+)
 from ipc_app.service.modes import Mode
 from ipc_app.service.worker import PLAN_TARGET_FN, PlannerCallError
 
@@ -386,6 +392,10 @@ class RingCycle:
             out: dict[str, Any] = {"ok": True, "ring": self.ring, "rms_residual_mm": res}
         else:
             assert pose is not None
+            problems = as_built_problems(self.cfg, self.ring, pose)
+            if problems:
+                why = "; ".join(problems)
+                return {"ok": False, "code": "refused", "error": f"survey refused: {why}"}
             self.surveyed = pose
             out = {"ok": True, "ring": self.ring, "source": "store"}
         if self.core.record is not None:

@@ -38,6 +38,7 @@ from acceptance.store import (
     AcceptanceStore,
     RingMeasurement,
     StoreError,
+    check_store,
     default_db_path,
 )
 from config import ProjectConfig, default_project_path, load_project
@@ -286,7 +287,10 @@ def _add(args: argparse.Namespace) -> int:
 
 def _import(args: argparse.Namespace) -> int:
     try:
+        check_store(_db_path(args), create=True)  # usable, but not created yet
         parsed = parse_csv(args.file)  # before the database is opened (or created)
+    except StoreError as exc:
+        raise UsageError(str(exc)) from None
     except CsvFileError as exc:
         raise UsageError(f"{exc} (nothing imported)") from None
     if parsed.errors:  # nothing will be written: no database to open or create

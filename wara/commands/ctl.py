@@ -156,17 +156,16 @@ def _store_pose(db: str | None, ring: int) -> list[float]:
     """The as-built pose attached to ``ring`` in the acceptance store (by ``wara survey
     import --db`` or a cycle's record), mm and deg in the ring's own T, as the six
     numbers the control channel takes (``POSE_DICT_KEYS``)."""
-    from pathlib import Path
-
-    from acceptance.store import AcceptanceStore, default_db_path
+    from acceptance.store import AcceptanceStore, StoreError, default_db_path
     from ipc_app.model.placement import POSE_DICT_KEYS
     from wara.commands.place import attached_pose
 
-    path = Path(db) if db else default_db_path()
-    if not path.exists():
-        raise UsageError(f"{path}: no acceptance store")
-    with AcceptanceStore.open(path, create=False) as store:
-        pose = attached_pose(store, ring)
+    path = db or default_db_path()
+    try:
+        with AcceptanceStore.open(path, create=False) as store:
+            pose = attached_pose(store, ring)
+    except StoreError as exc:
+        raise UsageError(str(exc)) from None
     if pose is None:
         raise UsageError(f"{path}: ring {ring} has no as-built pose (wara survey import --db)")
     d = pose.to_dict()
@@ -176,23 +175,29 @@ def _store_pose(db: str | None, ring: int) -> list[float]:
 def _survey_fields(args: argparse.Namespace) -> dict[str, Any]:
     """``wara ctl survey``'s request: the file's points, or the store's pose for the
     ring the service's cycle is at."""
-    from pathlib import Path
-
-    from ipc_app.planner.survey import SurveyError, parse_survey_text
+    from acceptance.store import StoreError, check_store, default_db_path
+    from ipc_app.planner.survey import SurveyError, read_survey_points
+    from ipc_app.service.ctl import MAX_SURVEY_POINTS
 
     if args.from_store:
+        try:  # the store first: a bad --db asks the service nothing
+            check_store(args.db or default_db_path(), create=False)
+        except StoreError as exc:
+            raise UsageError(str(exc)) from None
         status = request("status", socket_path=getattr(args, "socket", None))
         cyc = status.get("cycle") or {}
         if cyc.get("phase") != "survey":
             raise UsageError("the service's cycle is not waiting for a survey")
         return {"pose": _store_pose(args.db, int(cyc["ring"]))}
     try:
-        text = Path(args.file).read_text(encoding="utf-8")
-        points = parse_survey_text(text, args.file)
-    except OSError as exc:
-        raise UsageError(f"{args.file}: {exc.strerror or exc}") from None
-    except SurveyError as exc:
+        points = read_survey_points(args.file)
+    except SurveyError as exc:  # one line per problem
         raise UsageError(str(exc)) from None
+    if len(points) > MAX_SURVEY_POINTS:
+        raise UsageError(
+            f"{args.file}: {len(points)} points; a survey request carries at most "
+            f"{MAX_SURVEY_POINTS}"
+        )
     return {"points": [[p.name, *p.face, *p.measured] for p in points]}
 
 

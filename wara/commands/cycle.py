@@ -14,7 +14,7 @@ import json
 import sys
 from pathlib import Path
 
-from acceptance.store import default_db_path
+from acceptance.store import StoreError, check_store, default_db_path
 from config import load_project
 from ipc_app.model.placement import Pose
 from wara.cli import EXIT_FAILED, EXIT_INFEASIBLE, EXIT_OK, UsageError
@@ -56,6 +56,11 @@ def run(args: argparse.Namespace) -> int:
     from wara.extras import require_realtime_simulator
 
     dev = Pose() if args.previous_deviation is None else parse_deviation(args.previous_deviation)
+    db_path = Path(args.db) if args.db else default_db_path()
+    try:  # before anything moves: a store that cannot take the records refuses now
+        check_store(db_path, create=True)
+    except StoreError as exc:
+        raise UsageError(str(exc)) from None
     if not args.lockstep:
         require_realtime_simulator()
     from ipc_app.service.logs import configure_logging
@@ -71,7 +76,7 @@ def run(args: argparse.Namespace) -> int:
             args.rings,
             first_ring=args.first_ring,
             previous_deviation=dev,
-            db_path=Path(args.db) if args.db else default_db_path(),
+            db_path=db_path,
             mode="lockstep" if args.lockstep else "realtime",
             seed=args.seed,
             progress=say,

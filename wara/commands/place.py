@@ -19,11 +19,10 @@ from typing import Any
 
 from acceptance.store import AcceptanceStore, StoreError, default_db_path
 from config import load_project, units
-from config.files import InputFileError
 from config.schema import ProjectConfig
 from ipc_app.model.placement import Pose, compose, design_pose, sheet_deviation, to_ring_frame
 from ipc_app.planner.placement import PlacementPlan, plan_from_deviation, plan_target
-from ipc_app.planner.survey import SurveyError, read_survey
+from ipc_app.planner.survey import SurveyError, as_built_problems, read_survey
 from wara.cli import EXIT_FAILED, EXIT_INFEASIBLE, EXIT_OK, UsageError
 from wara.commands.plan import report
 
@@ -130,6 +129,9 @@ def as_built_from_store(cfg: ProjectConfig, store: AcceptanceStore) -> tuple[int
     ring = max(rings)
     pose = attached_pose(store, ring)
     if pose is not None:
+        problems = as_built_problems(cfg, ring, pose)
+        if problems:  # written around this software, or in another frame
+            raise UsageError(f"{store.path}: ring {ring}'s as-built pose: {'; '.join(problems)}")
         return ring, pose
     if ring not in records:
         raise UsageError(f"ring {ring}: neither a survey record nor an as-built pose")
@@ -175,8 +177,8 @@ def run_plan(args: argparse.Namespace) -> int:
         ring = 2 if args.ring is None else args.ring
         try:
             fit = read_survey(cfg, ring - 1, args.survey)
-        except (SurveyError, InputFileError) as exc:
-            raise UsageError(str(exc).replace("\n", "; ")) from None
+        except SurveyError as exc:  # one line per problem
+            raise UsageError(str(exc)) from None
         if not fit.accepted:
             raise UsageError(f"{args.survey}: survey refused: {'; '.join(fit.reasons)}")
         result = plan_target(cfg, to_ring_frame(cfg, fit.pose, ring - 1, ring), ring)

@@ -36,8 +36,17 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def _run(args: argparse.Namespace) -> int:
-    from config import load_project
+    from pathlib import Path
 
+    from acceptance.store import StoreError, check_store, default_db_path
+    from config import load_project
+    from wara.ring_records import StoreRecords
+
+    db = Path(args.db) if args.db else default_db_path()
+    try:  # before the bus, the socket and the OPC UA server: the records' store
+        check_store(db, create=True)
+    except StoreError as exc:
+        raise UsageError(str(exc)) from None
     opcua = None
     if load_project(args.config).opcua.enabled:
         from ipc_app.opcua.process import OpcUaProcess, OpcUaStartError
@@ -48,12 +57,6 @@ def _run(args: argparse.Namespace) -> int:
             opcua.start()
         except OpcUaStartError as exc:
             raise UsageError(str(exc)) from None
-    from pathlib import Path
-
-    from acceptance.store import default_db_path
-    from wara.ring_records import StoreRecords
-
-    db = Path(args.db) if args.db else default_db_path()
     try:
         return run_service(
             args.config,

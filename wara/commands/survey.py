@@ -12,12 +12,10 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
 
 from acceptance.items import check_ring
-from acceptance.store import AcceptanceStore, StoreError
+from acceptance.store import AcceptanceStore, StoreError, check_store
 from config import units
-from config.files import InputFileError
 from ipc_app.planner.survey import SurveyError, SurveyFit, read_survey
 from wara.cli import EXIT_FAILED, EXIT_OK, UsageError
 from wara.commands.place import _placement_config
@@ -53,14 +51,11 @@ def run_import(args: argparse.Namespace) -> int:
         raise UsageError(str(exc)) from None
     cfg = _placement_config(args.config)
     try:
+        if args.db:  # before the fit: a store that cannot be used refuses at once
+            check_store(args.db, create=True)
         fit = read_survey(cfg, args.ring, args.file)
-    except InputFileError as exc:
+    except (SurveyError, StoreError) as exc:  # one line per problem
         raise UsageError(str(exc)) from None
-    except SurveyError as exc:
-        lines = str(exc).splitlines()
-        for line in lines[:-1]:
-            print(f"wara survey: error: {line}", file=sys.stderr)
-        raise UsageError(lines[-1]) from None
     if fit.accepted and args.db:
         try:
             with AcceptanceStore.open(args.db, create=True) as store:
