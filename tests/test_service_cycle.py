@@ -192,6 +192,60 @@ def test_a_stop_in_fixing_ends_the_cycle_holding_safely(tmp_path: Path) -> None:
     assert end["phase"] == "fixing" and end["error"].startswith("stopped")
 
 
+@pytest.mark.slow
+def test_a_refused_survey_leaves_the_cycle_waiting_for_another(tmp_path: Path) -> None:
+    """In ``survey``, through the service's own handlers and the reply encoder: a pose of
+    1e300 (the ``--from-store`` form), points with a coordinate of 1e308 (once answered
+    ``{"ok": true, "rms_residual_mm": NaN}`` and the record never written) and a part
+    turned 15 deg are each refused with their reason; the cycle stays in ``survey`` and
+    takes the good survey that follows, and the record is written."""
+    from ipc_app.service.app import service_handlers
+    from ipc_app.service.ctl import _line
+
+    cfg = load_project(None)
+    h, rec, records, cyc = _cycle_in_fixing(tmp_path)
+    handlers = service_handlers(lambda: h.core, lambda: None, records=records)  # type: ignore[arg-type,return-value]
+
+    def send(req: dict[str, Any]) -> dict[str, Any]:
+        raw = _line(dispatch(handlers, json.dumps(req).encode()))
+        reply: dict[str, Any] = json.loads(raw, parse_constant=lambda c: pytest.fail(c))
+        return reply
+
+    try:
+        h.sim.bolt_part()
+        r, t = pose_from_home(cfg, h.sim.rig)
+        as_built = compose(home_pose(cfg, 2), Pose.from_matrix(r, t))
+        assert h.core.confirm_fixed("operator A")["ok"]
+        _run_until(h, cyc, "survey", limit_s=30.0)
+        pts = simulated_survey(cfg, 2, as_built, np.random.default_rng(0))
+        rows = [[p.name, *p.face, *p.measured] for p in pts]
+        out = send({"cmd": "survey", "pose": [1e300] * 6})
+        assert out["ok"] is False and out["code"] == "refused"
+        assert out["error"].startswith("survey refused: the part is 1.41e+300 mm across")
+        huge = [*rows[:-1], [*rows[-1][:5], 1e308]]
+        out = send({"cmd": "survey", "points": huge})
+        assert out == {
+            "ok": False,
+            "code": "bad_request",
+            "error": f"survey: point {len(rows)}: z_m: 1e+308 m is outside -10000..10000 m",
+        }
+        turned = compose(as_built, Pose(0.0, 0.0, 0.0, 0.0, 0.0, np.radians(15.0)))
+        tp = simulated_survey(cfg, 2, turned, np.random.default_rng(0))
+        out = send({"cmd": "survey", "points": [[p.name, *p.face, *p.measured] for p in tp]})
+        assert out["code"] == "refused" and "turned yaw +15.0 deg" in out["error"]
+        cyc.tick()
+        assert cyc.active and cyc.phase == "survey" and records.written == []
+        good = send({"cmd": "survey", "points": rows})
+        assert good["ok"] is True and 0.0 < good["rms_residual_mm"] < 3.0
+        cyc.tick()
+        assert cyc.done and cyc.error is None
+    finally:
+        h.close()
+        rec.stop()
+    ((ring, values, _attached),) = records.written
+    assert ring == 2 and all(v is None or np.isfinite(v) for v in values.values())
+
+
 def test_cycle_requests_are_checked() -> None:
     ok = parse(b'{"cmd": "cycle", "ring": 5, "previous_deviation": [6, -6, 0, 0, 0.03]}')
     assert ok == Request("cycle", (5, (6.0, -6.0, 0.0, 0.0, 0.03), None, True))

@@ -256,6 +256,11 @@ def parse_survey_text(text: str, source: str = "<survey>") -> list[SurveyPoint]:
     return points
 
 
+def _brief(v: float) -> str:
+    """A figure for a message: whole units, or three digits when it is huge."""
+    return f"{v:.0f}" if abs(v) < 1e6 else f"{v:.3g}"
+
+
 def as_built_problems(cfg: ProjectConfig, ring: int, pose: Pose) -> list[str]:
     """Why ``pose`` (in ring ``ring``'s own tunnel frame) is not a plausible as-built pose
     of that ring's part (empty: it is): not finite, or further from the ring's design
@@ -272,7 +277,7 @@ def as_built_problems(cfg: ProjectConfig, ring: int, pose: Pose) -> list[str]:
     out: list[str] = []
     if off > PLAUSIBLE_DEVIATION_MM or along > cfg.tunnel.ring_width_m / 2.0:
         out.append(
-            f"the part is {off:.0f} mm across and {units.to_mm(along):.0f} mm along "
+            f"the part is {_brief(off)} mm across and {_brief(units.to_mm(along))} mm along "
             f"the axis off its design position in ring {ring} (limits "
             f"{PLAUSIBLE_DEVIATION_MM:g} mm across, half a ring along: another ring's "
             "survey, or another frame?)"

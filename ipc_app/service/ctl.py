@@ -1002,6 +1002,13 @@ def request(
 
 def _request_once(path: Path, cmd: str, timeout_s: float, args: Mapping[str, Any]) -> Reply | None:
     """One attempt; None when the listen queue is full (try again)."""
+    # as given (NaN included: the server's checks answer it); replies are strict
+    line = (json.dumps({"cmd": cmd, **args}, default=str) + "\n").encode()
+    if len(line) > MAX_LINE_BYTES:  # the server would refuse it: say so, send nothing
+        raise CtlError(
+            f"the {cmd} request is {len(line)} bytes, over the control channel's "
+            f"limit of {MAX_LINE_BYTES}"
+        )
     sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
     sock.settimeout(timeout_s)
     try:
@@ -1021,12 +1028,6 @@ def _request_once(path: Path, cmd: str, timeout_s: float, args: Mapping[str, Any
             return None  # the listen queue is full (EAGAIN)
         except OSError as exc:
             raise CtlUnavailable(f"cannot connect to {path}: {_why(exc)}") from None
-        line = _line({"cmd": cmd, **args})
-        if len(line) > MAX_LINE_BYTES:  # the server would refuse it: say so, send nothing
-            raise CtlError(
-                f"the {cmd} request is {len(line)} bytes, over the control channel's "
-                f"limit of {MAX_LINE_BYTES}"
-            )
         try:
             sock.sendall(line)
             with sock.makefile("rb") as rfile:
