@@ -91,7 +91,7 @@ def check_store(path: str | Path, *, create: bool) -> Path:
     p = Path(path)
     try:
         st = os.stat(p)
-    except FileNotFoundError:
+    except (FileNotFoundError, NotADirectoryError):  # not there (or under a file)
         st = None
     except OSError as exc:
         raise StoreError(f"{p}: cannot use as acceptance database: {exc.strerror}") from None
@@ -105,7 +105,9 @@ def check_store(path: str | Path, *, create: bool) -> Path:
         while not parent.exists() and parent != parent.parent:
             parent = parent.parent
         if not parent.is_dir():
-            raise StoreError(f"{p}: cannot create the acceptance database: {parent} is a file")
+            raise StoreError(
+                f"{p}: cannot create the acceptance database: {parent} is not a directory"
+            )
         if not os.access(parent, os.W_OK | os.X_OK):
             raise StoreError(
                 f"{p}: cannot create the acceptance database: no permission to write in {parent}"
