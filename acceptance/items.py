@@ -20,8 +20,11 @@ from __future__ import annotations
 import re
 from dataclasses import dataclass
 
-#: A value as the survey writes it: ASCII, optional sign, decimal point and exponent.
-NUMBER_SYNTAX = re.compile(r"[+-]?(?:[0-9]+(?:\.[0-9]*)?|\.[0-9]+)(?:[eE][+-]?[0-9]{1,3})?")
+from config.numbers import DECIMAL_SYNTAX
+
+#: A value as the survey writes it: ASCII, optional sign, decimal point and exponent
+#: (the one number syntax of the code, :mod:`config.numbers`).
+NUMBER_SYNTAX = DECIMAL_SYNTAX
 #: A ring number: ASCII digits only.
 RING_SYNTAX = re.compile(r"[0-9]{1,9}")
 #: The highest ring number (a 2 m ring: 200 km of tunnel).

@@ -158,11 +158,28 @@ def _lookup(data: Any, loc: tuple[int | str, ...]) -> tuple[bool, Any]:
     return True, cur
 
 
+def _data_loc(loc: tuple[int | str, ...], data: Any) -> tuple[int | str, ...]:
+    """``loc`` without pydantic's own parts (``function-after[...]``, a union member's
+    type): a part with ``[`` is kept only when it is a key of the data at that place (a
+    campaign's dispersion ``cog_m[0]``)."""
+    out: list[int | str] = []
+    cur: Any = data
+    for part in loc:
+        is_key = isinstance(cur, dict) and part in cur
+        if is_key or not (isinstance(part, str) and "[" in part):
+            out.append(part)
+            try:
+                cur = cur[part]
+            except (KeyError, IndexError, TypeError):
+                cur = None
+    return tuple(out)
+
+
 def format_validation_error(source: str, exc: ValidationError, data: Any) -> str:
     """One line per problem: ``file: key.path: got VALUE: expected ...``."""
     lines = []
     for err in exc.errors(include_url=False):
-        loc = tuple(p for p in err["loc"] if not (isinstance(p, str) and "[" in p))
+        loc = _data_loc(err["loc"], data)
         path = _key_path(loc)
         kind = err["type"]
         msg = err["msg"]

@@ -183,6 +183,32 @@ def test_bounds_redraw_inside_min_max(tmp_path: Path) -> None:
             {"dispersions": {"a.b": {"dist": "uniform", "low": 2, "high": 1}}},
             "low (2.0) must be below high (1.0)",
         ),
+        (
+            {
+                "dispersions": {
+                    "layers.upper.bodies[0].cog_m[0]": {
+                        "dist": "normal",
+                        "mean": 0.0,
+                        "std": 0.1,
+                        "min": 5,
+                        "max": 6,
+                    }
+                }
+            },
+            "dispersions.layers.upper.bodies[0].cog_m[0]: min/max keep 0.00% of the normal "
+            "draws (mean 0.0, std 0.1); at least 2% are needed",
+        ),
+        (
+            {
+                "events": [
+                    {
+                        "event": {"kind": "drop"},
+                        "start_s": {"dist": "choice", "values": [1, 2], "min": 3, "max": 4},
+                    }
+                ]
+            },
+            "events[0].start_s: min/max keep 0.00% of the choice draws",
+        ),
         ({"requirement": {"limits": {"speed": 1}}}, "limits: unknown figure 'speed'"),
         ({"requirement": {"probability": 1.0}}, "requirement.probability"),
         ({"tune": {"parameters": {"planner.min_rod_force_kn": [1, 5]}}}, "only control.* keys"),

@@ -268,7 +268,7 @@ def test_place_plan_json_and_exit_codes() -> None:
     assert code == 3 and d["binding"]["limit"] == "centreline_deviation_y_mm"
     assert d["binding"]["exceeded_by"] == pytest.approx(2.0, abs=1e-3)
     code, _, err = run_main(["place", "plan", "--previous-deviation", "1,2,3"])
-    assert code == 2 and "five finite numbers" in err
+    assert code == 2 and "expects five numbers" in err
 
 
 def test_survey_import_attaches_the_pose_that_place_plan_builds_on(

@@ -229,7 +229,7 @@ def _wara(*args: str) -> subprocess.CompletedProcess[str]:
     ("args", "code", "text"),
     [
         (("--rings", "0"), 2, "--rings must be within 1..50, got 0"),
-        (("--previous-deviation", "1,2"), 2, "five finite numbers"),
+        (("--previous-deviation", "1,2"), 2, "expects five numbers"),
         (("--previous-deviation", "9,-9,0,0,0"), 3, "7.000, limit 5, exceeded by 2.000"),
     ],
 )

@@ -327,7 +327,7 @@ def test_wara_ctl_cycle_bad_input_exits_2_before_anything_is_sent(
     for argv, text in [
         (["ctl", "cycle", "--ring", "1"], "--ring must be within 2..99999, got 1"),
         (["ctl", "cycle", "--ring", "3", "--walk-steps", "-1"], "--walk-steps must be within"),
-        (["ctl", "cycle", "--ring", "3", "--previous-deviation", "1,2"], "five finite numbers"),
+        (["ctl", "cycle", "--ring", "3", "--previous-deviation", "1,2"], "expects five numbers"),
         (
             ["ctl", "cycle", "--ring", "3", "--from-store", "--db", str(tmp_path / "x.sqlite")],
             "no acceptance database here",

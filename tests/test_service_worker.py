@@ -257,3 +257,36 @@ def test_the_planner_process_ends_when_the_service_is_killed(tmp_path: Path) -> 
         time.sleep(0.1)
     os.kill(pid, signal.SIGKILL)
     raise AssertionError(f"planner process {pid} still runs {WAIT_S} s after the service died")
+
+
+@pytest.mark.slow
+def test_ctrl_c_of_wara_serve_ends_it_without_a_traceback(tmp_path: Path) -> None:
+    """Ctrl-C in a terminal is SIGINT to the whole process group: the service and its
+    planner process. The service stops in order (exit 0); the planner process printed
+    a KeyboardInterrupt traceback."""
+    import signal
+    import subprocess
+    import sys
+
+    err_path = tmp_path / "stderr.txt"
+    with err_path.open("w") as err:
+        proc = subprocess.Popen(
+            [sys.executable, "-m", "wara", "serve", "--socket", str(tmp_path / "c.sock"),
+             "--db", str(tmp_path / "a.sqlite")],
+            stdout=subprocess.DEVNULL, stderr=err, cwd=tmp_path, start_new_session=True,
+            env={**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1])},
+        )  # fmt: skip
+        try:
+            end = time.monotonic() + WAIT_S
+            while "planner_ready" not in err_path.read_text() and time.monotonic() < end:
+                assert proc.poll() is None, err_path.read_text()
+                time.sleep(0.2)
+            assert "planner_ready" in err_path.read_text()
+            os.killpg(proc.pid, signal.SIGINT)
+            assert proc.wait(WAIT_S) == 0
+        finally:
+            with contextlib.suppress(ProcessLookupError):
+                os.killpg(proc.pid, signal.SIGKILL)
+    text = err_path.read_text()
+    assert "service_stopped" in text
+    assert "Traceback" not in text and "KeyboardInterrupt" not in text, text

@@ -15,8 +15,10 @@ import importlib
 import os
 import sys
 from collections.abc import Sequence
+from typing import Any
 
 from config import ConfigError
+from config.numbers import NEGATIVE_NUMBER
 
 EXIT_OK = 0
 EXIT_FAILED = 1
@@ -54,6 +56,16 @@ class UsageError(Exception):
 
 
 class _Parser(argparse.ArgumentParser):
+    """The parser of ``wara`` and of every verb under it (subparsers take its class).
+
+    ``-1e9`` is a value, not an option: argparse's own test of a negative number knows
+    no exponent (``--distance-mm -1e9`` was "expected one argument"); this one is the
+    full decimal spelling of :mod:`config.numbers`."""
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        self._negative_number_matcher = NEGATIVE_NUMBER
+
     def error(self, message: str) -> None:  # type: ignore[override]
         # One line, exit 2: what argparse does, minus the usage block.
         self.exit(EXIT_USAGE, f"{self.prog}: error: {message}\n")

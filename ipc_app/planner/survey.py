@@ -40,7 +40,7 @@ from typing import Any
 
 import numpy as np
 
-from config import units
+from config import numbers, units
 from config.files import InputFileError, read_text_file
 from config.schema import AlignmentPoint, CoordM, ProjectConfig
 from ipc_app.model.placement import (
@@ -97,23 +97,10 @@ class SurveyError(Exception):
     file's line number where a row is at fault)."""
 
 
-def _shown(text: str) -> str:
-    """A user's text in a message: escaped (``repr``) and at most 40 characters."""
-    return repr(text) if len(text) <= 40 else repr(text[:37]) + "..."
-
-
 def check_name(name: str) -> str:
-    """A point's name, or ValueError: 1..MAX_NAME_CHARS printable characters."""
-    if not isinstance(name, str) or not name.strip():
-        raise ValueError("point: empty name")
-    if len(name) > MAX_NAME_CHARS:
-        raise ValueError(f"point: name {_shown(name)} longer than {MAX_NAME_CHARS} characters")
-    bad = next((c for c in name if not c.isprintable()), None)
-    if bad is not None:
-        raise ValueError(
-            f"point: name {_shown(name)} contains the control character U+{ord(bad):04X}"
-        )
-    return name
+    """A point's name, or ValueError: a name of 1..MAX_NAME_CHARS characters
+    (:func:`config.numbers.check_name`: no control, format or line-break character)."""
+    return numbers.check_name(name, "point: name", MAX_NAME_CHARS)
 
 
 def check_coordinate(column: str, value: float) -> float:
@@ -171,12 +158,11 @@ class SurveyFit:
 
 
 def _number(text: str, column: str) -> float:
+    """A cell in the one decimal syntax (:func:`config.numbers.parse_decimal`), in range."""
     try:
-        v = float(text)
-    except ValueError:
-        raise ValueError(f"{column}: {_shown(text.strip())} is not a number") from None
-    if not math.isfinite(v) or "_" in text:
-        raise ValueError(f"{column}: {_shown(text.strip())} is not a finite number")
+        v = numbers.parse_decimal(text.strip())
+    except ValueError as exc:
+        raise ValueError(f"{column}: {exc}") from None
     return check_coordinate(column, v)
 
 

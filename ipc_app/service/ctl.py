@@ -92,6 +92,8 @@ from typing import Any
 
 import structlog
 
+from config.numbers import check_name, check_text
+
 log = structlog.get_logger("wara.service.ctl")
 
 SOCKET_NAME = "ctl.sock"
@@ -209,10 +211,10 @@ def _number(req: Mapping[str, Any], key: str, unit: str = "degrees") -> float:
 
 
 def _name(req: Mapping[str, Any], key: str) -> str:
-    v = req.get(key)
-    if not isinstance(v, str) or not 0 < len(v) <= MAX_ID_CHARS:
-        raise ValueError(f"{key!r} must be a name of 1..{MAX_ID_CHARS} characters, got {_brief(v)}")
-    return v
+    """``req[key]``: a name of 1..MAX_ID_CHARS characters, no control, format or
+    line-break character (:func:`config.numbers.check_name`: it goes into the audit
+    trail as it is)."""
+    return check_name(req.get(key), repr(key), MAX_ID_CHARS)
 
 
 def _brief(v: Any) -> str:
@@ -259,10 +261,7 @@ def parse(line: bytes) -> Request | Reply:
     if cmd == "audit":
         try:
             result = req.get("result")
-            if not isinstance(result, str) or len(result) > MAX_AUDIT_CHARS:
-                raise ValueError(
-                    f"'result' must be a string of at most {MAX_AUDIT_CHARS} characters"
-                )
+            check_text(result, "'result'", MAX_AUDIT_CHARS)
             return Request(cmd, (_name(req, "user"), _name(req, "action"), result))
         except ValueError as exc:
             return _error("bad_request", str(exc))

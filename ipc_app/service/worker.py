@@ -53,6 +53,7 @@ import multiprocessing as mp
 import multiprocessing.connection as mpc
 import os
 import queue
+import signal
 import threading
 import time
 from collections.abc import Callable, Sequence
@@ -196,7 +197,11 @@ def _alive(pid: int) -> bool:
 def _child_main(
     config_path: str | None, plan_fn: str, requests: Any, results: Any, owner_pid: int
 ) -> None:
-    """The worker process: load the config once, then plan requests until ``None``."""
+    """The worker process: load the config once, then plan requests until ``None``.
+
+    SIGINT is ignored: a Ctrl-C in the terminal reaches the whole process group, and the
+    service, not this process, decides when it ends (``None``, or its owner gone)."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
     try:
         cfg = load_project(config_path)
         fn = _resolve(plan_fn)

@@ -81,11 +81,18 @@ def figure_margin(name: str, value: float, limit: float) -> float:
     return value / limit - 1.0 if name in HIGHER_IS_BETTER else 1.0 - value / limit
 
 
+#: A bounded draw is drawn again while outside its min/max, at most this often ...
+MAX_REDRAWS = 1000
+#: ... so min/max must keep at least this share of the raw draws (checked at load).
+MIN_KEPT_SHARE = 0.02
+
+
 class Distribution(Strict):
     """One random value. ``normal`` (``mean``, ``std``), ``uniform`` (``low``,
     ``high``), ``triangular`` (``low``, ``mode``, ``high``), ``lognormal`` (``mean``
     and ``std`` of the log), ``choice`` (``values``). ``min``/``max`` bound a draw
-    (redrawn until inside, at most 1000 times). ``factor: true``: the draw multiplies
+    (redrawn until inside, at most MAX_REDRAWS times; bounds that keep less than
+    MIN_KEPT_SHARE of the draws are refused at load). ``factor: true``: the draw multiplies
     the project's nominal value instead of replacing it."""
 
     dist: Literal["normal", "uniform", "triangular", "lognormal", "choice"]
@@ -128,16 +135,49 @@ class Distribution(Strict):
             raise ValueError("mode must lie between low and high")
         if self.min is not None and self.max is not None and not self.min < self.max:
             raise ValueError(f"min ({self.min}) must be below max ({self.max})")
+        kept = self.kept_share()
+        if kept < MIN_KEPT_SHARE:
+            raise ValueError(
+                f"min/max keep {kept:.2%} of the {self.dist} draws ({self._shape()}); at "
+                f"least {MIN_KEPT_SHARE:.0%} are needed (a draw outside is drawn again, at "
+                f"most {MAX_REDRAWS} times): widen min/max or move the distribution"
+            )
         return self
 
+    def _shape(self) -> str:
+        keys = {"normal": "mean std", "lognormal": "mean std", "uniform": "low high",
+                "triangular": "low mode high", "choice": "values"}[self.dist]  # fmt: skip
+        return ", ".join(f"{k} {getattr(self, k)}" for k in keys.split())
+
+    def kept_share(self) -> float:
+        """The share of raw draws inside min/max (1.0 without bounds)."""
+        lo = -math.inf if self.min is None else self.min
+        hi = math.inf if self.max is None else self.max
+        if self.dist == "choice":
+            vals: list[float] = list(self.values or [])
+            return sum(lo <= v <= hi for v in vals) / max(1, len(vals))
+        from scipy import stats
+
+        frozen = {
+            "normal": lambda: stats.norm(self.mean, self.std),
+            "lognormal": lambda: stats.lognorm(s=self.std, scale=math.exp(self.mean or 0.0)),
+            "uniform": lambda: stats.uniform(self.low, (self.high or 0) - (self.low or 0)),
+            "triangular": lambda: stats.triang(
+                ((self.mode or 0) - (self.low or 0)) / ((self.high or 0) - (self.low or 0)),
+                loc=self.low,
+                scale=(self.high or 0) - (self.low or 0),
+            ),
+        }[self.dist]()
+        return float(frozen.cdf(hi) - frozen.cdf(lo))
+
     def draw(self, rng: np.random.Generator) -> float:
-        for _ in range(1000):
+        for _ in range(MAX_REDRAWS):
             v = self._draw_once(rng)
             if (self.min is None or v >= self.min) and (self.max is None or v <= self.max):
                 return v
-        raise ConfigError(
-            f"a {self.dist} draw fell outside min/max 1000 times: the bounds exclude the "
-            "distribution"
+        raise ConfigError(  # (1 - MIN_KEPT_SHARE) ** MAX_REDRAWS: about 2e-9
+            f"a {self.dist} draw ({self._shape()}) fell outside min {self.min} / max "
+            f"{self.max} {MAX_REDRAWS} times"
         )
 
     def _draw_once(self, rng: np.random.Generator) -> float:

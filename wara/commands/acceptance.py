@@ -43,6 +43,7 @@ from acceptance.store import (
 )
 from config import ProjectConfig, default_project_path, load_project
 from config.files import InputFileError, read_input_file
+from config.numbers import argument_type
 from wara.cli import EXIT_FAILED, EXIT_OK, EXIT_USAGE, UsageError
 from wara.extras import require
 
@@ -50,6 +51,7 @@ from wara.extras import require
 MAX_JSON_BYTES = 1024 * 1024
 
 
+@argument_type
 def _ring_arg(text: str) -> int:
     """argparse type of a ring number: the CSV's syntax (no ``1_0``, no other scripts)."""
     try:
@@ -61,6 +63,7 @@ def _ring_arg(text: str) -> int:
 def _value_arg(item: ControlItem) -> Callable[[str], float]:
     """argparse type of an item's value: the CSV's number syntax and plausible range."""
 
+    @argument_type
     def parse(text: str) -> float:
         try:
             return item.parse(text)

@@ -11,6 +11,8 @@ import importlib
 import json
 from typing import Any
 
+from config.numbers import integer
+
 #: benchmark name -> "module:function"; the function takes the parsed args and returns
 #: a JSON-serialisable dict.
 BENCHES: dict[str, str] = {
@@ -35,7 +37,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--quick", action="store_true", help="smaller run, for smoke tests")
     p.add_argument(
         "--runs",
-        type=int,
+        type=integer,
         default=None,
         metavar="N",
         help="demo: how many runs (default 5); step with --baseline: rounds (default 5)",

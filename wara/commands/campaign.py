@@ -10,6 +10,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from config.numbers import integer
 from wara.cli import EXIT_FAILED, EXIT_OK, UsageError
 from wara.extras import require_campaign
 
@@ -26,7 +27,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     where.add_argument("--resume", metavar="DIR", help="run only the runs missing in DIR")
     eng = r.add_mutually_exclusive_group()
     eng.add_argument("--scheduler", metavar="ADDR", help="a running Dask scheduler")
-    eng.add_argument("--workers", type=int, metavar="N", help="local worker processes")
+    eng.add_argument("--workers", type=integer, metavar="N", help="local worker processes")
     r.add_argument("--json", action="store_true", help="print the outcome as JSON")
     r.set_defaults(func=_run)
 
@@ -38,7 +39,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
     rp = verbs.add_parser("replay", help="run one run of a campaign again, with plots")
     rp.add_argument("dir", metavar="DIR")
-    rp.add_argument("run", type=int, metavar="RUN")
+    rp.add_argument("run", type=integer, metavar="RUN")
     rp.add_argument("--plot", metavar="OUTDIR", help="write OUTDIR/demo.png")
     rp.add_argument("--json", action="store_true")
     rp.set_defaults(func=_replay)
@@ -48,9 +49,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     t.add_argument("--out", metavar="DIR", required=True, help="a directory per trial")
     eng = t.add_mutually_exclusive_group()
     eng.add_argument("--scheduler", metavar="ADDR")
-    eng.add_argument("--workers", type=int, metavar="N")
-    t.add_argument("--trials", type=int, metavar="N", help="default: the spec's tune.trials")
-    t.add_argument("--runs", type=int, metavar="N", help="runs per trial (default: spec's)")
+    eng.add_argument("--workers", type=integer, metavar="N")
+    t.add_argument("--trials", type=integer, metavar="N", help="default: the spec's tune.trials")
+    t.add_argument("--runs", type=integer, metavar="N", help="runs per trial (default: spec's)")
     t.add_argument("--json", action="store_true")
     t.set_defaults(func=_tune)
 

@@ -19,6 +19,7 @@ from typing import Any
 import can
 
 from config import load_project
+from config.numbers import decimal, integer, integers
 from plc_bridge import BusOpenError, FrameCodec, bus_load, load_catalog, open_bus
 from wara.cli import EXIT_FAILED, EXIT_OK, UsageError
 
@@ -36,6 +37,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     b.add_argument("--json", action="store_true", help="print JSON")
     b.add_argument(
         "--active",
+        type=integers(),
         default=None,
         help="comma-separated can_index list of the active group (default: can.active_groups)",
     )
@@ -48,29 +50,22 @@ def register(sub: argparse._SubParsersAction) -> None:
 
     d = verbs.add_parser("dump", help="decode live traffic with names, units and E2E status")
     d.add_argument("--config", default=None, help="project YAML (default: shipped project)")
-    d.add_argument("--count", type=int, default=None, help="stop after N frames")
-    d.add_argument("--duration", type=float, default=None, help="stop after S seconds")
+    d.add_argument("--count", type=integer, default=None, help="stop after N frames")
+    d.add_argument("--duration", type=decimal, default=None, help="stop after S seconds")
     d.add_argument("--json", action="store_true", help="one JSON object per frame")
     d.set_defaults(func=_dump)
 
     r = verbs.add_parser("record", help="write live traffic to a python-can log (.blf/.asc/.log)")
     r.add_argument("file", help="output file; the suffix picks the format")
     r.add_argument("--config", default=None, help="project YAML (default: shipped project)")
-    r.add_argument("--count", type=int, default=None, help="stop after N frames")
-    r.add_argument("--duration", type=float, default=None, help="stop after S seconds")
+    r.add_argument("--count", type=integer, default=None, help="stop after N frames")
+    r.add_argument("--duration", type=decimal, default=None, help="stop after S seconds")
     r.set_defaults(func=_record)
 
 
 def _busload(args: argparse.Namespace) -> int:
     cfg = load_project(args.config)
-    active = None
-    if args.active is not None:
-        try:
-            active = [int(x) for x in args.active.split(",") if x.strip()]
-        except ValueError:
-            raise UsageError(
-                f"--active: expected can_index numbers like 0,1,2,3, got {args.active!r}"
-            ) from None
+    active = None if args.active is None else list(args.active)
     if args.walk:
         return _walk_busload(cfg, args.json)
     load = bus_load(cfg, active)

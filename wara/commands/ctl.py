@@ -28,6 +28,7 @@ import math
 import sys
 from typing import Any
 
+from config.numbers import decimal, integer, name
 from ipc_app.service.ctl import CtlError, request
 from wara.cli import EXIT_FAILED, EXIT_INFEASIBLE, EXIT_OK, UsageError, check_walk_steps
 
@@ -50,9 +51,11 @@ def register(sub: argparse._SubParsersAction) -> None:
     verbs = p.add_subparsers(dest="verb", metavar="VERB", parser_class=type(p))
     verbs.required = True
     adj = verbs.add_parser("adjust", parents=[common], help="plan and run an adjustment")
-    adj.add_argument("--roll-deg", type=float, required=True, help="target workpiece roll, deg")
-    adj.add_argument("--pitch-deg", type=float, required=True, help="target workpiece pitch, deg")
-    adj.add_argument("--timeout-s", type=float, default=60.0, help="wait this long for the answer")
+    adj.add_argument("--roll-deg", type=decimal, required=True, help="target workpiece roll, deg")
+    adj.add_argument("--pitch-deg", type=decimal, required=True, help="target workpiece pitch, deg")
+    adj.add_argument(
+        "--timeout-s", type=decimal, default=60.0, help="wait this long for the answer"
+    )
     verbs.add_parser("status", parents=[common], help="mode, faults, loop statistics")
     verbs.add_parser("stop", parents=[common], help="controlled stop: valves closed, load held")
     verbs.add_parser(
@@ -64,10 +67,12 @@ def register(sub: argparse._SubParsersAction) -> None:
     um = verbs.add_parser("unit-mode", parents=[common], help="PackML unit mode")
     um.add_argument("unit_mode", choices=("PRODUCTION", "MAINTENANCE", "MANUAL"))
     jog = verbs.add_parser("jog", parents=[common], help="MANUAL: move one cylinder slowly")
-    jog.add_argument("--cylinder", required=True, help="attitude cylinder id, e.g. main_leg_1")
-    jog.add_argument("--distance-mm", type=float, required=True, help="rod travel, mm (+ out)")
+    jog.add_argument(
+        "--cylinder", type=name, required=True, help="attitude cylinder id, e.g. main_leg_1"
+    )
+    jog.add_argument("--distance-mm", type=decimal, required=True, help="rod travel, mm (+ out)")
     walk = verbs.add_parser("walk", parents=[common], help="walk N steps (planned first)")
-    walk.add_argument("--steps", type=int, required=True, help="number of steps (1..1000)")
+    walk.add_argument("--steps", type=integer, required=True, help="number of steps (1..1000)")
     walk.add_argument(
         "--direction",
         default="forward",
@@ -81,7 +86,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     place = verbs.add_parser(
         "place", parents=[common], help="place ring N's part at its planned target pose"
     )
-    place.add_argument("--ring", type=int, required=True, help="the ring being built (1..99999)")
+    place.add_argument(
+        "--ring", type=integer, required=True, help="the ring being built (1..99999)"
+    )
     place.add_argument(
         "--previous-deviation",
         default=None,
@@ -91,7 +98,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     cyc = verbs.add_parser(
         "cycle", parents=[common], help="ring N's cycle: walk, place, fixing, ... walk back"
     )
-    cyc.add_argument("--ring", type=int, required=True, help="the ring being built (2..99999)")
+    cyc.add_argument("--ring", type=integer, required=True, help="the ring being built (2..99999)")
     prev = cyc.add_mutually_exclusive_group()
     prev.add_argument(
         "--previous-deviation",
@@ -106,7 +113,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     cyc.add_argument("--db", default=None, metavar="PATH", help="acceptance store to read")
     cyc.add_argument(
-        "--walk-steps", type=int, default=None, help="steps to the ring (default cycle.walk_steps)"
+        "--walk-steps",
+        type=integer,
+        default=None,
+        help="steps to the ring (default cycle.walk_steps)",
     )
     cyc.add_argument(
         "--walk-back-loaded",
@@ -116,7 +126,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     fixed = verbs.add_parser(
         "confirm-fixed", parents=[common], help="the cycle's part is fixed: release it"
     )
-    fixed.add_argument("--user", required=True, help="who confirms (audited)")
+    fixed.add_argument("--user", type=name, required=True, help="who confirms (audited)")
     survey = verbs.add_parser(
         "survey", parents=[common], help="the cycle's survey: a total-station file or the store"
     )

@@ -16,6 +16,7 @@ from pathlib import Path
 
 from acceptance.store import StoreError, check_store, default_db_path
 from config import load_project
+from config.numbers import integer
 from ipc_app.model.placement import Pose
 from wara.cli import EXIT_FAILED, EXIT_INFEASIBLE, EXIT_OK, UsageError
 
@@ -27,8 +28,8 @@ def register(sub: argparse._SubParsersAction) -> None:
         description="Ring cycles on the HIL simulator and the IPC service (docs/placement.md).",
     )
     p.add_argument("--config", default=None, metavar="PATH", help="project YAML")
-    p.add_argument("--rings", type=int, default=1, help="number of rings (1..50)")
-    p.add_argument("--first-ring", type=int, default=2, help="the first ring built (2..99999)")
+    p.add_argument("--rings", type=integer, default=1, help="number of rings (1..50)")
+    p.add_argument("--first-ring", type=integer, default=2, help="the first ring built (2..99999)")
     p.add_argument(
         "--previous-deviation",
         default=None,
@@ -36,7 +37,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="the part before the first ring: its deviation from its design (default none)",
     )
     p.add_argument("--db", default=None, metavar="PATH", help="acceptance store (records)")
-    p.add_argument("--seed", type=int, default=0, help="the simulated survey's noise")
+    p.add_argument("--seed", type=integer, default=0, help="the simulated survey's noise")
     p.add_argument("--lockstep", action="store_true", help="simulated time in one thread")
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.set_defaults(func=run)

@@ -23,6 +23,7 @@ import json
 from pathlib import Path
 from typing import Any
 
+from config.numbers import decimal, integer
 from wara.cli import EXIT_FAILED, EXIT_INFEASIBLE, EXIT_OK, EXIT_USAGE, UsageError
 from wara.extras import require, require_realtime_simulator
 
@@ -43,7 +44,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.add_argument(
         "--rings",
-        type=int,
+        type=integer,
         default=None,
         metavar="N",
         help="ring cycles to run (default 4: rings 2-5, ring 1 6 mm off the design axis)",
@@ -95,7 +96,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument(
         "--settle-s",
-        type=float,
+        type=decimal,
         default=None,
         metavar="S",
         help="--two-process: seconds each target is held before its figures are read "
@@ -103,7 +104,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument(
         "--examples",
-        type=int,
+        type=integer,
         default=None,
         metavar="N",
         help="--attitude: run only the first N examples (a shorter run)",
@@ -116,7 +117,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         "a demo operator user and its password file; needs the opcua extra)",
     )
     # Hidden: for tests and the re-execution inside the namespace.
-    p.add_argument("--min-run-s", type=float, default=None, help=argparse.SUPPRESS)
+    p.add_argument("--min-run-s", type=decimal, default=None, help=argparse.SUPPRESS)
     p.add_argument("--inside-netns", default=None, metavar="DIR", help=argparse.SUPPRESS)
     p.add_argument("--keep-dir", default=None, metavar="DIR", help=argparse.SUPPRESS)
     p.set_defaults(func=_run)

@@ -30,6 +30,7 @@ from typing import Any
 from config import load_project
 from config.hil_scenario import EVENT_KINDS, HilScenario, load_hil_scenario
 from config.loader import parse_yaml_text, validate_data
+from config.numbers import decimal, integer
 from ipc_app.service.sdnotify import SystemdNotifier
 from plc_bridge.errors import BridgeError
 from wara.cli import UsageError
@@ -43,8 +44,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     mode = p.add_mutually_exclusive_group()
     mode.add_argument("--realtime", action="store_true", help="pace by the wall clock (default)")
     mode.add_argument("--lockstep", action="store_true", help="virtual time, as fast as possible")
-    p.add_argument("--duration", type=float, default=None, help="simulated seconds to run")
-    p.add_argument("--seed", type=int, default=None, help="overrides the scenario's seed")
+    p.add_argument("--duration", type=decimal, default=None, help="simulated seconds to run")
+    p.add_argument("--seed", type=integer, default=None, help="overrides the scenario's seed")
     p.add_argument(
         "--fault",
         action="append",
@@ -53,7 +54,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         help=f"add an event as in the scenario's events list; kinds: {', '.join(EVENT_KINDS)}",
     )
     p.add_argument(
-        "--status-interval", type=float, default=1.0, help="seconds between status lines"
+        "--status-interval", type=decimal, default=1.0, help="seconds between status lines"
     )
     p.add_argument("--quiet", action="store_true", help="no status line")
     p.add_argument(

@@ -14,11 +14,11 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 from typing import Any
 
 from acceptance.store import AcceptanceStore, StoreError, default_db_path
 from config import load_project, units
+from config.numbers import integer, parse_decimals
 from config.schema import ProjectConfig
 from ipc_app.model.placement import Pose, compose, design_pose, sheet_deviation, to_ring_frame
 from ipc_app.planner.placement import PlacementPlan, plan_from_deviation, plan_target
@@ -43,7 +43,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     plan.add_argument("--config", default=None, help="project YAML (default: shipped Shanghai)")
     plan.add_argument(
         "--ring",
-        type=int,
+        type=integer,
         default=None,
         help="the ring to place (default 2; with --from-store: the next)",
     )
@@ -66,7 +66,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         "judge the simulator's truth against the goals.",
     )
     run.add_argument("--config", default=None, help="project YAML (default: shipped Shanghai)")
-    run.add_argument("--ring", type=int, default=2, help="the ring to place (default 2)")
+    run.add_argument("--ring", type=integer, default=2, help="the ring to place (default 2)")
     run.add_argument(
         "--previous-deviation",
         default=None,
@@ -88,16 +88,12 @@ def _placement_config(path: str | None) -> ProjectConfig:
 
 
 def parse_deviation(text: str) -> Pose:
-    parts = [s.strip() for s in text.split(",")]
     try:
-        v = [float(s) for s in parts]
-    except ValueError:
-        v = []
-    if len(v) != 5 or not all(math.isfinite(x) for x in v):
+        v = parse_decimals(text, 5)
+    except ValueError as exc:
         raise UsageError(
-            f"--previous-deviation expects five finite numbers "
-            f"Y_MM,Z_MM,ROLL_DEG,PITCH_DEG,YAW_DEG, got {text!r}"
-        )
+            f"--previous-deviation expects five numbers Y_MM,Z_MM,ROLL_DEG,PITCH_DEG,YAW_DEG: {exc}"
+        ) from None
     if max(abs(v[0]), abs(v[1])) > 50 or max(abs(x) for x in v[2:]) > 10:
         raise UsageError("--previous-deviation: at most 50 mm and 10 deg (a typo, not a survey)")
     return sheet_deviation(*v)

@@ -17,6 +17,7 @@ from collections.abc import Callable
 from typing import Any
 
 from config import load_project, units
+from config.numbers import decimal, integer, parse_decimals
 from ipc_app.planner import METHODS, OBJECTIVES, Plan, plan
 from wara.cli import EXIT_INFEASIBLE, EXIT_OK, UsageError
 
@@ -28,8 +29,8 @@ def register(sub: argparse._SubParsersAction) -> None:
         description="Split a target workpiece attitude between the lower and upper layer.",
     )
     p.add_argument("--config", default=None, help="project YAML (default: shipped Shanghai)")
-    p.add_argument("--roll-deg", type=float, required=True, help="target workpiece roll, deg")
-    p.add_argument("--pitch-deg", type=float, required=True, help="target workpiece pitch, deg")
+    p.add_argument("--roll-deg", type=decimal, required=True, help="target workpiece roll, deg")
+    p.add_argument("--pitch-deg", type=decimal, required=True, help="target workpiece pitch, deg")
     p.add_argument(
         "--objective",
         choices=OBJECTIVES,
@@ -42,7 +43,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         default=None,
         help="planner (default: the project's planner.method)",
     )
-    p.add_argument("--seed", type=int, default=None, help="seed of ldw_pso")
+    p.add_argument("--seed", type=integer, default=None, help="seed of ldw_pso")
     p.add_argument(
         "--start-upper-mm",
         default=None,
@@ -70,15 +71,10 @@ def parse_four_mm(text: str | None, option: str) -> tuple[float, float, float, f
     """``"d1,d2,d3,d4"`` in mm -> four values in m."""
     if text is None:
         return (0.0, 0.0, 0.0, 0.0)
-    parts = [s.strip() for s in text.split(",")]
     try:
-        values = [float(s) for s in parts]
-    except ValueError:
-        raise UsageError(
-            f"{option} expects four numbers in mm, e.g. 10,-5,-10,5; got {text!r}"
-        ) from None
-    if len(values) != 4 or not all(math.isfinite(v) for v in values):
-        raise UsageError(f"{option} expects four finite numbers in mm, got {text!r}")
+        values = parse_decimals(text, 4)
+    except ValueError as exc:
+        raise UsageError(f"{option} expects four numbers in mm, e.g. 10,-5,-10,5: {exc}") from None
     return (units.mm(values[0]), units.mm(values[1]), units.mm(values[2]), units.mm(values[3]))
 
 

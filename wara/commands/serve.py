@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import argparse
 
+from config.numbers import decimal
 from ipc_app.service.app import StartupError, run_service
 from wara.cli import UsageError
 
@@ -15,7 +16,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--socket", default=None, help="control socket path (default: see docs)")
     p.add_argument(
         "--duration-s",
-        type=float,
+        type=decimal,
         default=None,
         help="stop after this long (for test runs; default: until SIGTERM)",
     )

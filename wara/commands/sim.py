@@ -24,6 +24,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from config.numbers import decimal
 from config.scenario import load_scenario
 from wara.cli import EXIT_FAILED, EXIT_OK, UsageError
 from wara.extras import require
@@ -47,7 +48,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     d.add_argument("--controller", choices=[*CONTROLLERS, "both"], default="both")
     d.add_argument(
-        "--duration-s", type=float, default=None, help="simulated time (default: the scenario's)"
+        "--duration-s", type=decimal, default=None, help="simulated time (default: the scenario's)"
     )
     d.add_argument("--plot", metavar="FILE.png", default=None, help="write the study's figure")
     d.add_argument("--json", action="store_true", help="print the figures as JSON")
@@ -67,10 +68,10 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="comma-separated extra delays, ms (default: %(default)s)",
     )
     m.add_argument("--target", default="2,1", help="roll,pitch in deg (default: Example 1)")
-    m.add_argument("--hold-s", type=float, default=20.0, help="hold after the motion, s")
+    m.add_argument("--hold-s", type=decimal, default=20.0, help="hold after the motion, s")
     m.add_argument(
         "--sim-speed",
-        type=float,
+        type=decimal,
         default=1.0,
         help="simulated seconds per second of the service's clock, (0, 1]: a simulator "
         "slower than the service (an emulated CPU); the delays are the simulator's "
@@ -78,7 +79,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     m.add_argument(
         "--required-ms",
-        type=float,
+        type=decimal,
         default=REQUIRED_MS,
         help="exit 0 only if the hold is stable up to this delay (default: %(default)g)",
     )

@@ -40,6 +40,7 @@ from typing import Any
 import numpy as np
 
 from config import units
+from config.numbers import decimal, integer
 from wara.cli import EXIT_FAILED, EXIT_OK, EXIT_USAGE, UsageError
 from wara.extras import require_realtime_simulator
 
@@ -60,9 +61,9 @@ MAX_REFUSED = 10
 
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("soak", help="two-process soak: move across the workspace for M minutes")
-    p.add_argument("--minutes", type=float, required=True, metavar="M", help="soak length")
+    p.add_argument("--minutes", type=decimal, required=True, metavar="M", help="soak length")
     p.add_argument("--config", default=None, help="project YAML (default: shipped project)")
-    p.add_argument("--seed", type=int, default=0, help="seed of the random targets")
+    p.add_argument("--seed", type=integer, default=0, help="seed of the random targets")
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.add_argument(
         "--transport",

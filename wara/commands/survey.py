@@ -16,6 +16,7 @@ import json
 from acceptance.items import check_ring
 from acceptance.store import AcceptanceStore, StoreError, check_store
 from config import units
+from config.numbers import integer
 from ipc_app.planner.survey import SurveyError, SurveyFit, read_survey
 from wara.cli import EXIT_FAILED, EXIT_OK, UsageError
 from wara.commands.place import _placement_config
@@ -35,7 +36,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         description="Fit the as-built pose (least squares) to the points of a survey CSV.",
     )
     imp.add_argument("file", metavar="FILE.csv")
-    imp.add_argument("--ring", type=int, required=True, help="the surveyed part's ring")
+    imp.add_argument("--ring", type=integer, required=True, help="the surveyed part's ring")
     imp.add_argument("--config", default=None, help="project YAML (default: shipped Shanghai)")
     imp.add_argument(
         "--db", default=None, metavar="PATH", help="attach the accepted pose to the ring here"

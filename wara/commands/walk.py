@@ -19,6 +19,7 @@ import sys
 from pathlib import Path
 
 from config import load_project, units
+from config.numbers import decimal, integer
 from ipc_app.planner.walk import DIRECTIONS, WalkPlan, WalkStart, plan_walk, start_state
 from wara.cli import EXIT_FAILED, EXIT_INFEASIBLE, EXIT_OK, UsageError, check_walk_steps
 from wara.commands.plan import parse_four_mm, report
@@ -31,7 +32,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         description="The step-through walk of walking.md.",
     )
     p.add_argument("--config", default=None, help="project YAML (default: shipped Shanghai)")
-    p.add_argument("--steps", type=int, default=None, help="walk N steps (1..1000)")
+    p.add_argument("--steps", type=integer, default=None, help="walk N steps (1..1000)")
     p.add_argument(
         "--lockstep", action="store_true", help="simulated time in one thread (no jitter figures)"
     )
@@ -51,10 +52,10 @@ def register(sub: argparse._SubParsersAction) -> None:
         description="Plan N steps from the measured state and check every constraint.",
     )
     plan.add_argument("--config", default=None, help="project YAML (default: shipped Shanghai)")
-    plan.add_argument("--steps", type=int, required=True, help="number of steps (1..1000)")
+    plan.add_argument("--steps", type=integer, required=True, help="number of steps (1..1000)")
     plan.add_argument(
         "--start-x-s-mm",
-        type=float,
+        type=decimal,
         default=None,
         help="measured x_S, S's position along the rails, mm (default: the rear end of the step)",
     )
