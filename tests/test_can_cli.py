@@ -46,7 +46,10 @@ def test_busload_over_budget_exits_1(
     cfg = _write_config(tmp_path, project, bitrate=250_000)
     assert main(["can", "busload", "--config", str(cfg)]) == 1
     assert "OVER BUDGET" in capsys.readouterr().out
-    assert main(["can", "busload", "--active", "x,y"]) == 2
+    with pytest.raises(SystemExit) as exc:  # argparse: the --active type refuses it
+        main(["can", "busload", "--active", "x,y"])
+    assert exc.value.code == 2
+    assert "argument --active: value 1 of 'x,y'" in capsys.readouterr().err
 
 
 @pytest.fixture

@@ -64,7 +64,9 @@ def test_minutes_must_be_positive() -> None:
     from wara.cli import main
 
     assert main(["soak", "--minutes", "0"]) == 2
-    assert main(["soak", "--minutes", "nan"]) == 2
+    with pytest.raises(SystemExit) as exc:  # argparse: a NaN is no number
+        main(["soak", "--minutes", "nan"])
+    assert exc.value.code == 2
 
 
 @pytest.mark.slow
