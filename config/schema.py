@@ -621,6 +621,11 @@ class OpcUa(Strict):
     update_period_ms: Annotated[Finite, Field(ge=20, le=10_000)] = 50.0
     #: at most this many client connections at once (one beyond is refused)
     max_connections: Annotated[int, Field(ge=1, le=1000)] = 32
+    #: a connection that has not sent Hello within this is closed
+    hello_timeout_s: Annotated[Finite, Field(ge=0.5, le=60)] = 5.0
+    #: a connection without an activated session this long after it opened is closed
+    #: (at ``max_connections`` the oldest such connection makes way for a new one)
+    session_activate_timeout_s: Annotated[Finite, Field(ge=1, le=300)] = 10.0
 
 
 # --------------------------------------------------------------------------- acceptance
