@@ -80,6 +80,19 @@ def test_cli_adduser_one_line_errors(tmp_path: Path) -> None:
     assert "at least 8 characters" in p.stderr
 
 
+def test_cli_adduser_without_a_terminal_is_one_line(tmp_path: Path) -> None:
+    """No terminal (stdin a pipe, no controlling tty) and no --password-stdin: one line
+    naming the way, exit 2, no users file written (not getpass's traceback)."""
+    p = subprocess.run(
+        [sys.executable, "-m", "wara", "opcua", "adduser", "op", "--role", "operator",
+         "--users-file", str(tmp_path / "u.json")],
+        input="", capture_output=True, text=True, timeout=60, start_new_session=True,
+    )  # fmt: skip
+    assert p.returncode == 2 and p.stderr.count("\n") == 1, p.stderr
+    assert "Traceback" not in p.stderr and "--password-stdin" in p.stderr
+    assert not (tmp_path / "u.json").exists()
+
+
 # ---------------------------------------------------------------------- configuration
 
 
