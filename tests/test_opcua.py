@@ -561,7 +561,8 @@ def test_serve_with_opcua_and_no_users_file_is_one_line(tmp_path: Path) -> None:
 def test_bench_opcua_reports_the_loop_and_the_latency_with_its_parts() -> None:
     """`wara bench opcua --json --quick` as a commissioning engineer runs it: the three
     phases' loop figures, the latency of the clients' state notifications and the part of it
-    before the server wrote the value, and the server's feed reports (no timing goal)."""
+    before the server wrote the value, the server's feed reports, and the operator's method
+    calls timed to their state notifications (no timing goal)."""
     from wara.demo_two_process import netns_problem
 
     why = netns_problem()
@@ -592,6 +593,22 @@ def test_bench_opcua_reports_the_loop_and_the_latency_with_its_parts() -> None:
     assert out["server_feed"] and all(
         f["configured_period_ms"] == 50.0 and f["updates"] > 0 for f in out["server_feed"]
     )
+    # the with phase's cycles driven by the operator's method calls: each StartAdjustment
+    # and Stop timed from the call sent to its first state notification at that client
+    call = out["call_latency_ms"]
+    assert len(out["calls"]) == 2 * 2 and call["missed"] == 0
+    assert call["samples"] == len(out["calls"]) and call["goal_p99_below"] == 200.0
+    figures = [call[k] for k in ("p50", "p99", "max", "call_p50", "call_p99")]
+    assert all(isinstance(x, float) and math.isfinite(x) and x > 0 for x in figures)
+    assert call["p50"] <= call["p99"] <= call["max"]
+    assert call["call_p50"] <= call["call_p99"]
+    assert 0 < call["to_server_p50"] <= call["to_server_p99"]
+    assert {m: f["samples"] for m, f in call["by_method"].items()} == {
+        "StartAdjustment": 2,
+        "Stop": 2,
+    }
+    assert isinstance(out["latency_goal_met"], bool)
+    assert isinstance(out["call_latency_goal_met"], bool)
 
 
 @pytest.mark.slow
