@@ -596,9 +596,11 @@ class Safety(Strict):
 class OpcUa(Strict):
     """The OPC UA server beside the service (ipc_app.opcua; docs/opcua.md).
 
-    Off unless ``enabled``. Relative paths are taken from the service's working
-    directory (under systemd: its ``StateDirectory``); ``deploy/install.sh`` creates the
-    server certificate and ``wara opcua adduser`` the users file.
+    Off unless ``enabled``. Relative paths are taken from the working directory of the
+    process that reads them: the service's (its OPC UA server inherits it; under systemd
+    ``WorkingDirectory=%S/wara``, i.e. ``/var/lib/wara``), and for ``wara opcua adduser``
+    and ``wara opcua cert`` the shell's; ``deploy/install.sh`` creates the server
+    certificate there and ``wara opcua adduser`` the users file.
     """
 
     enabled: bool = False
@@ -619,8 +621,14 @@ class OpcUa(Strict):
     anonymous_read_only: bool = False
     #: how often the server takes the service's status (the variables' update period)
     update_period_ms: Annotated[Finite, Field(ge=20, le=10_000)] = 50.0
-    #: at most this many client connections at once (one beyond is refused)
+    #: at most this many client connections at once; one beyond makes the oldest without
+    #: an activated session close (none such: the new one is refused)
     max_connections: Annotated[int, Field(ge=1, le=1000)] = 32
+    #: a connection that has not sent Hello within this is closed
+    hello_timeout_s: Annotated[Finite, Field(ge=0.5, le=60)] = 5.0
+    #: a connection without an activated session this long after it opened is closed
+    #: (at ``max_connections`` the oldest such connection makes way for a new one)
+    session_activate_timeout_s: Annotated[Finite, Field(ge=1, le=300)] = 10.0
 
 
 # --------------------------------------------------------------------------- acceptance

@@ -80,6 +80,19 @@ def test_cli_adduser_one_line_errors(tmp_path: Path) -> None:
     assert "at least 8 characters" in p.stderr
 
 
+def test_cli_adduser_without_a_terminal_is_one_line(tmp_path: Path) -> None:
+    """No terminal (stdin a pipe, no controlling tty) and no --password-stdin: one line
+    naming the way, exit 2, no users file written (not getpass's traceback)."""
+    p = subprocess.run(
+        [sys.executable, "-m", "wara", "opcua", "adduser", "op", "--role", "operator",
+         "--users-file", str(tmp_path / "u.json")],
+        input="", capture_output=True, text=True, timeout=60, start_new_session=True,
+    )  # fmt: skip
+    assert p.returncode == 2 and p.stderr.count("\n") == 1, p.stderr
+    assert "Traceback" not in p.stderr and "--password-stdin" in p.stderr
+    assert not (tmp_path / "u.json").exists()
+
+
 # ---------------------------------------------------------------------- configuration
 
 
@@ -88,7 +101,8 @@ def test_opcua_off_by_default_and_validated(tmp_path: Path) -> None:
     cfg = S.write_config(tmp_path, 4840, security_policy="Basic256Sha256")
     assert load_project(cfg).opcua.enabled is True
     for port, bad in ((80, {}), (4840, {"security_policy": "None"}), (4840, {"colour": "red"}),
-                      (4840, {"update_period_ms": 1})):  # fmt: skip
+                      (4840, {"update_period_ms": 1}), (4840, {"hello_timeout_s": 0}),
+                      (4840, {"session_activate_timeout_s": 1000})):  # fmt: skip
         path = S.write_config(tmp_path, port, **bad)
         with pytest.raises(ConfigError, match="opcua"):
             load_project(path)
@@ -395,6 +409,128 @@ def test_hostile_clients_do_not_stop_the_server(tmp_path: Path) -> None:
         assert rig.ctl.healthy
 
 
+def _quick(result: tuple[str, float], code: str) -> None:
+    """Refused with ``code``, and at once (not a client's 10 s timeout)."""
+    assert result[0] == code and result[1] < 3.0, result
+
+
+@pytest.mark.slow
+def test_no_session_but_on_sign_and_encrypt_and_passwords_always_encrypted(
+    tmp_path: Path,
+) -> None:
+    """A client that forces SecurityPolicy None or Sign (not asyncua's Client, which
+    follows the endpoints): on None only discovery is answered, a session's requests with
+    an operator's password in clear get Bad_SecurityModeRejected at once, and so does a
+    Sign channel; the UserName token policy asks for the password encrypted, and a clear
+    one on a SignAndEncrypt channel is refused."""
+    from asyncua import Client, ua
+    from asyncua.crypto.security_policies import SecurityPolicyBasic256Sha256
+
+    from ipc_app.opcua import pki
+    from tests import opcua_hostile_client as H
+
+    with S.rig(tmp_path) as rig:
+        op = ("op", S.PASSWORDS["op"])
+        out = asyncio.run(H.session_on_none(rig.url, *op))
+        for step in ("create", "activate", "read"):
+            _quick(out[step], "BadSecurityModeRejected")
+        assert out["endpoints_s"] < 3.0  # discovery on None still answered
+        uri = SecurityPolicyBasic256Sha256.URI
+        assert [(e.SecurityMode, e.SecurityPolicyUri) for e in out["endpoints"]] == [
+            (ua.MessageSecurityMode.SignAndEncrypt, uri)
+        ]
+        tokens = out["endpoints"][0].UserIdentityTokens
+        assert [(t.TokenType, t.SecurityPolicyUri) for t in tokens] == [
+            (ua.UserTokenType.UserName, uri)
+        ]
+        _quick(
+            asyncio.run(H.sign_channel(rig.url, pki.own_cert(rig.pki_dir), rig.cert, rig.key)),
+            "BadSecurityModeRejected",
+        )
+
+        async def token_of_a_real_session() -> Any:
+            c = Client(rig.url, timeout=10)
+            c.application_uri = S.CLIENT_URI
+            await c.set_security_string(f"Basic256Sha256,SignAndEncrypt,{rig.cert},{rig.key}")
+            c.set_user(op[0])
+            c.set_password(op[1])
+            async with c:
+                token = c.uaclient.protocol.authentication_token  # type: ignore[union-attr]
+                # the same session activated again from a None channel: refused
+                return await H.activate_on_none(rig.url, token, *op)
+
+        _quick(asyncio.run(token_of_a_real_session()), "BadSecurityModeRejected")
+
+        class ClearPassword(Client):  # sends the password as if the policy were #None
+            def server_policy(self, token_type: ua.UserTokenType) -> ua.UserTokenPolicy:
+                pol = super().server_policy(token_type)
+                pol.SecurityPolicyUri = "http://opcfoundation.org/UA/SecurityPolicy#None"
+                return pol
+
+        async def clear_password() -> str:
+            c = ClearPassword(rig.url, timeout=10)
+            c.application_uri = S.CLIENT_URI
+            await c.set_security_string(f"Basic256Sha256,SignAndEncrypt,{rig.cert},{rig.key}")
+            c.set_user(op[0])
+            c.set_password(op[1])
+            try:
+                await c.connect()
+            except ua.UaStatusCodeError as exc:
+                return str(ua.StatusCode(exc.code).name)
+            await c.disconnect()
+            return "ok"
+
+        assert asyncio.run(clear_password()) == "BadIdentityTokenInvalid"
+        assert rig.service.calls == []
+        # a client that follows the endpoints still gets its session
+        assert asyncio.run(_asyncua_read(rig, "PackML.Status.StateCurrent")) == 4
+
+
+def _closed_within(s: socket.socket, timeout_s: float) -> bool:
+    """The server closed ``s`` within ``timeout_s`` (EOF or a reset, after any bytes)."""
+    s.settimeout(timeout_s)
+    try:
+        for _ in range(100):
+            if not s.recv(4096):
+                return True
+    except ConnectionError:
+        return True
+    except TimeoutError:
+        return False
+    return False
+
+
+@pytest.mark.slow
+def test_silent_connections_do_not_lock_out_a_client(tmp_path: Path) -> None:
+    """100 connections that never send Hello (32 allowed): a good client still connects
+    and reads within a few seconds (the oldest silent one makes way), the silent ones are
+    closed after ``hello_timeout_s``, one with Hello but no session after
+    ``session_activate_timeout_s``."""
+    import struct
+
+    with S.rig(tmp_path, hello_timeout_s=1.0, session_activate_timeout_s=3.0) as rig:
+        silent = [socket.create_connection(("127.0.0.1", rig.port), timeout=5) for _ in range(100)]
+        try:
+            t0 = time.monotonic()
+            assert asyncio.run(_asyncua_read(rig, "PackML.Status.StateCurrent")) == 4
+            assert time.monotonic() - t0 < 5.0
+            t1 = time.monotonic()
+            assert all(_closed_within(s, 3.0) for s in silent)  # evicted or timed out
+            assert time.monotonic() - t1 < 4.0
+        finally:
+            for s in silent:
+                s.close()
+        url = rig.url.encode()
+        body = struct.pack("<IIIII", 0, 65536, 65536, 0, 0) + struct.pack("<i", len(url)) + url
+        with socket.create_connection(("127.0.0.1", rig.port), timeout=5) as s:
+            s.sendall(b"HELF" + struct.pack("<I", 8 + len(body)) + body)
+            assert s.recv(4)[:3] == b"ACK"
+            t2 = time.monotonic()
+            assert _closed_within(s, 6.0)
+            assert 1.5 < time.monotonic() - t2 < 5.0  # session_activate_timeout_s, not Hello's
+        assert rig.server.restarts == 0
+
+
 @pytest.mark.slow
 def test_a_killed_server_process_is_started_again(tmp_path: Path) -> None:
     with S.rig(tmp_path) as rig:
@@ -425,7 +561,8 @@ def test_serve_with_opcua_and_no_users_file_is_one_line(tmp_path: Path) -> None:
 def test_bench_opcua_reports_the_loop_and_the_latency_with_its_parts() -> None:
     """`wara bench opcua --json --quick` as a commissioning engineer runs it: the three
     phases' loop figures, the latency of the clients' state notifications and the part of it
-    before the server wrote the value, and the server's feed reports (no timing goal)."""
+    before the server wrote the value, the server's feed reports, and the operator's method
+    calls timed to their state notifications (no timing goal)."""
     from wara.demo_two_process import netns_problem
 
     why = netns_problem()
@@ -456,6 +593,22 @@ def test_bench_opcua_reports_the_loop_and_the_latency_with_its_parts() -> None:
     assert out["server_feed"] and all(
         f["configured_period_ms"] == 50.0 and f["updates"] > 0 for f in out["server_feed"]
     )
+    # the with phase's cycles driven by the operator's method calls: each StartAdjustment
+    # and Stop timed from the call sent to its first state notification at that client
+    call = out["call_latency_ms"]
+    assert len(out["calls"]) == 2 * 2 and call["missed"] == 0
+    assert call["samples"] == len(out["calls"]) and call["goal_p99_below"] == 200.0
+    figures = [call[k] for k in ("p50", "p99", "max", "call_p50", "call_p99")]
+    assert all(isinstance(x, float) and math.isfinite(x) and x > 0 for x in figures)
+    assert call["p50"] <= call["p99"] <= call["max"]
+    assert call["call_p50"] <= call["call_p99"]
+    assert 0 < call["to_server_p50"] <= call["to_server_p99"]
+    assert {m: f["samples"] for m, f in call["by_method"].items()} == {
+        "StartAdjustment": 2,
+        "Stop": 2,
+    }
+    assert isinstance(out["latency_goal_met"], bool)
+    assert isinstance(out["call_latency_goal_met"], bool)
 
 
 @pytest.mark.slow

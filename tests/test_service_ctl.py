@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import json
 import os
 import socket
@@ -686,3 +687,24 @@ def test_the_core_counts_its_changes_of_mode(tmp_path: Path) -> None:
         assert h.core.state_changes.seq > seen
     finally:
         h.close()
+
+
+def test_status_requests_log_at_debug_other_commands_at_info(short_tmp: Path) -> None:
+    """The OPC UA feed's status every 50 ms (with ``after`` and ``wait_ms``) stays out of
+    an INFO log; the commands, and a status refused, are still logged at info."""
+    svc = FakeService()
+    # a status that waits answers at once here
+    h = dataclasses.replace(svc.handlers(), status=lambda *args: svc.status())
+    with capture_logs() as logs, CtlServer(h, short_tmp / "q.sock") as server:
+        request("status", socket_path=server.path)
+        request("status", socket_path=server.path, after=0, wait_ms=5)
+        request("stop", socket_path=server.path)
+        with contextlib.suppress(CtlError):
+            request("status", socket_path=server.path, after=-1, wait_ms=5)
+    seen = [(e["log_level"], json.loads(e["request"])) for e in logs if e["event"] == "ctl_request"]
+    assert [(lvl, r["cmd"], "after" in r) for lvl, r in seen] == [
+        ("debug", "status", False),
+        ("debug", "status", True),
+        ("info", "stop", False),
+        ("info", "status", True),  # refused: bad_request
+    ]

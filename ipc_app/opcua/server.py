@@ -38,6 +38,7 @@ from asyncua import Server, ua
 from asyncua.common.utils import ServiceError
 from asyncua.crypto.permission_rules import USER_TYPES, PermissionRuleset, UserRole
 from asyncua.crypto.permission_rules import User as UaUser
+from asyncua.crypto.security_policies import SECURITY_POLICY_TYPE_MAP
 from asyncua.crypto.truststore import TrustStore
 from asyncua.crypto.validator import CertificateValidator, CertificateValidatorOptions
 from asyncua.server.user_managers import UserManager
@@ -46,6 +47,7 @@ from config import units
 from config.schema import OpcUa, ProjectConfig
 from ipc_app.opcua import model as m
 from ipc_app.opcua import pki
+from ipc_app.opcua.guard import Guard, GuardedServer
 from ipc_app.opcua.users import CONTROL_ROLES, Users, UsersError, load_users
 from ipc_app.service.ctl import MAX_WALK_STEPS, CtlError, request
 
@@ -266,19 +268,25 @@ class OpcUaServer:
                 f"opcua.pki_dir: no server certificate {cert} (create it with `wara opcua cert`)"
             )
         self._users = _Users(users, opc.anonymous_read_only)
-        srv = Server(user_manager=self._users)
+        policy = POLICIES[opc.security_policy]
+        guard = Guard(
+            policy_uris=frozenset({SECURITY_POLICY_TYPE_MAP[policy][0].URI}),  # type: ignore[attr-defined]
+            hello_timeout_s=opc.hello_timeout_s,
+        )
+        srv = GuardedServer(guard, user_manager=self._users)
         srv.limits.max_message_size = MAX_MESSAGE_BYTES
         srv.limits.max_chunk_count = math.ceil(MAX_MESSAGE_BYTES / srv.limits.max_recv_buffer)
         await srv.init()
         srv.iserver.max_connections = opc.max_connections
         srv.iserver.max_session_timeout_ms = MAX_SESSION_TIMEOUT_MS
+        srv.iserver.max_pending_activation_seconds = opc.session_activate_timeout_s
         srv.set_endpoint(f"opc.tcp://{opc.host}:{opc.port}/wara/")
         srv.set_server_name(f"W-ARa IPC ({self.cfg.project.name})")
         host = socket.gethostname()
         await srv.set_application_uri(pki.application_uri(host))
         srv.product_uri = "urn:wara:ipc"
         srv.manufacturer_name = "W-ARa"
-        srv.set_security_policy([POLICIES[opc.security_policy]], permission_ruleset=_Rules())  # type: ignore[arg-type]
+        srv.set_security_policy([policy], permission_ruleset=_Rules())  # type: ignore[arg-type]
         tokens: list[type] = [ua.UserNameIdentityToken]
         if opc.anonymous_read_only:
             tokens.append(ua.AnonymousIdentityToken)

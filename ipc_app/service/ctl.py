@@ -492,6 +492,16 @@ COUNTERS = (
 )
 
 
+def _cmd_of(line: bytes) -> str | None:
+    """The ``cmd`` of a request line (None when it is not a JSON object with one)."""
+    try:
+        obj = json.loads(line)
+    except ValueError:
+        return None
+    cmd = obj.get("cmd") if isinstance(obj, dict) else None
+    return cmd if isinstance(cmd, str) else None
+
+
 class CtlServer:
     """Serves :class:`CtlHandlers` on a Unix socket (see the module docstring)."""
 
@@ -906,8 +916,9 @@ class CtlServer:
 
     def _answer(self, conn: _Conn, reply: Reply, line: bytes) -> None:
         self.counters["requests"] += 1
-        # a status answered is debug: the OPC UA server asks for one every 50 ms
-        quiet = reply.get("ok") is True and line.startswith(b'{"cmd": "status"}')
+        # a status answered is debug: the OPC UA server asks for one every 50 ms (with
+        # its ``after`` and ``wait_ms``), every other command and every refusal is info
+        quiet = reply.get("ok") is True and _cmd_of(line) == "status"
         (log.debug if quiet else log.info)(
             "ctl_request",
             request=line[:200].decode(errors="replace").strip(),

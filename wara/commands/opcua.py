@@ -48,9 +48,17 @@ def _adduser(args: argparse.Namespace) -> int:
     path = args.users_file or _opc(args.config).users_file
     if args.password_stdin:
         password = sys.stdin.readline().rstrip("\n")
+    elif not sys.stdin.isatty():
+        raise UsageError(
+            "no terminal to ask the password on: pass it on stdin with --password-stdin"
+        )
     else:
-        password = getpass.getpass(f"password for {args.name}: ")
-        if getpass.getpass("again: ") != password:
+        try:
+            password = getpass.getpass(f"password for {args.name}: ")
+            again = getpass.getpass("again: ")
+        except (EOFError, KeyboardInterrupt):
+            raise UsageError("no password given") from None
+        if again != password:
             raise UsageError("the two passwords differ")
     try:
         new = add_user(path, args.name, args.role, password)
