@@ -11,7 +11,14 @@ never written again, so a run redone after its worker was killed counts once, an
 Workers: an embedded :class:`distributed.LocalCluster` of worker processes (one thread
 each) by default, or any cluster through its scheduler address. :class:`WarmUp`, a
 worker plugin, loads the compiled plant (numba's on-disk cache) and starts the
-worker's planner process once per worker, before its first task.
+worker's planner process for the campaign's project once per worker, before its first
+task.
+
+A worker of any shape gives the right table: the runs of one worker process take turns
+(:data:`_RUN_LOCK`), since they share its planner process and the in-process virtual
+CAN channels; a worker with more threads is told once that only one of them runs at a
+time. What cannot work is refused before anything is submitted (:func:`check_workers`):
+a daemon worker process, which may not start the planner's process.
 """
 
 from __future__ import annotations
@@ -22,9 +29,11 @@ import json
 import math
 import multiprocessing
 import os
+import signal
 import socket
 import sys
 import tempfile
+import threading
 import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
@@ -37,6 +46,7 @@ from distributed import WorkerPlugin
 from config import ConfigError
 from config.schema import ProjectConfig
 from wara.campaign.spec import Campaign, CampaignSpec
+from wara.cli import UsageError
 
 RUNS_DIR = "runs"
 RESULTS = "results.parquet"
@@ -71,6 +81,13 @@ PLANNER_TIMEOUT_S = 120.0
 
 _CAMPAIGNS: dict[str, Campaign] = {}
 _PLANNERS: dict[str, Any] = {}
+#: One run at a time in a worker process, whatever its thread count (see the module
+#: docstring): two runs at once would share its planner and its virtual CAN channels.
+_RUN_LOCK = threading.Lock()
+
+
+class WorkerShapeError(UsageError):
+    """A Dask worker on which a campaign run cannot work (one line, exit 2)."""
 
 
 def _worker_campaign(payload: dict[str, Any]) -> Campaign:
@@ -113,38 +130,77 @@ def campaign_task(
     """One Dask task: run ``index`` of the campaign, its result row."""
     from wara.campaign.run import run_one
 
-    c = _worker_campaign(payload)
-    return run_one(
-        c,
-        index,
-        planner=_planner(c.project_file),
-        overrides=overrides,
-        worker=f"{socket.gethostname()}:{os.getpid()}",
-    )
+    with _RUN_LOCK:
+        c = _worker_campaign(payload)
+        return run_one(
+            c,
+            index,
+            planner=_planner(c.project_file),
+            overrides=overrides,
+            worker=f"{socket.gethostname()}:{os.getpid()}",
+        )
 
 
-def warm_up() -> float:
-    """Load the compiled plant, start the planner in this process and plan once
+def warm_up(payload: dict[str, Any] | None = None) -> float:
+    """Load the compiled plant, start the planner for the campaign's project (the one
+    its tasks use; the shipped project without a payload) in this process and plan once
     (seconds taken)."""
     t0 = time.perf_counter()
     from config import load_project
     from config.loader import default_project_path
     from wara.harness import Harness
 
-    path = str(default_project_path())
-    planner = _planner(path)
-    h = Harness(load_project(path), path, mode="lockstep", planner=planner, trace=False)
-    try:
-        h.advance(0.05)
-        h.sim.truth()
-    finally:
-        h.close()
-    # one plan: the planner process's imports and first solve done before the first task
-    planner.submit(0, 0.5, 0.2)
-    while planner.busy:
-        time.sleep(0.01)
-    planner.poll()
+    with _RUN_LOCK:
+        path = str(default_project_path()) if payload is None else _project_file(payload)
+        planner = _planner(path)
+        h = Harness(load_project(path), path, mode="lockstep", planner=planner, trace=False)
+        try:
+            h.advance(0.05)
+            h.sim.truth()
+        finally:
+            h.close()
+        # one plan: the planner process's imports and first solve done before the first task
+        planner.submit(0, 0.5, 0.2)
+        while planner.busy:
+            time.sleep(0.01)
+        planner.poll()
     return time.perf_counter() - t0
+
+
+def _project_file(payload: dict[str, Any]) -> str:
+    return _worker_campaign(payload).project_file
+
+
+def worker_shape() -> dict[str, Any]:
+    """What :func:`check_workers` asks each worker: is its process a daemon."""
+    return {"daemon": bool(multiprocessing.current_process().daemon), "pid": os.getpid()}
+
+
+def check_workers(client: Any) -> list[str]:
+    """Refuse (:class:`WorkerShapeError`, one line) a cluster with a worker on which a
+    run cannot work; the notes to show for workers that work, but not at full speed."""
+    info = client.scheduler_info()["workers"]
+    if not info:
+        raise WorkerShapeError(f"the Dask scheduler {client.scheduler.address} has no workers")
+    shapes = client.run(worker_shape)
+    daemons = sorted(addr for addr, shape in shapes.items() if shape["daemon"])
+    if daemons:
+        more = f" (and {len(daemons) - 1} more)" if len(daemons) > 1 else ""
+        raise WorkerShapeError(
+            f"Dask worker {daemons[0]}{more} is a daemon process, which cannot start the "
+            "planner process a run needs: start the workers with "
+            "DASK_DISTRIBUTED__WORKER__DAEMON=False in their environment"
+        )
+    notes = []
+    for addr, w in sorted(info.items()):
+        n = int(w.get("nthreads", 1))
+        if n > 1:
+            notes.append(
+                f"Dask worker {addr} has {n} threads: its runs take turns, one at a time "
+                f"(a run needs its process to itself); `dask worker ADDR --nworkers {n} "
+                "--nthreads 1` runs as many at once"
+            )
+    return notes
 
 
 def close_planners() -> None:
@@ -159,12 +215,17 @@ class WarmUp(WorkerPlugin):
 
     name = "wara-campaign-warm-up"
 
+    def __init__(self, payload: dict[str, Any] | None = None) -> None:
+        self.payload = payload
+
     def setup(self, worker: Any) -> None:
         from ipc_app.service.logs import configure_logging
 
         # the service's log: errors only (a run's warnings are in its row)
         configure_logging("ERROR")
-        worker.wara_warm_up_s = warm_up()
+        if multiprocessing.current_process().daemon:
+            return  # refused by check_workers before any task
+        worker.wara_warm_up_s = warm_up(self.payload)
 
     def teardown(self, worker: Any) -> None:
         close_planners()
@@ -270,38 +331,71 @@ def campaign_of_dir(out: Path) -> Campaign:
 
 
 @contextlib.contextmanager
-def dask_client(scheduler: str | None = None, workers: int | None = None) -> Iterator[Any]:
+def _sigint_ignored() -> Iterator[None]:
+    """SIGINT ignored while the cluster's processes start: they inherit it (and Python
+    keeps an ignored SIGINT), so a Ctrl-C reaches this process alone, which shuts the
+    cluster down, instead of printing a KeyboardInterrupt traceback in every worker."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    old = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, old)
+
+
+@contextlib.contextmanager
+def dask_client(
+    scheduler: str | None = None,
+    workers: int | None = None,
+    payload: dict[str, Any] | None = None,
+    say: Callable[[str], None] | None = None,
+) -> Iterator[Any]:
     """A client on the cluster at ``scheduler``, else on an embedded LocalCluster of
-    ``workers`` worker processes (default: the CPUs) over TCP on localhost."""
+    ``workers`` worker processes (default: the CPUs) over TCP on localhost; its workers
+    checked (:func:`check_workers`; ``say`` gets the notes) and warmed up for the
+    campaign of ``payload``."""
     import dask
     from distributed import Client, LocalCluster
+
+    def ready(client: Any) -> Any:
+        for note in check_workers(client):
+            (say or _stderr)(note)
+        client.register_plugin(WarmUp(payload))
+        return client
 
     if scheduler is not None:
         client = Client(scheduler)
         try:
-            client.register_plugin(WarmUp())
-            yield client
+            yield ready(client)
         finally:
             client.close()
         return
     n = workers or os.cpu_count() or 1
     with dask.config.set({"distributed.worker.daemon": False, "logging.distributed": "error"}):
-        cluster = LocalCluster(
-            n_workers=n,
-            threads_per_worker=1,
-            processes=True,
-            protocol="tcp://",
-            host="127.0.0.1",
-            dashboard_address=":0",
-            silence_logs=40,
-        )
-        client = Client(cluster)
+        with _sigint_ignored():
+            cluster = LocalCluster(
+                n_workers=n,
+                threads_per_worker=1,
+                processes=True,
+                protocol="tcp://",
+                host="127.0.0.1",
+                dashboard_address=":0",
+                silence_logs=40,
+            )
         try:
-            client.register_plugin(WarmUp())
-            yield client
+            client = Client(cluster)
+            try:
+                yield ready(client)
+            finally:
+                client.close()
         finally:
-            client.close()
             cluster.close()
+
+
+def _stderr(line: str) -> None:
+    print(f"wara campaign: {line}", file=sys.stderr, flush=True)
 
 
 # --------------------------------------------------------------------------- running
@@ -443,9 +537,12 @@ def run_campaign(
     todo = [i for i in range(total) if i not in done]
     prior = _failures(out, done)
     outcome = Outcome(out, total, len(done))
+    if not todo:  # a finished directory resumed: no cluster for nothing
+        compact(out)
+        return outcome
     with contextlib.ExitStack() as stack:
         if client is None:
-            client = stack.enter_context(dask_client(scheduler, workers))
+            client = stack.enter_context(dask_client(scheduler, workers, payload))
         bar = Progress(total, len(done), prior, enabled=progress)
         t0 = time.monotonic()  # from the first submit: the engine warmed up
         outcome.workers = len(client.scheduler_info()["workers"])

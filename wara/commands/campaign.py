@@ -187,7 +187,7 @@ def _tune(args: argparse.Namespace) -> int:
 
     require("optuna", "wara campaign tune")
     _check_workers(args.workers)
-    from wara.campaign.engine import dask_client
+    from wara.campaign.engine import dask_client, payload_of
     from wara.campaign.spec import load_campaign
     from wara.campaign.tune import tune
 
@@ -196,7 +196,7 @@ def _tune(args: argparse.Namespace) -> int:
     for name, v in (("--trials", args.trials), ("--runs", args.runs)):
         if v is not None and v < 1:
             raise UsageError(f"{name} must be at least 1, got {v}")
-    with dask_client(args.scheduler, args.workers) as client:
+    with dask_client(args.scheduler, args.workers, payload_of(c)) as client:
         res = tune(c, Path(args.out), client=client, trials=args.trials, runs=args.runs)
     if args.json:
         print(json.dumps(res, indent=2, default=_nan))
