@@ -1,7 +1,8 @@
 """``wara bench demo``: what one run reports (exit code, verdict, reason, ride-through),
 the command it runs (the README's main command through this interpreter), the CPU hog,
 and the argument checks. The bench itself (N real-time demos) is run by hand; its
-figures are in the README."""
+figures are in docs/service.md ("The one-process demo's timing"), the headline ones in
+the README."""
 
 from __future__ import annotations
 

@@ -3,7 +3,7 @@ loop as threads of one interpreter, on the wall clock): the attitude examples (t
 default form) shortened to Example 1, and a demo that stops at once when the service
 latches a fault. The ring cycles on the wall clock (``--realtime``) are not here: with
 their walks the one-process loop overruns by up to some 13 ms on this 2-core machine,
-near the PLC's 15 ms limit, and one run of three ended on it (README, "The demo")."""
+near the PLC's 15 ms limit, and one run of three ended on it (docs/demo.md, "In real time")."""
 
 from __future__ import annotations
 
