@@ -330,6 +330,42 @@ def test_report_verdict_drivers_and_html(tmp_path: Path) -> None:
     assert code == 1 and "requirement NOT shown" in text and "Clopper-Pearson" in text
 
 
+def test_whether_an_event_happened_is_ranked_as_a_driver(tmp_path: Path) -> None:
+    """The report ranked an event only by its times over the runs where it happened; a
+    campaign failing whenever the PLC stalled at all named no driver for it."""
+    from wara.campaign.report import drivers
+
+    c = load_campaign(write_spec(tmp_path, _spec(requirement={"runs": 40})))
+    rows = []
+    for i in range(40):
+        row = _row(c, i)
+        stalled = math.isfinite(row["p.event0_plc_stall_start_s"])
+        rows.append(_row(c, i, passed=not stalled, margin=0.3))
+    assert 5 < sum(not r["passed"] for r in rows) < 35
+    lead = drivers(rows)[0]
+    assert lead["parameter"] == "event0_plc_stall happened" and lead["runs"] == 40
+    assert lead["rho_failure"] == pytest.approx(1.0)
+
+
+def test_a_histogram_of_values_far_below_their_limit_shows_its_bar() -> None:
+    """Values of 1e-5 against a limit of 0.01: 30 bins over the values alone were too
+    thin to see on the axis the limit's line stretches to 0.01."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from wara.campaign.report import histogram
+
+    fig, ax = plt.subplots()
+    v = np.full(50, 1e-5) + np.linspace(0, 1e-6, 50)
+    histogram(ax, v, 0.01)
+    bars = [b for b in ax.patches if b.get_height() > 0]
+    assert sum(b.get_height() for b in bars) == 50
+    assert min(b.get_width() for b in bars) >= 0.01 / 30 * 0.99  # one bin of the axis
+    plt.close(fig)
+
+
 def test_walk_and_ring_cycle_runs_are_judged_by_their_goals(tmp_path: Path) -> None:
     from wara import walk
     from wara.campaign.run import RunOutcome, row_of

@@ -13,6 +13,7 @@ import base64
 import html
 import io
 import math
+import re
 from pathlib import Path
 from typing import Any
 
@@ -84,21 +85,37 @@ def param_columns(rows: list[dict[str, Any]]) -> list[str]:
     return [k for k in rows[0] if k.startswith("p.")] if rows else []
 
 
+#: A random event's drawn start (NaN in the runs where it did not happen).
+EVENT_START = re.compile(r"^p\.(event\d+_\w+?)_start_s$")
+
+
+def _driver_columns(rows: list[dict[str, Any]]) -> list[tuple[str, np.ndarray]]:
+    """Each drawn parameter's values over the runs, and for each random event whether it
+    happened at all (1/0: its start drawn or NaN), as ``"eventJ_kind happened"``."""
+    out = []
+    for col in param_columns(rows):
+        x = np.array([r[col] for r in rows], dtype=float)
+        out.append((col[2:], x))
+        m = EVENT_START.match(col)
+        if m is not None:
+            out.append((f"{m.group(1)} happened", np.isfinite(x).astype(float)))
+    return out
+
+
 def drivers(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
     """Spearman rank correlation of each drawn parameter with the margin and with
-    failure (runs where the parameter was drawn; constant ones left out), strongest
-    first."""
+    failure (runs where the parameter was drawn; constant ones left out), and of
+    whether each random event happened at all, strongest first."""
     from scipy.stats import spearmanr
 
     out = []
     margin = np.array([r["margin"] for r in rows], dtype=float)
     failed = np.array([not r["passed"] for r in rows], dtype=float)
-    for col in param_columns(rows):
-        x = np.array([r[col] for r in rows], dtype=float)
+    for name, x in _driver_columns(rows):
         ok = np.isfinite(x) & np.isfinite(margin)
         if ok.sum() < 3 or np.ptp(x[ok]) == 0:
             continue
-        entry: dict[str, Any] = {"parameter": col[2:], "runs": int(ok.sum())}
+        entry: dict[str, Any] = {"parameter": name, "runs": int(ok.sum())}
         entry["rho_margin"] = _rho(spearmanr, x[ok], margin[ok])
         entry["rho_failure"] = _rho(spearmanr, x[ok], failed[ok])
         out.append(entry)
@@ -217,18 +234,20 @@ def plots(c: Campaign, rows: list[dict[str, Any]], s: dict[str, Any]) -> list[tu
     passed = np.array([r["passed"] for r in rows], dtype=bool)
     for name in [*c.limits, "margin"]:
         v = np.array([r[name] for r in rows], dtype=float)
-        fig, ax = plt.subplots(figsize=(6, 3.6))
-        ax.hist(v[np.isfinite(v)], bins=30, color="#4a78b0")
+        v = v[np.isfinite(v)]
         limit = 0.0 if name == "margin" else c.limits[name]
+        fig, ax = plt.subplots(figsize=(6, 3.6))
+        histogram(ax, v, limit)
         ax.axvline(limit, color="r", ls="--", label="limit")
         ax.set_xlabel(name)
         ax.set_ylabel("runs")
-        ax.set_title(f"{name} over {len(rows)} runs")
+        worst = f", largest {v.max():.3g}" if v.size and name != "margin" else ""
+        ax.set_title(f"{name} over {len(rows)} runs{worst}")
         ax.legend()
         images.append((f"hist_{name}", _png(fig, plt)))
     if s["drivers"]:
         lead = s["drivers"][0]["parameter"]
-        x = np.array([r["p." + lead] for r in rows], dtype=float)
+        x = dict(_driver_columns(rows))[lead]
         m = np.array([r["margin"] for r in rows], dtype=float)
         fig, ax = plt.subplots(figsize=(6, 3.6))
         ax.scatter(x[passed], m[passed], s=10, label="passed")
@@ -240,6 +259,14 @@ def plots(c: Campaign, rows: list[dict[str, Any]], s: dict[str, Any]) -> list[tu
         ax.legend()
         images.append(("scatter_lead", _png(fig, plt)))
     return images
+
+
+def histogram(ax: Any, v: np.ndarray, limit: float) -> None:
+    """``v``'s histogram on ``ax``, its 30 bins spanning the values and the limit: values
+    far below the limit (1e-5 on a 0-0.01 axis) are one visible bar, not 30 bars too
+    thin to see beside the limit's line."""
+    lo, hi = min([limit, *v]), max([limit, *v])
+    ax.hist(v, bins=30, range=(lo, hi) if hi > lo else None, color="#4a78b0")
 
 
 def _png(fig: Any, plt: Any) -> bytes:
