@@ -207,6 +207,9 @@ def test_ctrl_c_ends_a_run_without_the_workers_tracebacks(tmp_path: Path) -> Non
             [sys.executable, "-m", "wara", "campaign", "run", str(spec), "--out",
              str(tmp_path / "c"), "--workers", "2"],
             stdout=subprocess.DEVNULL, stderr=err, start_new_session=True, env=_env(),
+            # as from a terminal: a test run in the background (a non-interactive shell's
+            # `&`) ignores SIGINT, and Python keeps an ignored SIGINT
+            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
         )  # fmt: skip
         try:
             end = time.monotonic() + START_S

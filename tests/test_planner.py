@@ -206,7 +206,7 @@ def test_lift_off_is_reported(tmp_path: Path) -> None:
     ("args", "message"),
     [
         (["--roll-deg", "1", "--pitch-deg", "1", "--start-upper-mm", "1,2,3"], "four"),
-        (["--roll-deg", "x", "--pitch-deg", "1"], "invalid float"),
+        (["--roll-deg", "x", "--pitch-deg", "1"], "'x' is not a number"),
         (["--roll-deg", "95", "--pitch-deg", "1"], "within"),
         (["--roll-deg", "1", "--pitch-deg", "1", "--objective", "speed"], "invalid choice"),
         (["--pitch-deg", "1"], "required"),
