@@ -69,7 +69,7 @@ def _write_text(tmp_path: Path, text: str, name: str = "project.yaml") -> Path:
         ("cog_m: [0.0, 0.0, 0.5]", "cog_m: [0.0, .nan, 0.5]", "layers.lower.bodies[0].cog_m[1]"),
         ("  loop_rate_hz: 200", "  loop_rate_hz: 0.001", "control.loop_rate_hz"),
         ("  loop_rate_hz: 200", "  loop_rate_hz: 49.9", "control.loop_rate_hz"),
-        ("  mass_kg: 36350\n", "  mass_kg: 3.6e9\n", "workpiece.mass_kg"),
+        ("  width_m: 2.0\n", "  width_m: 2.0\n  mass_kg: 3.6e9\n", "workpiece.mass_kg"),
         ("  supply_pressure_mpa: 16.0", "  supply_pressure_mpa: 160", "hydraulics"),
         ("  max_pressure_mpa: 24.0", "  max_pressure_mpa: 240", "safety.max_pressure_mpa"),
         ("  sensor_timeout_ms: 100", "  sensor_timeout_ms: 5e9", "safety.sensor_timeout_ms"),
