@@ -37,6 +37,9 @@ STEP_TOLERANCE_MM = 1.0
 #: ``base.pitch_deg`` must be the alignment's gradient as an angle within this (the
 #: shipped 0.17 deg is the 0.3 % gradient's 0.1719 deg rounded to two places).
 PITCH_TOLERANCE_DEG = 0.01
+#: ``robot.mass_kg`` must be the machine's bodies' sum within this share (a weighed
+#: figure against its split into lumps).
+ROBOT_MASS_TOLERANCE = 0.01
 #: ``placement.reference_height_m`` must be minus the inner radius within this.
 HEIGHT_TOLERANCE_M = 0.001
 
@@ -120,6 +123,34 @@ def _workpiece_mass(cfg: ProjectConfig) -> str | None:
         f"(layers.upper.bodies[{i}].mass_kg {_g(body)} kg, which the statics and the "
         f"simulator use); expected {_g(body)}, or the key left out (it defaults to the "
         f"body's)"
+    )
+
+
+def machine_bodies_kg(cfg: ProjectConfig) -> float | None:
+    """The machine's own mass as its bodies give it (walking.md: robot 35 t = 15 upper
+    structure + 6 fine-tuning platform + 6 main frame + 8 sub frame): the lower layer's
+    bodies, the upper layer's but the workpiece, both frames' (``None`` without frames,
+    which hold two of the lumps)."""
+    if cfg.frames is None:
+        return None
+    bodies = (
+        cfg.layers.lower.bodies
+        + tuple(b for b in cfg.layers.upper.bodies if b.name != WORKPIECE_BODY)
+        + cfg.frames.main.bodies
+        + cfg.frames.sub.bodies
+    )
+    return sum(b.mass_kg for b in bodies)
+
+
+def _robot_mass(cfg: ProjectConfig) -> str | None:
+    total = machine_bodies_kg(cfg)
+    robot = cfg.robot.mass_kg
+    if total is None or abs(robot - total) <= ROBOT_MASS_TOLERANCE * total:
+        return None
+    return (
+        f"robot.mass_kg: {_g(robot)} kg is not the machine's bodies' sum (layers.lower.bodies, "
+        f"layers.upper.bodies but the workpiece, frames.main.bodies, frames.sub.bodies: "
+        f"{_g(total)} kg); expected {_g(total)} within {_g(100 * ROBOT_MASS_TOLERANCE)} %"
     )
 
 
@@ -233,6 +264,13 @@ RULES: tuple[Rule, ...] = (
         f"`workpiece.mass_kg` left out (it is the body's), or the body's within "
         f"{_g(MASS_TOLERANCE_KG)} kg",
         _workpiece_mass,
+    ),
+    Rule(
+        "robot-mass-is-its-bodies",
+        ("robot.mass_kg", "layers.*.bodies", "frames.*.bodies"),
+        f"`robot.mass_kg` = the bodies' sum but the workpiece's, within "
+        f"{_g(100 * ROBOT_MASS_TOLERANCE)} % (with `frames`)",
+        _robot_mass,
     ),
     Rule(
         "base-pitch-is-the-gradient",

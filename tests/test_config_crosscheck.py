@@ -81,6 +81,10 @@ BREAKS: dict[str, tuple[Edit, tuple[str, ...]]] = {
         _add_workpiece_mass(30000),
         ("workpiece.mass_kg", "layers.upper.bodies[0].mass_kg"),
     ),
+    "robot-mass-is-its-bodies": (
+        _set("robot.mass_kg", 30000),
+        ("robot.mass_kg", "layers.lower.bodies", "frames.sub.bodies"),
+    ),
     "base-pitch-is-the-gradient": (
         _set("base.pitch_deg", -0.17),
         ("base.pitch_deg", "tunnel.alignment.gradient_percent"),
@@ -178,6 +182,7 @@ def test_the_shipped_margins() -> None:
     assert peak / 1e6 == pytest.approx(7.48, abs=0.01)
     assert cfg.workpiece.mass_kg is None and cfg.workpiece_mass_kg == 36350
     assert crosscheck.gradient_pitch_deg(-0.3) == pytest.approx(0.1719, abs=1e-4)
+    assert crosscheck.machine_bodies_kg(cfg) == cfg.robot.mass_kg == 35000
 
 
 def test_whole_fractions_of_the_ring_are_steps(tmp_path: Path) -> None:
