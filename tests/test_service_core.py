@@ -581,6 +581,14 @@ class MiniRig:
 def worker() -> Iterator[PlannerWorker]:
     w = PlannerWorker(None, timeout_s=30.0)
     w.start()
+    # ready before the first request, as the service's planner is by the time an operator
+    # asks: the MiniRig's cylinders creep while STARTING (no holding valves), and a plan
+    # that arrives seconds late (the process still importing on a loaded machine) engages
+    # from where they were, which the tracking-error interlock rightly refuses
+    end = time.monotonic() + 120.0
+    while not w.ready and time.monotonic() < end:
+        time.sleep(0.05)
+    assert w.ready, "the planner process did not start"
     yield w
     w.close()
 
