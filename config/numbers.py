@@ -162,26 +162,28 @@ def _split(text: str, count: int | None, what: str) -> list[str]:
     return parts
 
 
-def parse_decimals(text: str, count: int | None = None) -> tuple[float, ...]:
-    """``"a,b,c"``: comma-separated decimals (``count`` of them when given)."""
+def _parse_list(
+    text: str, count: int | None, what: str, parse: Callable[[str], T]
+) -> tuple[T, ...]:
+    """``text`` split at commas (``count`` parts when given), each part ``parse``-d; a
+    part's ValueError names its place."""
     out = []
-    for k, part in enumerate(_split(text, count, "number"), start=1):
+    for k, part in enumerate(_split(text, count, what), start=1):
         try:
-            out.append(parse_decimal(part))
+            out.append(parse(part))
         except ValueError as exc:
             raise ValueError(f"value {k} of {shown(text)}: {exc}") from None
     return tuple(out)
+
+
+def parse_decimals(text: str, count: int | None = None) -> tuple[float, ...]:
+    """``"a,b,c"``: comma-separated decimals (``count`` of them when given)."""
+    return _parse_list(text, count, "number", parse_decimal)
 
 
 def parse_integers(text: str, count: int | None = None) -> tuple[int, ...]:
     """``"0,1,2"``: comma-separated integers (``count`` of them when given)."""
-    out = []
-    for k, part in enumerate(_split(text, count, "integer"), start=1):
-        try:
-            out.append(parse_integer(part))
-        except ValueError as exc:
-            raise ValueError(f"value {k} of {shown(text)}: {exc}") from None
-    return tuple(out)
+    return _parse_list(text, count, "integer", parse_integer)
 
 
 def decimals(count: int | None = None) -> Callable[[str], tuple[float, ...]]:
