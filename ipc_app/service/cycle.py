@@ -14,6 +14,9 @@ the acceptance store), ``record`` (the ring's Table 4 figures from the surveyed 
 handed to the :class:`RingRecords` sink that writes the acceptance record),
 ``walk_back`` (the same steps back; unloaded unless told).
 
+The cycle drives the service through a small port (:class:`CyclePort`: ask for a motion
+and get its :class:`~ipc_app.service.motion.Ticket`, the modes, the machine time, the
+last inputs, the planner, where its phases and its end are noted); the service is one.
 :meth:`RingCycle.tick` advances it. It is called outside the fixed-rate loop: by the
 service's cycle thread (``wara ctl cycle``), or by the HIL driver between its simulated
 periods (``wara cycle``). The planning (the placement's target, the walks) runs in that
@@ -28,7 +31,7 @@ from __future__ import annotations
 import threading
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any, Protocol
+from typing import Any, Protocol
 
 import numpy as np
 
@@ -44,11 +47,14 @@ from ipc_app.planner.survey import (
     as_built_problems,
     fit_survey,
 )
-from ipc_app.service.modes import Mode
+from ipc_app.service.machine_io import MachineInputs
+from ipc_app.service.modes import Mode, ModeMachine
+from ipc_app.service.motion import Motion, Planner, Ticket
+from ipc_app.service.motions.place import PlaceMotion
+from ipc_app.service.motions.release import ReleaseMotion
+from ipc_app.service.motions.walk import WalkMotion
+from ipc_app.service.requests import Code, Reply
 from ipc_app.service.worker import PLAN_TARGET_FN, PlannerCallError
-
-if TYPE_CHECKING:
-    from ipc_app.service.core import ServiceCore
 
 #: The phases of one ring, in order.
 PHASES: tuple[str, ...] = (
@@ -67,10 +73,16 @@ RECORD_KEYS: tuple[str, ...] = (
     "tilt_angle_deg",
     "rotation_angle_deg",
 )
-#: A requested motion not taken by the loop within this much machine time: failed, s.
-START_LIMIT_S = 5.0
-#: A motion phase not ended within this much machine time: failed, s.
-MOTION_LIMIT_S = 3600.0
+
+
+def motion_limit_s(cfg: ProjectConfig) -> float:
+    """The longest a motion phase of a ring may take before the cycle fails it, s: the
+    ring's whole cycle-time goal (``cycle.max_cycle_time_min``, the fixing hold
+    excluded). A phase that alone takes longer has missed the ring's goal; one that
+    has not ended by then is stuck (the motions' own interlocks end the ones that go
+    wrong much sooner). The HIL driver (``wara cycle``) bounds a whole ring with it."""
+    assert cfg.cycle is not None
+    return 60.0 * cfg.cycle.max_cycle_time_min
 
 
 def previous_from_deviation(cfg: ProjectConfig, ring: int, dev: Pose) -> Pose:
@@ -89,15 +101,46 @@ class RingRecords(Protocol):
         ...
 
 
+class CyclePort(Protocol):
+    """What the ring cycle needs of the service (:class:`~ipc_app.service.core.ServiceCore`
+    is one)."""
+
+    cfg: ProjectConfig
+    planner: Planner
+    modes: ModeMachine
+
+    @property
+    def now_s(self) -> float: ...
+    @property
+    def inputs(self) -> MachineInputs | None: ...
+
+    def request_motion(
+        self, kind: type[Motion], args: tuple[Any, ...] = (), *, hmi_seq: int | None = None
+    ) -> Ticket:
+        """``kind``'s motion prepared and handed to the loop."""
+        ...
+
+    def note_cycle(self, ring: int, phase: str, **figures: Any) -> None: ...
+    def end_cycle(self, cyc: RingCycle, error: str | None) -> None: ...
+    def audit(self, user: str, action: str, result: str) -> dict[str, Any]: ...
+    def event(self, kind: str, **fields: Any) -> None: ...
+
+
 class CycleError(Exception):
     """A phase failed: the cycle ends in it (the machine holds, valves closed)."""
+
+    def __init__(self, msg: str, refused: bool = False) -> None:
+        super().__init__(msg)
+        #: refused before anything moved (an infeasible target or move)
+        self.refused = refused
 
 
 @dataclass
 class RingCycle:
-    """One ring's cycle on ``core``; see the module docstring."""
+    """One ring's cycle on the service ``core`` (its :class:`CyclePort`); see the module
+    docstring."""
 
-    core: ServiceCore
+    core: CyclePort
     ring: int
     #: the previous part's as-built pose in its own ring's T (ring - 1)
     previous: Pose
@@ -127,7 +170,8 @@ class RingCycle:
     _loaded_since: float | None = None
     _since: float = 0.0
     _issued_at: float | None = None
-    _before: Any = None
+    #: the phase's motion, as the service took it
+    _ticket: Ticket | None = None
     _started: bool = False
     #: the cycle thread's ticks and the operator's requests take turns
     _lock: threading.RLock = field(default_factory=threading.RLock)
@@ -162,11 +206,12 @@ class RingCycle:
         if self.phase:
             self.phase_times_s[self.phase] = now - self._since
         self.phase, self._since, self.waiting_for = phase, now, waiting_for
-        self._issued_at, self._before, self._started = None, None, False
+        self._issued_at, self._ticket, self._started = None, None, False
         self.core.note_cycle(self.ring, phase, waiting_for=waiting_for, **figures)
         self.say(f"ring {self.ring}: {phase}")
 
-    def _fail(self, msg: str, *, refused: bool = False) -> None:
+    def fail(self, msg: str, *, refused: bool = False) -> None:
+        """The cycle ends in its phase with ``msg`` (the service stops the machine)."""
         self.error, self.refused = msg, refused
         self.stopped_in_phase = self.phase
         self.phase_times_s[self.phase] = self.core.now_s - self._since
@@ -182,7 +227,7 @@ class RingCycle:
         if self._lock.acquire(blocking=False):
             try:
                 if self.active:
-                    self._fail(f"stopped: {reason}")
+                    self.fail(f"stopped: {reason}")
             finally:
                 self._lock.release()
 
@@ -195,7 +240,7 @@ class RingCycle:
         if not self.active:
             return
         if self._stop_reason is not None:
-            self._fail(f"stopped: {self._stop_reason}")
+            self.fail(f"stopped: {self._stop_reason}")
             return
         try:
             for _ in PHASES:  # on through the phases that end at once (bounded)
@@ -204,7 +249,7 @@ class RingCycle:
                 if self.phase == before or not self.active:
                     break
         except CycleError as exc:
-            self._fail(str(exc), refused=getattr(exc, "refused", False))
+            self.fail(str(exc), refused=exc.refused)
 
     def _tick(self) -> None:
         core, mode = self.core, self.core.modes.mode
@@ -232,9 +277,8 @@ class RingCycle:
             if self._issued_at is None and mode == Mode.SUSPENDED:
                 return  # the release starts once the link is back
             if self._motion("release", self._release):
-                r = core.releaser
-                if r is not None:
-                    self.release_figures = r.figures.to_dict()
+                assert self._ticket is not None and self._ticket.motion is not None
+                self.release_figures = self._ticket.motion.figures()
                 core.modes.stop(f"ring {self.ring} released: the platform is clear of the part")
                 self._enter(
                     "survey", waiting_for="a survey (wara ctl survey FILE.csv | --from-store)"
@@ -253,39 +297,40 @@ class RingCycle:
 
     def _note_walk(self, phase: str) -> None:
         """The figures of the walk that just ended (none when the cycle does not walk)."""
-        w = self.core.walker
-        if self.walk_steps and w is not None:
-            self.walk_figures[phase] = [st.to_dict() for st in w.steps]
+        t = self._ticket
+        if self.walk_steps and t is not None and t.motion is not None:
+            self.walk_figures[phase] = t.motion.figures()["steps"]
 
-    def _motion(self, what: str, issue: Callable[[], dict[str, Any]]) -> bool:
+    def _motion(self, what: str, issue: Callable[[], Ticket]) -> bool:
         """Issue the phase's motion once; True when it ended in COMPLETE."""
         core = self.core
-        if self._issued_at is None:
-            self._before = (core.walker, core.placer, core.releaser)
-            res = issue()
-            if not res.get("ok"):
-                err = CycleError(f"{what} refused: {res.get('error')}")
-                err.refused = res.get("code") == "infeasible"  # type: ignore[attr-defined]
-                raise err
-            self._issued_at = core.now_s
+        if self._ticket is None:
+            ticket = issue()
+            self._refused(what, ticket)
+            self._ticket, self._issued_at = ticket, core.now_s
             return False
         mode = core.modes.mode
         if not self._started:
-            if (core.walker, core.placer, core.releaser) != self._before and mode in (
-                Mode.EXECUTE, Mode.COMPLETE,
-            ):  # fmt: skip
+            if self._ticket.taken:  # by the loop: started, or refused there
+                self._refused(what, self._ticket)
                 self._started = True
-            elif core.requests_pending == 0 and core.now_s - self._issued_at > START_LIMIT_S:
-                raise CycleError(f"{what} was not taken: the service is {mode}")
             return False
         if mode in (Mode.EXECUTE, Mode.HELD, Mode.SUSPENDED, Mode.STARTING):
-            if core.now_s - self._issued_at > MOTION_LIMIT_S:
-                raise CycleError(f"{what} did not end within {MOTION_LIMIT_S:.0f} s")
+            assert self._issued_at is not None
+            limit = motion_limit_s(self.cfg)
+            if core.now_s - self._issued_at > limit:
+                raise CycleError(f"{what} did not end within {limit:.0f} s")
             return False
         if mode != Mode.COMPLETE:
             why = "; ".join(core.modes.fault_reasons) or "stopped"
             raise CycleError(f"{what} ended in {mode}: {why}")
         return True
+
+    @staticmethod
+    def _refused(what: str, ticket: Ticket) -> None:
+        reply = ticket.reply
+        if reply is not None and not reply.ok:
+            raise CycleError(f"{what} refused: {reply.error}", reply.code == Code.INFEASIBLE)
 
     def _part_on(self) -> bool:
         """The part is on the platform: every upper cylinder's load pressure within
@@ -309,16 +354,15 @@ class RingCycle:
             self._loaded_since = now
         return now - self._loaded_since >= LOAD_SETTLED_S
 
-    def _release(self) -> dict[str, Any]:
-        return self.core.request_release(self.ring)
+    def _release(self) -> Ticket:
+        return self.core.request_motion(ReleaseMotion, (self.ring,))
 
-    def _walk_forward(self) -> dict[str, Any]:
-        return self.core.request_walk(self.walk_steps)
+    def _walk_forward(self) -> Ticket:
+        return self.core.request_motion(WalkMotion, (self.walk_steps, "forward", False))
 
-    def _walk_back(self) -> dict[str, Any]:
-        return self.core.request_walk(
-            self.walk_steps, direction="back", unloaded=self.walk_back_unloaded
-        )
+    def _walk_back(self) -> Ticket:
+        args = (self.walk_steps, "back", self.walk_back_unloaded)
+        return self.core.request_motion(WalkMotion, args)
 
     def _plan_target(self) -> None:
         """The ring's target from the previous part's as-built pose, before the walk to
@@ -331,78 +375,68 @@ class RingCycle:
             raise CycleError(f"ring {self.ring}: {exc}") from exc
         self.plan = plan
         if not plan.feasible:
-            err = CycleError(f"ring {self.ring}: " + "; ".join(plan.reasons))
-            err.refused = True  # type: ignore[attr-defined]
-            raise err
+            raise CycleError(f"ring {self.ring}: " + "; ".join(plan.reasons), refused=True)
 
-    def _place(self) -> dict[str, Any]:
+    def _place(self) -> Ticket:
         assert self.plan is not None
-        return self.core.request_place_plan(self.plan)
+        return self.core.request_motion(PlaceMotion, (self.plan,))
 
     # ----------------------------------------------------------------- requests
 
-    def confirm_fixed(self, user: str) -> dict[str, Any]:
+    def confirm_fixed(self, user: str) -> Reply:
         """The operator confirms the part is fixed: the cycle goes on to ``release`` (the
         platform lowered off the part), then waits for the survey."""
         with self._lock:
             return self._confirm_fixed(user)
 
-    def _confirm_fixed(self, user: str) -> dict[str, Any]:
+    def _confirm_fixed(self, user: str) -> Reply:
         if self.phase != "fixing" or not self.active:
-            return {
-                "ok": False,
-                "code": "refused",
-                "error": f"confirm-fixed refused: the cycle is in {self.phase or 'no phase'}, "
-                "not fixing",
-            }
+            return Reply.refused(
+                f"confirm-fixed refused: the cycle is in {self.phase or 'no phase'}, not fixing"
+            )
         self.fixed_by = user
         self.core.audit(user, "confirm_fixed", f"ring {self.ring} fixed")
         self._enter("release")
-        return {"ok": True, "ring": self.ring, "phase": self.phase}
+        return Reply.accepted(ring=self.ring, phase=self.phase)
 
     def submit_survey(
         self, points: list[SurveyPoint] | None = None, pose: Pose | None = None
-    ) -> dict[str, Any]:
+    ) -> Reply:
         """The as-built pose: ``points`` fitted as ``wara survey import`` fits a file, or
         ``pose`` (the acceptance store's, in the ring's own T). A refused fit leaves the
         cycle waiting in ``survey`` (another survey may follow)."""
         with self._lock:
             return self._submit_survey(points, pose)
 
-    def _submit_survey(self, points: list[SurveyPoint] | None, pose: Pose | None) -> dict[str, Any]:
+    def _submit_survey(self, points: list[SurveyPoint] | None, pose: Pose | None) -> Reply:
         if self.phase != "survey" or not self.active:
-            return {
-                "ok": False,
-                "code": "refused",
-                "error": f"survey refused: the cycle is in {self.phase or 'no phase'}, not survey",
-            }
+            return Reply.refused(
+                f"survey refused: the cycle is in {self.phase or 'no phase'}, not survey"
+            )
         if (points is None) == (pose is None):
-            return {"ok": False, "code": "bad_request", "error": "give survey points or a pose"}
+            return Reply.bad_request("give survey points or a pose")
         if points is not None:
             try:
                 fit = fit_survey(self.cfg, self.ring, points)
             except SurveyError as exc:
                 msg = str(exc) if str(exc).startswith("survey") else f"survey: {exc}"
-                return {"ok": False, "code": "bad_request", "error": msg}
+                return Reply.bad_request(msg)
             if not fit.accepted:
-                why = "; ".join(fit.reasons)
-                return {"ok": False, "code": "refused", "error": f"survey refused: {why}"}
+                return Reply.refused(f"survey refused: {'; '.join(fit.reasons)}")
             self.fit, self.surveyed = fit, fit.pose
             res = units.to_mm(fit.rms_residual_m)
-            out: dict[str, Any] = {"ok": True, "ring": self.ring, "rms_residual_mm": res}
+            out = Reply.accepted(ring=self.ring, rms_residual_mm=res)
         else:
             assert pose is not None
             problems = as_built_problems(self.cfg, self.ring, pose)
             if problems:
-                why = "; ".join(problems)
-                return {"ok": False, "code": "refused", "error": f"survey refused: {why}"}
+                return Reply.refused(f"survey refused: {'; '.join(problems)}")
             self.surveyed = pose
-            out = {"ok": True, "ring": self.ring, "source": "store"}
-        if self.core.record is not None:
-            self.core.record.event(
-                self.core.now_s, "cycle_survey", ring=self.ring, pose=self.surveyed.to_dict(),
-                rms_residual_mm=out.get("rms_residual_mm"),
-            )  # fmt: skip
+            out = Reply.accepted(ring=self.ring, source="store")
+        self.core.event(
+            "cycle_survey", ring=self.ring, pose=self.surveyed.to_dict(),
+            rms_residual_mm=out.fields.get("rms_residual_mm"),
+        )  # fmt: skip
         return out
 
     def _record(self) -> None:
