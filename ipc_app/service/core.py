@@ -26,7 +26,6 @@ thread, and hands it to the loop.
 from __future__ import annotations
 
 import threading
-import time
 from collections import deque
 from collections.abc import Callable
 from typing import Any
@@ -34,13 +33,12 @@ from typing import Any
 import numpy as np
 import structlog
 
-from config import units
 from config.schema import ProjectConfig
 from ipc_app.control.attitude import AttitudeController
 from ipc_app.model.placement import Pose
 from ipc_app.planner.placement import PlacementPlan
 from ipc_app.planner.survey import SurveyPoint
-from ipc_app.planner.walk import WalkPlan, WalkStart
+from ipc_app.planner.walk import WalkStart
 from ipc_app.service.cycle import RingCycle, RingRecords
 from ipc_app.service.interlocks import Cause, Interlock, Latched, link_losses, motion_causes
 from ipc_app.service.interlocks import present_causes as present_causes_of
@@ -52,11 +50,11 @@ from ipc_app.service.motions.attitude import AdjustPlanning, JogMotion
 from ipc_app.service.motions.homing import HomingMotion
 from ipc_app.service.motions.place import PlaceMotion, plan_from_sheet
 from ipc_app.service.motions.release import ReleaseMotion
-from ipc_app.service.motions.walk import WalkMotion, plan_walk_here, walk_start
+from ipc_app.service.motions.walk import WalkMotion, walk_start
 from ipc_app.service.record import RunRecorder
-from ipc_app.service.requests import Reply, cycle_refusal, hmi_walk_refusal
+from ipc_app.service.requests import HmiRequests, Reply
 from ipc_app.service.status import MODE_CODES, StatusBoard, record_columns
-from plc_bridge.link import ControlWord, HmiTarget, IpcLink, TargetAck, TargetRequest
+from plc_bridge.link import ControlWord, IpcLink
 from plc_bridge.link import Mode as PlcMode
 
 log = structlog.get_logger("wara.service")
@@ -109,12 +107,15 @@ class ServiceCore:
         self._reset_outcome: Reply | None = None
         self._boot_since: float | None = None
         self._now = 0.0
-        self._preparing = 0  # the HMI's walks being planned off the loop (preparing)
-        self._preparing_lock = threading.Lock()
+        self.hmi = HmiRequests(
+            adjust=lambda r, p, seq: self.request_adjust(r, p, hmi_seq=seq),
+            walk=lambda n, seq: self.request_walk(n, hmi_seq=seq),
+            stop=self.modes.stop,
+            ack=self.handshake.ack,
+            refused=self.motions.hmi_refused,
+        )
         self.loop_stats: dict[str, Any] = {}
         self.cycles = 0
-        #: the ring cycle's present ring and phase, as its driver reports them (status)
-        self.cycle: dict[str, Any] | None = None
         #: the ring cycle asked of the service (``request_cycle``), the last one
         self.ring_cycle: RingCycle | None = None
 
@@ -274,13 +275,6 @@ class ServiceCore:
         """The measured state a walk would start from now, or why there is none yet."""
         return walk_start(self)
 
-    def plan_walk_here(
-        self, steps: int, direction: str = "forward", unloaded: bool = False
-    ) -> WalkPlan | dict[str, Any]:
-        """Plan ``steps`` steps from the last measured state (in the planner process)."""
-        plan = plan_walk_here(self, steps, direction, unloaded)
-        return plan.to_dict() if isinstance(plan, Reply) else plan
-
     def request_place(
         self, ring: int, previous_deviation: Pose, wait_s: float = 0.0
     ) -> dict[str, Any]:
@@ -320,39 +314,8 @@ class ServiceCore:
 
     @property
     def preparing(self) -> bool:
-        """A request of the loop's (the HMI's walk) is being planned on a thread of its
-        own and not yet handed back to the loop (the lockstep harness holds machine time
-        meanwhile, as it does for the planner)."""
-        return self._preparing > 0
-
-    def _take_hmi(self, hmi: HmiTarget, now: float) -> None:
-        """The HMI's request: a target (planned as ``wara ctl adjust``), a cancel, or a
-        walk (planned on a thread of its own: planning is not the loop's work)."""
-        if hmi.request == TargetRequest.NEW_TARGET:
-            deg = units.to_deg
-            out = self.request_adjust(deg(hmi.roll_rad), deg(hmi.pitch_rad), hmi_seq=hmi.seq)
-            if not out.get("ok"):  # refused: its own seq; the running one's is kept
-                self.handshake.ack(TargetAck.REJECTED, hmi.seq)
-        elif hmi.request == TargetRequest.CANCEL:
-            self.modes.stop("HMI cancel")
-            self.handshake.ack(TargetAck.NONE, hmi.seq)
-        elif hmi.request == TargetRequest.WALK:
-            why = hmi_walk_refusal(hmi.walk_steps)
-            if why is not None:
-                self.motions.hmi_refused(now, hmi.seq, why)
-                return
-            with self._preparing_lock:
-                self._preparing += 1
-            threading.Thread(
-                target=self._prepare_hmi_walk, args=(hmi,), name="wara-hmi-walk", daemon=True
-            ).start()
-
-    def _prepare_hmi_walk(self, hmi: HmiTarget) -> None:
-        try:
-            self.request_walk(hmi.walk_steps, hmi_seq=hmi.seq)
-        finally:
-            with self._preparing_lock:
-                self._preparing -= 1
+        """An HMI request is being planned on a thread of its own (:class:`HmiRequests`)."""
+        return self.hmi.preparing
 
     def audit(self, user: str, action: str, result: str) -> dict[str, Any]:
         """One entry of a front end's audit trail (the OPC UA server's method calls):
@@ -397,47 +360,20 @@ class ServiceCore:
         ring's acceptance record goes, ``walk_steps`` default ``cycle.walk_steps``.
         ``drive``: a thread of the service ticks it (``wara ctl cycle``); False: the
         caller does (the HIL driver between its simulated periods)."""
-        if self.cfg.placement is None or self.cfg.cycle is None:
-            msg = "the project has no placement and cycle sections: it cannot run a cycle"
-            return Reply.bad_request(msg).to_dict()
-        steps = self.cfg.cycle.walk_steps if walk_steps is None else walk_steps
-        bad = cycle_refusal(ring, steps)
-        if bad is not None:
-            return bad.to_dict()
         rc = self.ring_cycle
         if rc is not None and rc.active:
-            return Reply.refused(
-                f"cycle refused: ring {rc.ring}'s cycle is in {rc.phase}"
-            ).to_dict()
-        if self.modes.mode not in (Mode.IDLE, Mode.COMPLETE):
-            why = f"cycle refused: the service is {self.modes.mode} (IDLE or COMPLETE needed)"
+            why = f"cycle refused: ring {rc.ring}'s cycle is in {rc.phase}"
             return Reply.refused(why).to_dict()
-        cyc = RingCycle(
-            self, ring, previous, records, walk_steps=steps,
-            walk_back_unloaded=walk_back_unloaded, say=say or (lambda _s: None),
-        )  # fmt: skip
+        cyc = RingCycle.request(self, ring, previous, records, walk_steps, walk_back_unloaded, say)
+        if isinstance(cyc, Reply):
+            return cyc.to_dict()
         self.ring_cycle = cyc
-        self.event(
-            "cycle", ring=ring, previous=previous.to_dict(), walk_steps=steps,
-            walk_back_unloaded=walk_back_unloaded,
-        )  # fmt: skip
         cyc.start()
         if drive:
             threading.Thread(
-                target=self._drive_cycle, args=(cyc,), name="wara-cycle", daemon=True
+                target=cyc.drive, args=(self.CYCLE_TICK_S,), name="wara-cycle", daemon=True
             ).start()
         return Reply.accepted(ring=ring, phase=cyc.phase).to_dict()
-
-    def _drive_cycle(self, cyc: RingCycle) -> None:
-        """The service's cycle thread: ticks the cycle until it ends (never the loop)."""
-        while cyc.active:
-            try:
-                cyc.tick()
-            except Exception as exc:  # a bug: the cycle ends, the machine stops
-                log.exception("cycle_failed", ring=cyc.ring, phase=cyc.phase)
-                cyc.fail(f"internal: {type(exc).__name__}: {exc}")
-                return
-            time.sleep(self.CYCLE_TICK_S)
 
     def confirm_fixed(self, user: str) -> dict[str, Any]:
         """The operator confirms the part is fixed (``wara ctl confirm-fixed``)."""
@@ -455,32 +391,12 @@ class ServiceCore:
             return Reply.refused("survey refused: no cycle").to_dict()
         return cyc.submit_survey(points, pose).to_dict()
 
-    def end_cycle(self, cyc: RingCycle, error: str | None) -> None:
-        """The ring cycle ended (``error`` None: done): the run record and the log; a
-        failed cycle leaves the machine stopped (valves closed)."""
-        if error is not None and self.modes.mode in (
-            Mode.STARTING, Mode.EXECUTE, Mode.COMPLETE, Mode.HELD, Mode.SUSPENDED,
-        ):  # fmt: skip
-            self.modes.stop(f"ring {cyc.ring}'s cycle ended in {cyc.phase}: {error}")
-        log.info("cycle end", ring=cyc.ring, phase=cyc.phase, error=error)
-        self.event(
-            "cycle_end", ring=cyc.ring, phase=cyc.phase, error=error,
-            phase_times_s=cyc.phase_times_s, table4=cyc.table4,
-        )  # fmt: skip
-
-    def note_cycle(self, ring: int, phase: str, **figures: Any) -> None:
-        """The ring cycle's driver enters ``phase`` of ring ``ring``: in the status
-        (``cycle``), the run record (a ``cycle_phase`` event with ``figures``) and the log."""
-        self.cycle = {"ring": ring, "phase": phase, "since_s": self._now, **figures}
-        log.info("cycle phase", ring=ring, phase=phase, **figures)
-        self.event("cycle_phase", ring=ring, phase=phase, **figures)
-
     # ------------------------------------------------------------------ status
 
     def snapshot(self) -> dict[str, Any]:
         """The last cycle's status (safe to call from any thread)."""
         rc = self.ring_cycle
-        cycle = rc.status() if rc is not None else dict(self.cycle) if self.cycle else None
+        cycle = rc.status() if rc is not None else None
         return self.board.snapshot(self.link, self._inputs, self.motions.active, cycle)
 
     def achieved_attitude_deg(self, x: np.ndarray) -> tuple[float, float]:
@@ -550,7 +466,7 @@ class ServiceCore:
             for cause in motion_causes(inp, self.motions.metrics(), self.motions.limits):
                 self.modes.fault(cause)
         if inp.hmi is not None:
-            self._take_hmi(inp.hmi, now)
+            self.hmi.take(inp.hmi, now)
         while self._calls:  # the operator's requests, in order
             ticket, fn = self._calls.popleft()
             ticket.answer(fn(inp))

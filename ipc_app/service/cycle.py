@@ -29,11 +29,13 @@ closed (:attr:`RingCycle.error`, :attr:`RingCycle.stopped_in_phase`).
 from __future__ import annotations
 
 import threading
+import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any, Protocol
 
 import numpy as np
+import structlog
 
 from config import units
 from config.schema import ProjectConfig
@@ -53,8 +55,10 @@ from ipc_app.service.motion import Motion, Planner, Ticket
 from ipc_app.service.motions.place import PlaceMotion
 from ipc_app.service.motions.release import ReleaseMotion
 from ipc_app.service.motions.walk import WalkMotion
-from ipc_app.service.requests import Code, Reply
+from ipc_app.service.requests import Code, Reply, cycle_refusal
 from ipc_app.service.worker import PLAN_TARGET_FN, PlannerCallError
+
+log = structlog.get_logger("wara.service")
 
 #: The phases of one ring, in order.
 PHASES: tuple[str, ...] = (
@@ -120,10 +124,10 @@ class CyclePort(Protocol):
         """``kind``'s motion prepared and handed to the loop."""
         ...
 
-    def note_cycle(self, ring: int, phase: str, **figures: Any) -> None: ...
-    def end_cycle(self, cyc: RingCycle, error: str | None) -> None: ...
     def audit(self, user: str, action: str, result: str) -> dict[str, Any]: ...
-    def event(self, kind: str, **fields: Any) -> None: ...
+    def event(self, kind: str, **fields: Any) -> None:
+        """A run-record event at the machine time."""
+        ...
 
 
 class CycleError(Exception):
@@ -177,6 +181,39 @@ class RingCycle:
     _lock: threading.RLock = field(default_factory=threading.RLock)
     _stop_reason: str | None = None
 
+    @classmethod
+    def request(
+        cls,
+        core: CyclePort,
+        ring: int,
+        previous: Pose,
+        records: RingRecords,
+        walk_steps: int | None = None,
+        walk_back_unloaded: bool = True,
+        say: Callable[[str], None] | None = None,
+    ) -> RingCycle | Reply:
+        """Ring ``ring``'s cycle, checked (``walk_steps`` default ``cycle.walk_steps``)
+        and noted in the run record; or why not. The caller starts it."""
+        cfg = core.cfg
+        if cfg.placement is None or cfg.cycle is None:
+            msg = "the project has no placement and cycle sections: it cannot run a cycle"
+            return Reply.bad_request(msg)
+        steps = cfg.cycle.walk_steps if walk_steps is None else walk_steps
+        bad = cycle_refusal(ring, steps)
+        if bad is not None:
+            return bad
+        if core.modes.mode not in (Mode.IDLE, Mode.COMPLETE):
+            why = f"cycle refused: the service is {core.modes.mode} (IDLE or COMPLETE needed)"
+            return Reply.refused(why)
+        core.event(
+            "cycle", ring=ring, previous=previous.to_dict(), walk_steps=steps,
+            walk_back_unloaded=walk_back_unloaded,
+        )  # fmt: skip
+        return cls(
+            core, ring, previous, records, walk_steps=steps,
+            walk_back_unloaded=walk_back_unloaded, say=say or (lambda _s: None),
+        )  # fmt: skip
+
     @property
     def cfg(self) -> ProjectConfig:
         return self.core.cfg
@@ -207,7 +244,10 @@ class RingCycle:
             self.phase_times_s[self.phase] = now - self._since
         self.phase, self._since, self.waiting_for = phase, now, waiting_for
         self._issued_at, self._ticket, self._started = None, None, False
-        self.core.note_cycle(self.ring, phase, waiting_for=waiting_for, **figures)
+        log.info("cycle phase", ring=self.ring, phase=phase, waiting_for=waiting_for, **figures)
+        self.core.event(
+            "cycle_phase", ring=self.ring, phase=phase, waiting_for=waiting_for, **figures
+        )
         self.say(f"ring {self.ring}: {phase}")
 
     def fail(self, msg: str, *, refused: bool = False) -> None:
@@ -215,7 +255,33 @@ class RingCycle:
         self.error, self.refused = msg, refused
         self.stopped_in_phase = self.phase
         self.phase_times_s[self.phase] = self.core.now_s - self._since
-        self.core.end_cycle(self, msg)
+        self._end(msg)
+
+    def _end(self, error: str | None) -> None:
+        """The cycle ended (``error`` None: done): the run record and the log; a failed
+        cycle leaves the machine stopped (valves closed)."""
+        modes = self.core.modes
+        if error is not None and modes.mode in (
+            Mode.STARTING, Mode.EXECUTE, Mode.COMPLETE, Mode.HELD, Mode.SUSPENDED,
+        ):  # fmt: skip
+            modes.stop(f"ring {self.ring}'s cycle ended in {self.phase}: {error}")
+        log.info("cycle end", ring=self.ring, phase=self.phase, error=error)
+        self.core.event(
+            "cycle_end", ring=self.ring, phase=self.phase, error=error,
+            phase_times_s=self.phase_times_s, table4=self.table4,
+        )  # fmt: skip
+
+    def drive(self, tick_s: float) -> None:
+        """Tick until the cycle ends, a tick every ``tick_s`` (the service's cycle
+        thread, never the loop); a tick that raises (a bug) ends the cycle."""
+        while self.active:
+            try:
+                self.tick()
+            except Exception as exc:  # a bug: the cycle ends, the machine stops
+                log.exception("cycle_failed", ring=self.ring, phase=self.phase)
+                self.fail(f"internal: {type(exc).__name__}: {exc}")
+                return
+            time.sleep(tick_s)
 
     def start(self) -> None:
         self._enter("load", waiting_for="a part on the platform (the upper cylinders' pressures)")
@@ -293,7 +359,7 @@ class RingCycle:
             self._note_walk("walk_back")
             self.phase_times_s[ph] = core.now_s - self._since
             self.phase, self.waiting_for, self.done = "done", "", True
-            core.end_cycle(self, None)
+            self._end(None)
 
     def _note_walk(self, phase: str) -> None:
         """The figures of the walk that just ended (none when the cycle does not walk)."""

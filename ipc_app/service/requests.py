@@ -18,12 +18,15 @@ socket sends and what the service's request methods return.
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping
+import threading
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from enum import StrEnum
 from typing import TYPE_CHECKING, Any
 
+from config import units
 from config.numbers import check_name, check_text
+from plc_bridge.link import HmiTarget, TargetAck, TargetRequest
 
 if TYPE_CHECKING:
     from ipc_app.service.modes import Outcome
@@ -250,3 +253,56 @@ def cycle_refusal(ring: int, steps: int) -> Reply | None:
 def ring_refusal(ring: int) -> Reply | None:
     why = within(ring, "ring", "ring")
     return None if why is None else Reply.bad_request(why)
+
+
+class HmiRequests:
+    """The HMI's requests over CAN (``PLC_HmiTarget``, read by the loop): a target is
+    asked as ``wara ctl adjust`` asks it; a cancel stops; a walk is checked here and
+    planned on a thread of its own (planning is not the loop's work); each answered
+    with its TargetSeq."""
+
+    def __init__(
+        self,
+        adjust: Callable[[float, float, int], dict[str, Any]],
+        walk: Callable[[int, int], object],
+        stop: Callable[[str], object],
+        ack: Callable[[TargetAck, int], None],
+        refused: Callable[[float, int, str], object],
+    ) -> None:
+        self._adjust, self._walk, self._stop, self._ack = adjust, walk, stop, ack
+        self._refused = refused
+        self._preparing = 0
+        self._lock = threading.Lock()
+
+    @property
+    def preparing(self) -> bool:
+        """A walk is being planned on its thread, not yet handed to the loop (the
+        lockstep harness holds machine time meanwhile, as it does for the planner)."""
+        return self._preparing > 0
+
+    def take(self, hmi: HmiTarget, now: float) -> None:
+        if hmi.request == TargetRequest.NEW_TARGET:
+            deg = units.to_deg
+            out = self._adjust(deg(hmi.roll_rad), deg(hmi.pitch_rad), hmi.seq)
+            if not out.get("ok"):  # refused: its own seq; the running one's is kept
+                self._ack(TargetAck.REJECTED, hmi.seq)
+        elif hmi.request == TargetRequest.CANCEL:
+            self._stop("HMI cancel")
+            self._ack(TargetAck.NONE, hmi.seq)
+        elif hmi.request == TargetRequest.WALK:
+            why = hmi_walk_refusal(hmi.walk_steps)
+            if why is not None:
+                self._refused(now, hmi.seq, why)
+                return
+            with self._lock:
+                self._preparing += 1
+            threading.Thread(
+                target=self._prepare_walk, args=(hmi,), name="wara-hmi-walk", daemon=True
+            ).start()
+
+    def _prepare_walk(self, hmi: HmiTarget) -> None:
+        try:
+            self._walk(hmi.walk_steps, hmi.seq)
+        finally:
+            with self._lock:
+                self._preparing -= 1
