@@ -321,7 +321,8 @@ class ServiceCore:
         """One entry of a front end's audit trail (the OPC UA server's method calls):
         logged and put into the run record as an ``audit`` event."""
         log.info("audit", user=user, action=action, result=result)
-        self.event("audit", user=user, action=action, result=result)
+        if self.record is not None:
+            self.record.event(self._now, "audit", user=user, action=action, result=result)
         return {}
 
     def stop(self, reason: str) -> dict[str, Any]:
