@@ -83,6 +83,8 @@ class HomingMotion(LayersMotion):
         #: the profile's peak ds/dtau and |d2s/dtau2|
         self.c_v, self.c_a = float(np.max(ds)), float(np.max(np.abs(dds)))
         self.home_path: HomePath | None = None
+        #: the workpiece's attitude at home: the base's (both layers parallel to it)
+        self.target_deg = (units.to_deg(cfg.base.roll_rad), units.to_deg(cfg.base.pitch_rad))
 
     @classmethod
     def prepare(cls, svc: Service, *args: Any) -> Motion | Reply:
