@@ -21,9 +21,10 @@ last inputs, the planner, where its phases and its end are noted); the service i
 service's cycle thread (``wara ctl cycle``), or by the HIL driver between its simulated
 periods (``wara cycle``). The planning (the placement's target, the walks) runs in that
 caller, never in the loop; the loop only takes the requests, as for ``wara ctl walk`` and
-``place``. A stop (``wara ctl stop``), a latched fault, a refused request or a motion
-that does not end in COMPLETE ends the cycle in the phase it was in, with the valves
-closed (:attr:`RingCycle.error`, :attr:`RingCycle.stopped_in_phase`).
+``place``. A stop (``wara ctl stop``), a latched fault, a refused request, a motion
+that does not end in COMPLETE or not within ``cycle.max_motion_min`` ends the cycle in
+the phase it was in, with the valves closed (:attr:`RingCycle.error`,
+:attr:`RingCycle.stopped_in_phase`).
 """
 
 from __future__ import annotations
@@ -77,16 +78,6 @@ RECORD_KEYS: tuple[str, ...] = (
     "tilt_angle_deg",
     "rotation_angle_deg",
 )
-
-
-def motion_limit_s(cfg: ProjectConfig) -> float:
-    """The longest a motion phase of a ring may take before the cycle fails it, s: the
-    ring's whole cycle-time goal (``cycle.max_cycle_time_min``, the fixing hold
-    excluded). A phase that alone takes longer has missed the ring's goal; one that
-    has not ended by then is stuck (the motions' own interlocks end the ones that go
-    wrong much sooner). The HIL driver (``wara cycle``) bounds a whole ring with it."""
-    assert cfg.cycle is not None
-    return 60.0 * cfg.cycle.max_cycle_time_min
 
 
 def previous_from_deviation(cfg: ProjectConfig, ring: int, dev: Pose) -> Pose:
@@ -382,8 +373,8 @@ class RingCycle:
                 self._started = True
             return False
         if mode in (Mode.EXECUTE, Mode.HELD, Mode.SUSPENDED, Mode.STARTING):
-            assert self._issued_at is not None
-            limit = motion_limit_s(self.cfg)
+            assert self._issued_at is not None and self.cfg.cycle is not None
+            limit = self.cfg.cycle.max_motion_s  # cycle.max_motion_min
             if core.now_s - self._issued_at > limit:
                 raise CycleError(f"{what} did not end within {limit:.0f} s")
             return False
