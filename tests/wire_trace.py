@@ -221,12 +221,10 @@ SCENARIOS: dict[str, Callable[[Any, Path], str]] = {
 }
 
 
-def _strip(obj: Any) -> Any:
-    if isinstance(obj, dict):
-        return {k: _strip(v) for k, v in obj.items() if k not in WALL_CLOCK_KEYS}
-    if isinstance(obj, list):
-        return [_strip(v) for v in obj]
-    return obj
+def _event_line(line: str) -> str:
+    """A run-record event without the keys measured on the wall clock, keys sorted."""
+    obj = json.loads(line, object_hook=lambda d: {k: d[k] for k in d if k not in WALL_CLOCK_KEYS})
+    return json.dumps(obj, sort_keys=True)
 
 
 def record(out_dir: Path, names: list[str]) -> None:
@@ -240,10 +238,7 @@ def record(out_dir: Path, names: list[str]) -> None:
                     note = SCENARIOS[name](rec, Path(tmp))
             finally:
                 rec.stop()
-            events = [
-                json.dumps(_strip(json.loads(line)), sort_keys=True)
-                for line in (run_dir / "events.jsonl").open()
-            ]
+            events = [_event_line(line) for line in (run_dir / "events.jsonl").open()]
             (out_dir / f"{name}.events").write_text("\n".join(events) + "\n")
             samples = sorted(run_dir.glob("samples.csv*"))
             data = b"".join(p.read_bytes() for p in samples)
