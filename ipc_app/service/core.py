@@ -45,7 +45,7 @@ from ipc_app.service.interlocks import present_causes as present_causes_of
 from ipc_app.service.machine_io import Handshake, MachineInputs, MachineOutputs, write
 from ipc_app.service.manager import MotionManager
 from ipc_app.service.modes import UNIT_MODES, Mode, ModeMachine, Transition, UnitMode
-from ipc_app.service.motion import Motion, Planner, Ticket
+from ipc_app.service.motion import Motion, Planner, Preparation, Ticket
 from ipc_app.service.motions.attitude import AdjustPlanning, JogMotion
 from ipc_app.service.motions.homing import HomingMotion
 from ipc_app.service.motions.place import PlaceMotion, plan_from_sheet
@@ -99,6 +99,8 @@ class ServiceCore:
         self.adjusting = AdjustPlanning(
             self, planner, self.modes, self.handshake, self.motions, record
         )
+        #: requests prepared with the loop's help (the planner's answer polled each cycle)
+        self.preparations: tuple[Preparation, ...] = (self.adjusting,)
         self.board = StatusBoard(cfg, self.attitude, record)
         self.state_changes = self.board.state_changes
         self._calls: deque[tuple[Ticket, Callable[[MachineInputs], Reply]]] = deque()
@@ -243,18 +245,20 @@ class ServiceCore:
             return Ticket(reply=got)
         return self._queue(lambda inp: self.motions.begin(got, inp, hmi_seq), got)
 
-    def start(self, kind: type[Motion], args: tuple[Any, ...] = (), wait_s: float = 0.0) -> dict:
+    def start_motion(
+        self, kind: type[Motion], args: tuple[Any, ...] = (), wait_s: float = 0.0
+    ) -> dict[str, Any]:
         """:meth:`request_motion`'s reply (``wait_s`` > 0: once the loop has taken it)."""
         return self._reply(self.request_motion(kind, args), wait_s)
 
-    def request_jog(self, cylinder: str, distance_mm: float, wait_s: float = 0.0) -> dict:
+    def request_jog(self, cylinder: str, distance_mm: float, wait_s: float = 0.0) -> dict[str, Any]:
         """Jog one attitude cylinder by ``distance_mm`` at ``control.manual_jog_speed_mm_s``
         (unit mode MANUAL, from IDLE or COMPLETE; the other cylinders hold)."""
-        return self.start(JogMotion, (cylinder, distance_mm), wait_s)
+        return self.start_motion(JogMotion, (cylinder, distance_mm), wait_s)
 
     def request_home(self, wait_s: float = 0.0) -> dict[str, Any]:
         """Homing: each attitude layer to its reference stroke, level, then held."""
-        return self.start(HomingMotion, (), wait_s)
+        return self.start_motion(HomingMotion, (), wait_s)
 
     def request_walk(
         self,
@@ -287,11 +291,11 @@ class ServiceCore:
 
     def request_place_plan(self, plan: PlacementPlan, wait_s: float = 0.0) -> dict[str, Any]:
         """Move the part to ``plan``'s target (:class:`PlaceMotion`)."""
-        return self.start(PlaceMotion, (plan,), wait_s)
+        return self.start_motion(PlaceMotion, (plan,), wait_s)
 
     def request_release(self, ring: int, wait_s: float = 0.0) -> dict[str, Any]:
         """Lower the upper platform off ring ``ring``'s fixed part (:class:`ReleaseMotion`)."""
-        return self.start(ReleaseMotion, (ring,), wait_s)
+        return self.start_motion(ReleaseMotion, (ring,), wait_s)
 
     def _queue(self, fn: Callable[[MachineInputs], Reply], motion: Motion | None = None) -> Ticket:
         ticket = Ticket(motion)
@@ -471,5 +475,6 @@ class ServiceCore:
         while self._calls:  # the operator's requests, in order
             ticket, fn = self._calls.popleft()
             ticket.answer(fn(inp))
-        self.adjusting.poll(inp)
+        for prep in self.preparations:
+            prep.poll(inp)
         return self.motions.drive(inp)

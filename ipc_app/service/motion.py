@@ -140,6 +140,13 @@ class Planner(Protocol):
         walk's and the placement's planning; never from the loop)."""
 
 
+class Preparation(Protocol):
+    """A request the loop helps prepare: polled once per cycle before the motion's
+    update (an adjustment: its target submitted to the planner, the answer taken)."""
+
+    def poll(self, inp: MachineInputs) -> None: ...
+
+
 class Service(Protocol):
     """What a motion's preparation reads of the service (in the requesting thread)."""
 
