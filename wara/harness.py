@@ -34,7 +34,10 @@ import numpy as np
 from config import units
 from config.hil_scenario import HilScenario
 from config.schema import ProjectConfig, Realtime
+from hil_sim.placement import pose_from_home
 from hil_sim.simulator import HilSimulator
+from ipc_app.model.placement import Pose, compose
+from ipc_app.planner.placement import home_pose
 from ipc_app.service.core import ServiceCore
 from ipc_app.service.loop import (
     SWITCH_INTERVAL_S,
@@ -385,6 +388,11 @@ class Harness:
             "simulator_realtime_factor": self.sim.realtime_factor,
             "sim_time_s": round(self.sim.t_s, 3),
         }
+
+    def part_pose(self, ring: int) -> Pose:
+        """The part's pose on the simulator's truth, in ring ``ring``'s tunnel frame."""
+        r, t = pose_from_home(self.cfg, self.sim.rig)
+        return compose(home_pose(self.cfg, ring), Pose.from_matrix(r, t))
 
     def faulted(self) -> bool:
         return self.core.modes.mode is Mode.ABORTED
