@@ -501,10 +501,7 @@ def _judge(st: dict[str, Any], res: ExampleResult) -> ExampleResult:
     achieved = m.get("achieved_deg")
     if achieved is not None:
         res.set_achieved(float(achieved[0]), float(achieved[1]))
-    res.max_twist_mm = float(m.get("max_twist_mm", math.nan))
-    res.sync_error_mm = float(m.get("hold_sync_error_mm", math.nan))
-    res.max_sync_error_mm = float(m.get("max_sync_error_mm", math.nan))
-    res.duration_s = float(m.get("duration_s", math.nan))
+    res.take_motion(m)
     mode = st.get("mode")
     problem = ""
     if mode != "COMPLETE":

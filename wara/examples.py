@@ -6,7 +6,9 @@ harness's users (tests, studies)."""
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass
+from typing import Any
 
 from wara.goals import ATTITUDE_GOALS, ATTITUDE_TOL_DEG, SYNC_TOL_MM, TWIST_TOL_MM, judge
 
@@ -48,6 +50,15 @@ class ExampleResult:
             "max_twist_mm": self.max_twist_mm,
             "sync_error_mm": self.sync_error_mm,
         }
+
+    def take_motion(self, motion: Mapping[str, Any]) -> None:
+        """The service's figures of the motion from its status' ``motion`` block (``wara
+        ctl status``): the largest twist, the sync error at standstill and while moving,
+        the duration (NaN where the block has none)."""
+        self.max_twist_mm = float(motion.get("max_twist_mm", math.nan))
+        self.sync_error_mm = float(motion.get("hold_sync_error_mm", math.nan))
+        self.max_sync_error_mm = float(motion.get("max_sync_error_mm", math.nan))
+        self.duration_s = float(motion.get("duration_s", math.nan))
 
     def set_achieved(self, roll_deg: float, pitch_deg: float) -> None:
         """The attitude reached, and the error: the larger of roll and pitch off target."""
