@@ -14,7 +14,7 @@ import pytest
 from config import ProjectConfig, load_project, units
 from hil_sim.placement import pose_from_home, slide_state
 from ipc_app.model.placement import Pose
-from tests.cli_helpers import run_main
+from tests.cli_helpers import run_wara
 from tests.hil_helpers import make_bench
 from wara.place import run_place
 
@@ -126,5 +126,7 @@ def test_the_place_run_goes_through_the_services_modes_and_interlocks(tmp_path: 
 
 
 def test_place_run_refuses_an_unreachable_target() -> None:
-    code, out, _ = run_main(["place", "run", "--lockstep", "--previous-deviation", "9,0,0,0,0"])
+    # a child process: the run sets up the service's logging (structlog) for the process
+    proc = run_wara(["place", "run", "--lockstep", "--previous-deviation", "9,0,0,0,0"])
+    code, out = proc.returncode, proc.stdout
     assert code == 3 and "centreline_deviation_x_mm" in out
