@@ -1,4 +1,4 @@
-"""A transfer's control and checks (ipc_app/control/walk.py, docs/walking.md): the
+"""A transfer's control and checks (ipc_app/control/walk/, docs/walking.md): the
 releasing legs' position loops are told the decompression of their oil columns, the
 receiving legs are judged against the plan's line to their standing share."""
 

@@ -1,4 +1,4 @@
-"""The walk's twist-mode controller (ipc_app/control/walk.py, docs/walking.md): a frame
+"""The walk's twist-mode controller (ipc_app/control/walk/, docs/walking.md): a frame
 standing in position control has its commands set modally, the twist's share by a force
 loop whose crossover ``walking.twist_bandwidth_rad_s`` sets, the rest by the position
 loops, which do not see the twist."""
