@@ -60,6 +60,10 @@ from ipc_app.model.support import cap_side_forces_n
 from ipc_app.planner.walk import Move, Phase, WalkPlan
 
 FloatArray = NDArray[np.float64]
+#: a kind's start (the sequencer, the phase, rod positions, pressures, S's position)
+StartKind = Callable[["WalkSequencer", PhaseRun, FloatArray, FloatArray, float], None]
+#: a kind's cycle
+RunKind = Callable[["WalkSequencer", PhaseRun, PhaseCycle], None]
 
 
 class WalkSequencer(WalkLoops):
@@ -187,7 +191,7 @@ class WalkSequencer(WalkLoops):
             if i in self.force_mode:  # bumpless back to position control
                 self._to_position_control(i, x)
 
-    _START: ClassVar[dict[PhaseKind, Callable[..., None]]] = {
+    _START: ClassVar[dict[PhaseKind, StartKind]] = {
         PhaseKind.TRAVEL: _start_travel,
         PhaseKind.LOWER: _start_lower,
         PhaseKind.PRELOAD: _start_force_ramp,
@@ -497,23 +501,23 @@ class WalkSequencer(WalkLoops):
         # it changed the state M's touch-downs meet in 7a: at 5 mm/s 7b's trip went from
         # 110.26 to 110.75 %)
         told = run.progress < 1.0 and run.role.decompression_feedforward
-        release_rate_n_s = run.release_rate_n_s[releasing] * (1.0 if told else 0.0)
-        follow_m_s = release_rate_n_s / self.k_contact
+        told_rate_n_s = run.release_rate_n_s[releasing] * (1.0 if told else 0.0)
+        follow_m_s = told_rate_n_s / self.k_contact
         follow_m_s -= twist_part(follow_m_s)
-        for k, (j, d) in enumerate(zip(releasing, follow_m, strict=True)):
+        for k, (j, follow) in enumerate(zip(releasing, follow_m, strict=True)):
             i = self.legs[j]
-            cyc.position_ref_m[i] = run.start_position_m[i] + float(d)
+            cyc.position_ref_m[i] = run.start_position_m[i] + float(follow)
             if self.feedforward:
                 cyc.rate_ref_m_s[i] = float(follow_m_s[k])
             # the rod moves by its oil column's decompression as the leg unloads
-            cyc.known_speed_m_s[i] = -float(release_rate_n_s[k]) / float(run.k_oil_n_m[j])
+            cyc.known_speed_m_s[i] = -float(told_rate_n_s[k]) / float(run.k_oil_n_m[j])
         cyc.sync_band_m = self.leg_sync_band_m
 
     def _overdue(self, run: PhaseRun, cyc: PhaseCycle) -> None:
         overdue_s = cyc.now_s - run.started_s - self.walk.transfer_timeout_s
         self.figures.overdue_s = max(0.0, overdue_s)
 
-    _RUN: ClassVar[dict[PhaseKind, Callable[[WalkSequencer, PhaseRun, PhaseCycle], None]]] = {
+    _RUN: ClassVar[dict[PhaseKind, RunKind]] = {
         PhaseKind.TRAVEL: _run_travel,
         PhaseKind.LOWER: _run_lower,
         PhaseKind.PRELOAD: _run_preload,
