@@ -4,7 +4,9 @@ A producer is one row of :data:`PRODUCERS`: its name (the heading and anchor of 
 section in docs/figures.md, and ``--only NAME``), the subsystem it belongs to, the
 ``wara`` commands that measure it (full form, and the short form of ``--quick``), and
 a function that reads those commands' JSON and returns the figures. A new figure is a
-new row and, where no producer reads its command yet, a small function here.
+new row and, where no producer reads its command yet, a reader here: ``templated(...)``
+rows of templates on the command's JSON (``"{lockstep.realtime_factor_cpu:.1f}x"``), or a
+small function where a figure is worked out from several values.
 
 The commands run as a user types them (``sys.executable -m wara``), each in a fresh
 interpreter and a temporary directory: the figures are the commands' own, not a
@@ -15,7 +17,7 @@ from __future__ import annotations
 
 import re
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any
 
 # --------------------------------------------------------------------------- data
@@ -66,7 +68,6 @@ class Producer:
     realtime: bool = False
     #: the README's row label; empty: not a headline figure
     headline: str = ""
-    notes: str = field(default="")
 
     def commands_for(self, quick: bool) -> tuple[str, ...]:
         return self.quick if quick and self.quick else self.commands
@@ -155,6 +156,19 @@ def _percent(d: Any, fraction_path: str) -> Any:
 
 
 # --------------------------------------------------------------------------- producers
+
+
+def templated(*rows: tuple[str, str, str], headline: str = "") -> Extract:
+    """A producer whose figures are templates on its first command's JSON: rows of
+    (what, value, goal), each a :func:`t` template."""
+
+    def extract(outs: Sequence[Output]) -> Measured:
+        d = outs[0].data
+        figs = tuple(Figure(t(d, name), t(d, value), t(d, goal)) for name, value, goal in rows)
+        return Measured(figs, t(d, headline))
+
+    return extract
+
 
 _T4 = (
     "vertical_misalignment_mm",
@@ -414,55 +428,26 @@ def walk_plan(outs: Sequence[Output]) -> Measured:
     return Measured(tuple(figs))
 
 
-def dual_cylinder(outs: Sequence[Output]) -> Measured:
-    d = outs[0].data
-    c = "controllers"
-    figs = [
-        Figure(
-            "sync error max after the transient, LADRC / PID",
-            t(d, f"{{{c}.ladrc.sync_error_max_mm:.3f}} / {{{c}.pid.sync_error_max_mm:.3f}} mm"),
-            "LADRC <= 0.07 mm",
-        ),
-        Figure(
-            "sync error rms after the transient, LADRC / PID",
-            t(d, f"{{{c}.ladrc.sync_error_rms_mm:.4f}} / {{{c}.pid.sync_error_rms_mm:.4f}} mm"),
-        ),
-        Figure(
-            "LADRC sync error max before / with noise",
-            t(
-                d,
-                f"{{{c}.ladrc.sync_error_max_mm_before_noise:.3f}} / "
-                f"{{{c}.ladrc.sync_error_max_mm_after_noise:.3f}} mm",
-            ),
-        ),
-        Figure(
-            "tracking error rms, LADRC / PID",
-            t(
-                d,
-                f"{{{c}.ladrc.tracking_error_rms_mm:.2f}} / "
-                f"{{{c}.pid.tracking_error_rms_mm:.2f}} mm",
-            ),
-        ),
-        Figure(
-            "settling after the last move, LADRC / PID",
-            t(d, f"{{{c}.ladrc.settling_time_s:.1f}} / {{{c}.pid.settling_time_s:.1f}} s"),
-        ),
-        Figure(
-            "PID / LADRC on the max; on the rms",
-            t(
-                d,
-                "{pid_to_ladrc_sync_error_max_ratio:.1f}; {pid_to_ladrc_sync_error_rms_ratio:.0f}",
-            ),
-            ">= 1.5",
-        ),
-        Figure("goals", passed(get(d, "goals_met"))),
-    ]
-    headline = t(
-        d,
-        f"sync error max LADRC {{{c}.ladrc.sync_error_max_mm:.3f}} mm (paper 0.07), PID "
-        f"{{{c}.pid.sync_error_max_mm:.3f}} mm",
-    )
-    return Measured(tuple(figs), headline)
+dual_cylinder = templated(
+    ("sync error max after the transient, LADRC / PID",
+     "{controllers.ladrc.sync_error_max_mm:.3f} / {controllers.pid.sync_error_max_mm:.3f} mm",
+     "LADRC <= 0.07 mm"),
+    ("sync error rms after the transient, LADRC / PID",
+     "{controllers.ladrc.sync_error_rms_mm:.4f} / {controllers.pid.sync_error_rms_mm:.4f} mm", ""),
+    ("LADRC sync error max before / with noise",
+     "{controllers.ladrc.sync_error_max_mm_before_noise:.3f} / "
+     "{controllers.ladrc.sync_error_max_mm_after_noise:.3f} mm", ""),
+    ("tracking error rms, LADRC / PID",
+     "{controllers.ladrc.tracking_error_rms_mm:.2f} / "
+     "{controllers.pid.tracking_error_rms_mm:.2f} mm", ""),
+    ("settling after the last move, LADRC / PID",
+     "{controllers.ladrc.settling_time_s:.1f} / {controllers.pid.settling_time_s:.1f} s", ""),
+    ("PID / LADRC on the max; on the rms",
+     "{pid_to_ladrc_sync_error_max_ratio:.1f}; {pid_to_ladrc_sync_error_rms_ratio:.0f}", ">= 1.5"),
+    ("goals met", "{goals_met}", "True"),
+    headline="sync error max LADRC {controllers.ladrc.sync_error_max_mm:.3f} mm (paper 0.07), "
+    "PID {controllers.pid.sync_error_max_mm:.3f} mm",
+)  # fmt: skip
 
 
 def delay_margin(outs: Sequence[Output]) -> Measured:
@@ -487,20 +472,12 @@ def delay_margin(outs: Sequence[Output]) -> Measured:
     return Measured(tuple(figs), headline)
 
 
-def study_speed(outs: Sequence[Output]) -> Measured:
-    d = outs[0].data
-    figs = [
-        Figure(
-            "real-time factor",
-            t(d, "{realtime_factor:.0f}x"),
-            t(d, ">= {goal_min_realtime_factor}x"),
-        ),
-        Figure("simulated, wall", t(d, "{study_duration_s} s per controller, {wall_s:.1f} s")),
-        Figure("plant compiled (numba)", t(d, "{numba}")),
-    ]
-    return Measured(
-        tuple(figs), t(d, "{realtime_factor:.0f}x real time (goal {goal_min_realtime_factor}x)")
-    )
+study_speed = templated(
+    ("real-time factor", "{realtime_factor:.0f}x", ">= {goal_min_realtime_factor}x"),
+    ("simulated; wall", "{study_duration_s} s per controller; {wall_s:.1f} s", ""),
+    ("plant compiled (numba)", "{numba}", ""),
+    headline="{realtime_factor:.0f}x real time (goal {goal_min_realtime_factor}x)",
+)
 
 
 def walk(outs: Sequence[Output]) -> Measured:
@@ -652,54 +629,31 @@ def busload(outs: Sequence[Output]) -> Measured:
     )
 
 
-def codec(outs: Sequence[Output]) -> Measured:
-    d = outs[0].data
-    figs = [
-        Figure(
-            "compiled codec a cycle",
-            t(d, "{codec_us_per_cycle:.1f} us = {codec_percent_of_period:.2f} % of the period"),
-            t(d, "< {goal_percent} %"),
-        ),
-        Figure(
-            "cantools, the same work",
-            t(d, "{cantools_us_per_cycle:.1f} us = {cantools_percent_of_period:.2f} %"),
-        ),
-        Figure("compiled vs cantools", t(d, "{speedup_vs_cantools:.1f}x")),
-        Figure(
-            "the IPC side of a cycle on `virtual` (median)",
-            t(d, "{link_us_per_cycle_median:.0f} us = {link_percent_of_period:.1f} %"),
-        ),
-    ]
-    headline = t(
-        d,
-        "{codec_us_per_cycle:.1f} us = {codec_percent_of_period:.2f} % of the 5 ms period "
-        "(cantools {cantools_percent_of_period:.2f} %); the IPC side of a cycle "
-        "{link_us_per_cycle_median:.0f} us ({link_percent_of_period:.1f} %)",
-    )
-    return Measured(tuple(figs), headline)
+codec = templated(
+    ("compiled codec a cycle",
+     "{codec_us_per_cycle:.1f} us = {codec_percent_of_period:.2f} % of the period",
+     "< {goal_percent} %"),
+    ("cantools, the same work",
+     "{cantools_us_per_cycle:.1f} us = {cantools_percent_of_period:.2f} %", ""),
+    ("compiled vs cantools", "{speedup_vs_cantools:.1f}x", ""),
+    ("the IPC side of a cycle on `virtual` (median)",
+     "{link_us_per_cycle_median:.0f} us = {link_percent_of_period:.1f} %", ""),
+    headline="{codec_us_per_cycle:.1f} us = {codec_percent_of_period:.2f} % of the 5 ms period "
+    "(cantools {cantools_percent_of_period:.2f} %); the IPC side of a cycle "
+    "{link_us_per_cycle_median:.0f} us ({link_percent_of_period:.1f} %)",
+)  # fmt: skip
 
 
-def hil(outs: Sequence[Output]) -> Measured:
-    d = outs[0].data
-    goal = t(d, ">= {goal_realtime_factor}x")
-    figs = [
-        Figure(
-            "whole simulator, attitude rig, an IPC peer at 200 Hz",
-            t(d, "{realtime_factor:.1f}x"),
-            goal,
-        ),
-        Figure(
-            "whole simulator, walking rig (contact)", t(d, "{contact_realtime_factor:.1f}x"), goal
-        ),
-        Figure("plant alone, attitude rig", t(d, "{plant_realtime_factor:.1f}x")),
-        Figure("plant alone, walking rig", t(d, "{contact_plant_realtime_factor:.1f}x")),
-    ]
-    headline = t(
-        d,
-        "{realtime_factor:.1f}x real time (goal {goal_realtime_factor}x), with the walking rig's "
-        "contact {contact_realtime_factor:.1f}x; the plant alone {plant_realtime_factor:.0f}x",
-    )
-    return Measured(tuple(figs), headline)
+hil = templated(
+    ("whole simulator, attitude rig, an IPC peer at 200 Hz", "{realtime_factor:.1f}x",
+     ">= {goal_realtime_factor}x"),
+    ("whole simulator, walking rig (contact)", "{contact_realtime_factor:.1f}x",
+     ">= {goal_realtime_factor}x"),
+    ("plant alone, attitude rig", "{plant_realtime_factor:.1f}x", ""),
+    ("plant alone, walking rig", "{contact_plant_realtime_factor:.1f}x", ""),
+    headline="{realtime_factor:.1f}x real time (goal {goal_realtime_factor}x), with the walking "
+    "rig's contact {contact_realtime_factor:.1f}x; the plant alone {plant_realtime_factor:.0f}x",
+)  # fmt: skip
 
 
 def step(outs: Sequence[Output]) -> Measured:
@@ -763,38 +717,20 @@ def transport(outs: Sequence[Output]) -> Measured:
     return Measured(tuple(figs))
 
 
-def opcua(outs: Sequence[Output]) -> Measured:
-    d = outs[0].data
-    figs = [
-        Figure(
-            "loop compute p99 without / with 10 clients / same CPU load",
-            t(
-                d,
-                "{compute_p99_ms.without:.2f} / {compute_p99_ms.with:.2f} / "
-                "{compute_p99_ms.same_load:.2f} ms",
-            ),
-        ),
-        Figure(
-            "with / without; with / same load (compute p99, median of rounds)",
-            t(d, "{compute_p99_ratio.median:.2f}; {same_load_ratio.median:.2f}"),
-        ),
-        Figure(
-            "overruns without / with / same load",
-            t(d, "{overruns.without} / {overruns.with} / {overruns.same_load}"),
-        ),
-        Figure("CPU of the server and the clients", t(d, "{opcua_cpu_share:.2f} CPU")),
-        Figure(
-            "state change to notification p50 / p99",
-            t(d, "{latency_ms.p50:.0f} / {latency_ms.p99:.0f} ms"),
-            "p99 < 200 ms",
-        ),
-        Figure(
-            "method call to notification p50 / p99",
-            t(d, "{call_latency_ms.p50:.0f} / {call_latency_ms.p99:.0f} ms"),
-            "p99 < 200 ms",
-        ),
-    ]
-    return Measured(tuple(figs))
+opcua = templated(
+    ("loop compute p99 without / with 10 clients / same CPU load",
+     "{compute_p99_ms.without:.2f} / {compute_p99_ms.with:.2f} / {compute_p99_ms.same_load:.2f} ms",
+     ""),
+    ("with / without; with / same load (compute p99, median of the rounds)",
+     "{compute_p99_ratio.median:.2f}; {same_load_ratio.median:.2f}", ""),
+    ("overruns without / with / same load",
+     "{overruns.without} / {overruns.with} / {overruns.same_load}", ""),
+    ("CPU of the server and the clients", "{opcua_cpu_share:.2f} CPU", ""),
+    ("state change to notification p50 / p99", "{latency_ms.p50:.0f} / {latency_ms.p99:.0f} ms",
+     "p99 < 200 ms"),
+    ("method call to notification p50 / p99",
+     "{call_latency_ms.p50:.0f} / {call_latency_ms.p99:.0f} ms", "p99 < 200 ms"),
+)  # fmt: skip
 
 
 def harness(outs: Sequence[Output]) -> Measured:
@@ -850,223 +786,82 @@ _HIL = "HIL simulator"
 _SVC = "IPC service"
 _CAMP = "Campaigns"
 
-#: Every figure the docs cite: name, subsystem, title, commands (full; quick), producer.
+#: Every figure the docs cite, one row each: name (its section's anchor in docs/figures.md),
+#: subsystem, title, the commands (full form), the reader of their JSON; the short form
+#: of ``--quick``, whether it runs on the wall clock (``--realtime``), the README's label.
+# fmt: off
 PRODUCERS: tuple[Producer, ...] = (
-    Producer(
-        "demo",
-        _DEMO,
-        "ring cycles in simulated time (`wara demo`)",
-        ("wara demo --json",),
-        demo,
-        ("wara demo --rings 1 --json",),
-        headline="the demo's ring cycles",
-    ),
-    Producer(
-        "demo-realtime",
-        _DEMO,
-        "a ring cycle on the wall clock",
-        ("wara demo --realtime --rings 1 --json",),
-        demo_realtime,
-        realtime=True,
-        headline="a ring cycle in real time",
-    ),
-    Producer(
-        "place-plan",
-        _PLACE,
-        "the target from a part 6 mm off, and one 9 mm off",
-        (
-            "wara place plan --ring 2 --previous-deviation 6,-6,0,0,0 --json",
-            "wara place plan --ring 2 --previous-deviation 9,-9,0,0,0 --json",
-        ),
-        place_plan,
-        headline="placement target",
-    ),
-    Producer(
-        "place-run",
-        _PLACE,
-        "the placement move in lockstep",
-        ("wara place run --lockstep --ring 5 --previous-deviation 6,-6,0,0,0.03 --json",),
-        place_run,
-        headline="placement move",
-    ),
-    Producer(
-        "attitude",
-        _ATT,
-        "Examples 1-3 in lockstep",
-        ("wara demo --attitude --lockstep --json",),
-        attitude,
-        headline="attitude examples 1-3",
-    ),
-    Producer(
-        "attitude-realtime",
-        _ATT,
-        "Examples 1-3 on the wall clock, one process",
-        ("wara demo --attitude --json",),
-        attitude_realtime,
-        realtime=True,
-        headline="attitude examples in real time",
-    ),
-    Producer(
-        "attitude-repeated",
-        _ATT,
-        "the attitude demo repeated, without and with a CPU hog",
-        (
-            "wara bench demo --attitude --runs 20 --json",
-            "wara bench demo --attitude --runs 20 --cpu-hog --json",
-        ),
-        demo_repeated,
-        (
-            "wara bench demo --attitude --runs 2 --json",
-            "wara bench demo --attitude --runs 2 --cpu-hog --json",
-        ),
-        realtime=True,
-        headline="the attitude demo, repeated",
-    ),
-    Producer(
-        "planner",
-        _PLAN,
-        "attitude planner: speed and optimality",
-        ("wara bench planner --json",),
-        planner,
-        ("wara bench planner --quick --json",),
-        headline="planner",
-    ),
-    Producer(
-        "walk-plan",
-        _PLAN,
-        "walk plan of three steps",
-        ("wara walk plan --steps 3 --json",),
-        walk_plan,
-    ),
-    Producer(
-        "dual-cylinder",
-        _CTRL,
-        "the paper's dual-cylinder study",
-        ("wara sim dual-cylinder --json",),
-        dual_cylinder,
-        headline="synchronization",
-    ),
-    Producer(
-        "delay-margin",
-        _CTRL,
-        "the attitude hold's margin for sensor delay",
-        ("wara sim delay-margin --json",),
-        delay_margin,
-        ("wara sim delay-margin --delays-ms 0,20 --json",),
-        headline="delay margin",
-    ),
-    Producer(
-        "study-speed",
-        _CTRL,
-        "the dual-cylinder study's speed",
-        ("wara bench sim --json",),
-        study_speed,
-        ("wara bench sim --quick --json",),
-        headline="study speed",
-    ),
-    Producer(
-        "walk",
-        _WALK,
-        "three steps in lockstep",
-        ("wara walk --steps 3 --lockstep --json",),
-        walk,
-        ("wara walk --steps 1 --lockstep --json",),
-        headline="walk",
-    ),
-    Producer(
-        "walk-realtime",
-        _WALK,
-        "one step on the wall clock",
-        ("wara walk --steps 1 --json",),
-        walk,
-        realtime=True,
-        headline="walk in real time",
-    ),
-    Producer(
-        "busload",
-        _CAN,
-        "bus load",
-        ("wara can busload --json", "wara can busload --walk --json"),
-        busload,
-        headline="bus load",
-    ),
-    Producer(
-        "codec",
-        _CAN,
-        "codec cost",
-        ("wara bench can --json",),
-        codec,
-        ("wara bench can --quick --json",),
-        headline="codec",
-    ),
-    Producer(
-        "hil",
-        _HIL,
-        "simulator speed",
-        ("wara bench hil --json",),
-        hil,
-        ("wara bench hil --quick --json",),
-        headline="HIL speed",
-    ),
-    Producer(
-        "step",
-        _SVC,
-        "the control step's CPU (lockstep)",
-        ("wara bench step --json",),
-        step,
-        ("wara bench step --quick --json",),
-    ),
-    Producer(
-        "loop",
-        _SVC,
-        "the fixed-rate loop alone",
-        ("wara bench loop --json",),
-        loop,
-        ("wara bench loop --quick --json",),
-    ),
-    Producer(
-        "transport",
-        _SVC,
-        "the two datagram transports",
-        ("wara bench transport --json",),
-        transport,
-        ("wara bench transport --quick --json",),
-    ),
-    Producer(
-        "two-process",
-        _SVC,
-        "two processes: the examples and the loop goal",
-        ("wara demo --two-process --json",),
-        two_process,
-        realtime=True,
-        headline="loop goal, two processes",
-    ),
-    Producer(
-        "soak",
-        _SVC,
-        "the two-process soak",
-        ("wara soak --minutes 30 --json",),
-        soak,
-        ("wara soak --minutes 2 --json",),
-        realtime=True,
-        headline="soak, two processes",
-    ),
-    Producer(
-        "opcua",
-        _SVC,
-        "the OPC UA server beside the loop",
-        ("wara bench opcua --json",),
-        opcua,
-        ("wara bench opcua --quick --json",),
-        realtime=True,
-    ),
-    Producer(
-        "harness",
-        _CAMP,
-        "the lockstep harness and campaign throughput",
-        ("wara bench harness --json",),
-        harness,
-        ("wara bench harness --quick --json",),
-        headline="lockstep harness",
-    ),
+    Producer("demo", _DEMO, "ring cycles in simulated time (`wara demo`)",
+             ("wara demo --json",), demo,
+             quick=("wara demo --rings 1 --json",), headline="the demo's ring cycles"),
+    Producer("demo-realtime", _DEMO, "a ring cycle on the wall clock",
+             ("wara demo --realtime --rings 1 --json",), demo_realtime,
+             realtime=True, headline="a ring cycle in real time"),
+    Producer("place-plan", _PLACE, "the target from a part 6 mm off, and one 9 mm off",
+             ("wara place plan --ring 2 --previous-deviation 6,-6,0,0,0 --json",
+              "wara place plan --ring 2 --previous-deviation 9,-9,0,0,0 --json"), place_plan,
+             headline="placement target"),
+    Producer("place-run", _PLACE, "the placement move in lockstep",
+             ("wara place run --lockstep --ring 5 --previous-deviation 6,-6,0,0,0.03 --json",),
+             place_run, headline="placement move"),
+    Producer("attitude", _ATT, "Examples 1-3 in lockstep",
+             ("wara demo --attitude --lockstep --json",), attitude,
+             headline="attitude examples 1-3"),
+    Producer("attitude-realtime", _ATT, "Examples 1-3 on the wall clock, one process",
+             ("wara demo --attitude --json",), attitude_realtime,
+             realtime=True, headline="attitude examples in real time"),
+    Producer("attitude-repeated", _ATT, "the attitude demo repeated, without and with a CPU hog",
+             ("wara bench demo --attitude --runs 20 --json",
+              "wara bench demo --attitude --runs 20 --cpu-hog --json"), demo_repeated,
+             quick=("wara bench demo --attitude --runs 2 --json",
+                    "wara bench demo --attitude --runs 2 --cpu-hog --json"),
+             realtime=True, headline="the attitude demo, repeated"),
+    Producer("planner", _PLAN, "attitude planner: speed and optimality",
+             ("wara bench planner --json",), planner,
+             quick=("wara bench planner --quick --json",), headline="planner"),
+    Producer("walk-plan", _PLAN, "walk plan of three steps",
+             ("wara walk plan --steps 3 --json",), walk_plan),
+    Producer("dual-cylinder", _CTRL, "the paper's dual-cylinder study",
+             ("wara sim dual-cylinder --json",), dual_cylinder, headline="synchronization"),
+    Producer("delay-margin", _CTRL, "the attitude hold's margin for sensor delay",
+             ("wara sim delay-margin --json",), delay_margin,
+             quick=("wara sim delay-margin --delays-ms 0,20 --json",), headline="delay margin"),
+    Producer("study-speed", _CTRL, "the dual-cylinder study's speed",
+             ("wara bench sim --json",), study_speed,
+             quick=("wara bench sim --quick --json",), headline="study speed"),
+    Producer("walk", _WALK, "three steps in lockstep",
+             ("wara walk --steps 3 --lockstep --json",), walk,
+             quick=("wara walk --steps 1 --lockstep --json",), headline="walk"),
+    Producer("walk-realtime", _WALK, "one step on the wall clock",
+             ("wara walk --steps 1 --json",), walk, realtime=True, headline="walk in real time"),
+    Producer("busload", _CAN, "bus load",
+             ("wara can busload --json", "wara can busload --walk --json"), busload,
+             headline="bus load"),
+    Producer("codec", _CAN, "codec cost",
+             ("wara bench can --json",), codec,
+             quick=("wara bench can --quick --json",), headline="codec"),
+    Producer("hil", _HIL, "simulator speed",
+             ("wara bench hil --json",), hil,
+             quick=("wara bench hil --quick --json",), headline="HIL speed"),
+    Producer("step", _SVC, "the control step's CPU (lockstep)",
+             ("wara bench step --json",), step, quick=("wara bench step --quick --json",)),
+    Producer("loop", _SVC, "the fixed-rate loop alone",
+             ("wara bench loop --json",), loop, quick=("wara bench loop --quick --json",)),
+    Producer("transport", _SVC, "the two datagram transports",
+             ("wara bench transport --json",), transport,
+             quick=("wara bench transport --quick --json",)),
+    Producer("two-process", _SVC, "two processes: the examples and the loop goal",
+             ("wara demo --two-process --json",), two_process,
+             realtime=True, headline="loop goal, two processes"),
+    Producer("soak", _SVC, "the two-process soak",
+             ("wara soak --minutes 30 --json",), soak,
+             quick=("wara soak --minutes 2 --json",), realtime=True,
+             headline="soak, two processes"),
+    Producer("opcua", _SVC, "the OPC UA server beside the loop",
+             ("wara bench opcua --json",), opcua,
+             quick=("wara bench opcua --quick --json",), realtime=True),
+    Producer("harness", _CAMP, "the lockstep harness and campaign throughput",
+             ("wara bench harness --json",), harness,
+             quick=("wara bench harness --quick --json",), headline="lockstep harness"),
 )
+# fmt: on
