@@ -218,12 +218,10 @@ def render_page(store: dict[str, Any], producers: Sequence[Producer], this_run: 
         "",
         PAGE_MARK,
         "",
-        "Every figure the README and the docs cite, with the command that measures it.",
-        "`wara bench figures` runs them all and writes this page and the README's headline",
-        "table (`--quick`: a short form; `--realtime`: also the figures on the wall clock;",
-        "`--only NAME,...`: those sections alone). A producer is one row of",
-        "`wara/benches/producers.py`. Figures on the wall clock depend on the machine's load:",
-        "read them with the load average their run gives.",
+        "Every figure the README and the docs cite, with the command that measures it, written",
+        "by `wara bench figures` (`--quick`: a short form; `--realtime`: also the figures on",
+        "the wall clock, which depend on the machine's load; `--only NAME,...`: those sections",
+        "alone). A producer is one row of `wara/benches/producers.py`.",
         "",
     ]
     if this_run in runs:
@@ -234,21 +232,22 @@ def render_page(store: dict[str, Any], producers: Sequence[Producer], this_run: 
             section = p.section
             lines += [f"## {section}", ""]
         entry = store["figures"].get(p.name)
-        lines += [f"### {p.name}", ""]
-        realtime = " On the wall clock: measured with `--realtime`." if p.realtime else ""
-        lines += [f"{p.title[0].upper()}{p.title[1:]}.{realtime}", ""]
+        title = f"{p.title[0].upper()}{p.title[1:]}"
+        wall_clock = " (on the wall clock)" if p.realtime else ""
         if entry is None:
             opt = " --realtime" if p.realtime else ""
-            lines += [f"Not measured yet: `wara bench figures{opt} --only {p.name}`.", ""]
-            lines += [f"Command: {'; '.join(f'`{c}`' for c in p.commands)}.", ""]
+            cmds = "; ".join(f"`{c}`" for c in p.commands)
+            lines += [f"### {p.name}", f"{title}{wall_clock}: {cmds}. Not measured yet: "
+                      f"`wara bench figures{opt} --only {p.name}`.", ""]  # fmt: skip
             continue
         cmds = "; ".join(f"`{c}`" for c in entry["commands"])
         load = entry.get("load_start") or []
         at = f", load average {load[0]:g} at its start" if load else ""
-        lines += [f"Command: {cmds} ({entry['wall_s']:g} s of wall time{at}).", ""]
+        text = f"{title}{wall_clock}: {cmds} ({entry['wall_s']:g} s of wall time{at})."
         run_id = entry.get("run")
         if run_id != this_run and run_id in runs:
-            lines += [f"Measured in another run: {_stamp_text(runs[run_id])}.", ""]
+            text += f" Measured in another run: {_stamp_text(runs[run_id])}."
+        lines += [f"### {p.name}", text, ""]
         if entry.get("error"):
             lines += [f"**Not measured: {_cell(entry['error'])}**", ""]
             continue

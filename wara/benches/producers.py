@@ -115,6 +115,8 @@ def t(data: Any, template: str) -> str:
             return num(value, m.group(2) or "g")
         if isinstance(value, list | tuple):
             return ", ".join(map(str, value)) or "none"
+        if isinstance(value, dict):
+            return ", ".join(f"{k} {v}" for k, v in value.items()) or "none"
         return "n/a" if value is None else str(value)
 
     return _FIELD.sub(field, template)
@@ -303,7 +305,8 @@ def attitude(outs: Sequence[Output]) -> Measured:
 
 def attitude_realtime(outs: Sequence[Output]) -> Measured:
     d = outs[0].data
-    figs, _ = _examples(d)
+    ex = get(d, "examples") or []
+    figs = [Figure("examples passed", _count(ex), "all")]
     figs += _loop_figures(d)
     figs.append(Figure("simulator", t(d, "{simulator_realtime_factor:.1f}x real time")))
     headline = f"{passed(get(d, 'passed'), 'passed', 'FAILED')}; " + t(
@@ -531,6 +534,28 @@ def walk(outs: Sequence[Output]) -> Measured:
         f"{num(_largest(steps, 'max_leg_sync_error_mm'), '.3f')} mm, largest leg force "
         f"{span(ratios, '.3f')} of its share (goal 1.10), transfer attitude change <= "
         f"{num(_largest(steps, 'max_transfer_attitude_change_deg'), '.4f')} deg (goal 0.01)"
+    )
+    return Measured(tuple(figs), headline)
+
+
+def walk_realtime(outs: Sequence[Output]) -> Measured:
+    d = outs[0].data
+    steps = get(d, "steps") or []
+    figs = [
+        Figure("steps passed", _count(steps), "all"),
+        Figure("distance (simulator truth)", t(d, "{distance_m:.6f} m")),
+        Figure(
+            "a step (machine time)", span([s.get("duration_s") for s in steps], ".1f", "s"), "120 s"
+        ),
+        Figure(
+            "largest leg force / share", num(_largest(steps, "max_leg_force_ratio"), ".3f"), "1.10"
+        ),
+        Figure("final mode; latched faults", t(d, "{final_mode}; {fault_reasons}")),
+    ]
+    headline = (
+        f"{passed(get(d, 'passed'), 'every goal met', 'FAILED')}, "
+        + t(d, "{distance_m:.6f} m")
+        + f", largest force ratio {num(_largest(steps, 'max_leg_force_ratio'), '.3f')}"
     )
     return Measured(tuple(figs), headline)
 
@@ -833,7 +858,8 @@ PRODUCERS: tuple[Producer, ...] = (
              ("wara walk --steps 3 --lockstep --json",), walk,
              quick=("wara walk --steps 1 --lockstep --json",), headline="walk"),
     Producer("walk-realtime", _WALK, "one step on the wall clock",
-             ("wara walk --steps 1 --json",), walk, realtime=True, headline="walk in real time"),
+             ("wara walk --steps 1 --json",), walk_realtime, realtime=True,
+             headline="walk in real time"),
     Producer("busload", _CAN, "bus load",
              ("wara can busload --json", "wara can busload --walk --json"), busload,
              headline="bus load"),
