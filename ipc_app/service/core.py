@@ -140,6 +140,22 @@ class ServiceCore:
         m = self.motions.active
         return m.sequencer if m is not None and m.name == name else None
 
+    def _status_of(self, name: str) -> dict[str, Any] | None:
+        m = self.motions.active
+        return m.status() if m is not None and m.name == name else None
+
+    def walk_status(self) -> dict[str, Any] | None:
+        """The walk's step and phase for ``wara ctl status`` (None: no walk)."""
+        return self._status_of("walk")
+
+    def place_status(self) -> dict[str, Any] | None:
+        """The placement's ring, phase and figures (None: none)."""
+        return self._status_of("place")
+
+    def release_status(self) -> dict[str, Any] | None:
+        """The release's phase and figures (None: none)."""
+        return self._status_of("release")
+
     walker = property(lambda self: self._sequencer("walk"), doc="the walk's WalkSequencer")
     placer = property(lambda self: self._sequencer("place"), doc="the PlacementSequencer")
     releaser = property(lambda self: self._sequencer("release"), doc="the ReleaseSequencer")

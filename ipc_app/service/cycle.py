@@ -39,7 +39,7 @@ import numpy as np
 import structlog
 
 from config import units
-from config.schema import ProjectConfig
+from config.schema import Cycle, ProjectConfig
 from ipc_app.control.release import load_pressures_pa, platform_pressures_pa, upper_index
 from ipc_app.model.placement import Pose, design_pose, joint_figures, to_ring_frame
 from ipc_app.planner.placement import PlacementPlan
@@ -78,6 +78,14 @@ RECORD_KEYS: tuple[str, ...] = (
     "tilt_angle_deg",
     "rotation_angle_deg",
 )
+
+
+#: ``cycle.max_motion_min``'s default, s: the bound of a ring cycle's motion for a caller
+#: without the project at hand (the service takes the project's, ``cfg.cycle.max_motion_s``)
+MOTION_LIMIT_S = 60.0 * Cycle.model_fields["max_motion_min"].default
+#: The allowance of a HIL driver for the loop to take a motion asked for, s (the service
+#: itself needs none: the motion's ticket is answered in the loop's next cycle)
+START_LIMIT_S = 5.0
 
 
 def previous_from_deviation(cfg: ProjectConfig, ring: int, dev: Pose) -> Pose:

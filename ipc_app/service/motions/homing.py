@@ -9,7 +9,7 @@ The path is a straight line in the cylinders' extensions, ``d_i(t) = d_i(0) (1 -
 on the planner's time scaling (``planner.trajectory.profile``): every cylinder starts and
 stops together, a layer's twist and heave shrink with ``s``, and the rod speed, the
 acceleration and the pump's flow stay within ``planner.trajectory.max_rod_speed_mm_s``,
-``max_rod_accel_mm_s2`` and ``hydraulics.pump_flow_lpm`` as for a planned adjustment
+``max_rod_accel_mm_s2`` and ``hydraulics.pump_flow_l_min`` as for a planned adjustment
 (the same bounds as :func:`~ipc_app.planner.trajectory.plan_trajectory`, exact here: the
 path's derivative in ``s`` is constant). It starts at the rods measured when the loop
 takes the request; in PRODUCTION or MANUAL, from IDLE or COMPLETE.
