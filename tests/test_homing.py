@@ -51,7 +51,7 @@ def _off_home(cfg: ProjectConfig) -> np.ndarray:
 
 def test_the_path_reaches_mid_stroke_within_the_trajectory_limits(project: ProjectConfig) -> None:
     core, _ = _bare_core(project)
-    motion = HomingMotion.prepare(core, *())
+    motion = HomingMotion.prepare(core)
     assert isinstance(motion, HomingMotion)
     x = _off_home(project)
     path = motion.path_from(machine_inputs(project, x=x))
