@@ -193,7 +193,7 @@ def _survey_fields(args: argparse.Namespace) -> dict[str, Any]:
     ring the service's cycle is at."""
     from acceptance.store import StoreError, check_store, default_db_path
     from ipc_app.planner.survey import SurveyError, read_survey_points
-    from ipc_app.service.ctl import MAX_SURVEY_POINTS
+    from ipc_app.service.requests import MAX_SURVEY_POINTS
 
     if args.from_store:
         try:  # the store first: a bad --db asks the service nothing
