@@ -165,12 +165,18 @@ class Tunnel(Strict):
 
 
 class Workpiece(Strict):
-    """The precast arc part."""
+    """The precast arc part.
+
+    Its mass is the upper layer's body named :data:`WORKPIECE_BODY` (with its centre of
+    gravity: what the statics and the simulator carry); ``mass_kg`` is left out then
+    (:attr:`ProjectConfig.workpiece_mass_kg`). A project without that body gives it here;
+    a project that gives both must give the same (config.crosscheck).
+    """
 
     length_m: LengthM
     height_m: LengthM
     width_m: LengthM
-    mass_kg: MassKg
+    mass_kg: MassKg | None = None
 
 
 class Robot(Strict):
@@ -937,6 +943,29 @@ class ProjectConfig(Strict):
                         f"{(layer.bore_mm, layer.rod_mm, layer.stroke_mm)}"
                     )
         return self
+
+    @model_validator(mode="after")
+    def _workpiece_mass(self) -> ProjectConfig:
+        if self.workpiece.mass_kg is None and self.workpiece_body is None:
+            raise ValueError(
+                f"workpiece.mass_kg: give it, or a body named {WORKPIECE_BODY!r} on the upper "
+                "layer (layers.upper.bodies) whose mass it is"
+            )
+        return self
+
+    @property
+    def workpiece_body(self) -> Body | None:
+        """The upper layer's body named :data:`WORKPIECE_BODY`, if it has one."""
+        return next((b for b in self.layers.upper.bodies if b.name == WORKPIECE_BODY), None)
+
+    @property
+    def workpiece_mass_kg(self) -> float:
+        """The arc part's mass: its body's on the upper layer, else ``workpiece.mass_kg``."""
+        body = self.workpiece_body
+        if body is not None:
+            return body.mass_kg
+        assert self.workpiece.mass_kg is not None  # _workpiece_mass
+        return self.workpiece.mass_kg
 
     def cylinder(self, cylinder_id: str) -> Cylinder:
         for c in self.cylinders:

@@ -17,7 +17,7 @@ from typing import NamedTuple
 import numpy as np
 from numpy.typing import ArrayLike
 
-from config import units
+from config import crosscheck, units
 from config.schema import WORKPIECE_BODY, Body, ProjectConfig
 from ipc_app.model.kinematics import Array, S, T, Vec, rotate, rotate_t
 
@@ -161,3 +161,38 @@ class MachineStatics:
         _f_lower, f_upper = self.forces(lower_roll, lower_pitch, upper_roll, upper_pitch)
         g_upper = gravity_in(lower_roll, lower_pitch, self.g_base)
         return f_upper - self.rod_mass_kg * np.asarray(g_upper.z)[..., None]
+
+
+def home_cap_pressures_pa(cfg: ProjectConfig) -> dict[str, float]:
+    """Each attitude cylinder's cap pressure (Pa) under the nominal load: both layers
+    level on their bases (the home pose, as the machine stands at boot), the rod forces
+    of :meth:`MachineStatics.forces` over the cap areas, as the planner computes its
+    pressures (:class:`ipc_app.planner.problem.AttitudeProblem`). Keyed by cylinder id,
+    the lower layer's first."""
+    f_lower, f_upper = MachineStatics(cfg).forces(0.0, 0.0, 0.0, 0.0)
+    out: dict[str, float] = {}
+    for layer, forces in ((cfg.layers.lower, f_lower), (cfg.layers.upper, f_upper)):
+        for cid, f in zip(layer.cylinders, np.asarray(forces, dtype=float), strict=True):
+            out[cid] = float(f) / cfg.cylinder(cid).cap_area_m2
+    return out
+
+
+@crosscheck.provide("static-pressure-within-limit", __name__)
+def check_static_pressure(cfg: ProjectConfig) -> str | None:
+    """The cross-check of the static load against the pressure limit (config.crosscheck):
+    a limit at or below a cylinder's pressure under the machine's own load trips the
+    pressure interlock (at boot, or on the first move)."""
+    pressures = home_cap_pressures_pa(cfg)
+    cid = max(pressures, key=lambda k: pressures[k])
+    p_mpa = units.to_mpa(pressures[cid])
+    limit = cfg.safety.max_pressure_mpa
+    if p_mpa < limit:
+        return None
+    lower = cid in cfg.layers.lower.cylinders
+    load = "layers.lower.bodies and layers.upper.bodies" if lower else "layers.upper.bodies"
+    return (
+        f"safety.max_pressure_mpa: {limit:g} MPa is not above the static load pressure of "
+        f"cylinder {cid} ({p_mpa:.2f} MPa: {load} at rest, the layers level on the base, as "
+        f"the planner's statics give it; the interlock trips under the machine's own load); "
+        f"expected above {p_mpa:.2f}"
+    )

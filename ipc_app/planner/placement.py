@@ -461,7 +461,7 @@ def check_moves(
         )
     )
     # The slide axes push the part on the upper platform against its friction.
-    friction_n = pl.slide_friction_coefficient * cfg.workpiece.mass_kg * units.G
+    friction_n = pl.slide_friction_coefficient * cfg.workpiece_mass_kg * units.G
     p_max = cfg.hydraulics.supply_pressure_mpa - cfg.hydraulics.load_sensing_margin_mpa
     for role, values, share in (
         ("rotation", ext.rotation, 0.5),

@@ -1,0 +1,350 @@
+"""Cross-checks between keys of a project: the rules no single key's range can state.
+
+The schema (:mod:`config.schema`) checks each key against its own range; a rule here
+relates two or more keys (the pressure limit against the rating, the step against the
+ring width, the bus load of the loop rate against the budget). :data:`RULES` is the one
+table of them: a rule's name, the keys it relates, what is consistent (the docs table of
+docs/config.md is checked against it) and its check, a function of the validated
+project returning ``None`` or the one-line reason, which names both keys with their
+values and what would be consistent. The loader runs every rule after the schema
+validates (:func:`config.loader.load_project`, ``wara config validate``).
+
+Two rules need what only another package computes: the bus load from the DBC
+(``plc_bridge.busload``) and the statics of the two layers (``ipc_app.model.statics``).
+``config`` imports nothing of ours (tests/test_architecture.py), so their checks are
+*provided*: the rule names the module that holds its check, and that module registers
+it with :func:`provide` when imported. The ``wara`` command installs an importer
+(:func:`set_importer`), so every command that loads a project runs every rule; a program
+that uses ``config`` alone (site QA's ``acceptance``) runs the rules whose module it has
+imported, the others not.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Collection
+from dataclasses import dataclass
+
+from config.schema import WORKPIECE_BODY, ProjectConfig
+
+#: A rule's check: ``None`` if the project keeps the rule, else the one-line reason.
+Check = Callable[[ProjectConfig], str | None]
+
+#: ``workpiece.mass_kg``, when given beside the workpiece body, must equal it within this.
+MASS_TOLERANCE_KG = 1.0
+#: ``walking.step_length_mm`` times a whole number must be the ring width within this.
+STEP_TOLERANCE_MM = 1.0
+#: ``base.pitch_deg`` must be the alignment's gradient as an angle within this (the
+#: shipped 0.17 deg is the 0.3 % gradient's 0.1719 deg rounded to two places).
+PITCH_TOLERANCE_DEG = 0.01
+#: ``robot.mass_kg`` must be the machine's bodies' sum within this share (a weighed
+#: figure against its split into lumps).
+ROBOT_MASS_TOLERANCE = 0.01
+#: ``placement.reference_height_m`` must be minus the inner radius within this.
+HEIGHT_TOLERANCE_M = 0.001
+
+
+@dataclass(frozen=True)
+class Rule:
+    """One cross-check: ``keys`` the keys it relates (the first is the one the reason
+    starts with), ``consistent`` what keeps it (the docs' wording), ``check`` its
+    function, or ``provider`` the module that provides it (:func:`provide`)."""
+
+    name: str
+    keys: tuple[str, ...]
+    consistent: str
+    check: Check | None = None
+    provider: str = ""
+
+
+def _g(v: float) -> str:
+    """A value as the YAML would write it (``24``, ``0.17``, ``2000``)."""
+    return f"{v:g}"
+
+
+def _max_pressure(cfg: ProjectConfig) -> str | None:
+    limit, rated = cfg.safety.max_pressure_mpa, cfg.hydraulics.rated_pressure_mpa
+    if limit <= rated:
+        return None
+    return (
+        f"safety.max_pressure_mpa: {_g(limit)} MPa is above the cylinders' rating "
+        f"(hydraulics.rated_pressure_mpa {_g(rated)} MPa): the interlock would let the "
+        f"pressure pass the rating; expected at most {_g(rated)}"
+    )
+
+
+def _supply_pressure(cfg: ProjectConfig) -> str | None:
+    supply, rated = cfg.hydraulics.supply_pressure_mpa, cfg.hydraulics.rated_pressure_mpa
+    if supply <= rated:
+        return None
+    return (
+        f"hydraulics.supply_pressure_mpa: {_g(supply)} MPa is above the cylinders' rating "
+        f"(hydraulics.rated_pressure_mpa {_g(rated)} MPa); expected at most {_g(rated)}"
+    )
+
+
+def _stroke_end_margin(cfg: ProjectConfig) -> str | None:
+    margin = cfg.safety.stroke_end_margin_mm
+    short = min(cfg.cylinders, key=lambda c: (c.stroke_mm, c.can_index))
+    if margin < short.stroke_mm / 2:
+        return None
+    i = cfg.cylinders.index(short)
+    return (
+        f"safety.stroke_end_margin_mm: {_g(margin)} mm is not below half the stroke of "
+        f"cylinder {short.id} (cylinders[{i}].stroke_mm {_g(short.stroke_mm)} mm): the "
+        f"margins at both ends would close the stroke; expected below {_g(short.stroke_mm / 2)}"
+    )
+
+
+def _step_length(cfg: ProjectConfig) -> str | None:
+    if cfg.walking is None:
+        return None
+    step, ring_m = cfg.walking.step_length_mm, cfg.tunnel.ring_width_m
+    ring_mm = ring_m * 1000.0
+    n = max(1, round(ring_mm / step))
+    if abs(n * step - ring_mm) <= STEP_TOLERANCE_MM:
+        return None
+    return (
+        f"walking.step_length_mm: {_g(step)} mm does not divide the ring "
+        f"(tunnel.ring_width_m {_g(ring_m)} m = {ring_mm / step:.3g} steps): the walk "
+        f"reaches the next ring in whole steps; expected {_g(ring_mm)} (one step a ring) "
+        f"or a whole fraction of it"
+    )
+
+
+def _workpiece_mass(cfg: ProjectConfig) -> str | None:
+    key, piece = cfg.workpiece.mass_kg, cfg.workpiece_body
+    if key is None or piece is None or abs(key - piece.mass_kg) <= MASS_TOLERANCE_KG:
+        return None
+    body = piece.mass_kg
+    i = next(i for i, b in enumerate(cfg.layers.upper.bodies) if b.name == WORKPIECE_BODY)
+    return (
+        f"workpiece.mass_kg: {_g(key)} kg is not the mass of the workpiece body "
+        f"(layers.upper.bodies[{i}].mass_kg {_g(body)} kg, which the statics and the "
+        f"simulator use); expected {_g(body)}, or the key left out (it defaults to the "
+        f"body's)"
+    )
+
+
+def machine_bodies_kg(cfg: ProjectConfig) -> float | None:
+    """The machine's own mass as its bodies give it (walking.md: robot 35 t = 15 upper
+    structure + 6 fine-tuning platform + 6 main frame + 8 sub frame): the lower layer's
+    bodies, the upper layer's but the workpiece, both frames' (``None`` without frames,
+    which hold two of the lumps)."""
+    if cfg.frames is None:
+        return None
+    bodies = (
+        cfg.layers.lower.bodies
+        + tuple(b for b in cfg.layers.upper.bodies if b.name != WORKPIECE_BODY)
+        + cfg.frames.main.bodies
+        + cfg.frames.sub.bodies
+    )
+    return sum(b.mass_kg for b in bodies)
+
+
+def _robot_mass(cfg: ProjectConfig) -> str | None:
+    total = machine_bodies_kg(cfg)
+    robot = cfg.robot.mass_kg
+    if total is None or abs(robot - total) <= ROBOT_MASS_TOLERANCE * total:
+        return None
+    return (
+        f"robot.mass_kg: {_g(robot)} kg is not the machine's bodies' sum (layers.lower.bodies, "
+        f"layers.upper.bodies but the workpiece, frames.main.bodies, frames.sub.bodies: "
+        f"{_g(total)} kg); expected {_g(total)} within {_g(100 * ROBOT_MASS_TOLERANCE)} %"
+    )
+
+
+def gradient_pitch_deg(gradient_percent: float) -> float:
+    """The base pitch of an invert on a gradient: model.md's +pitch turns x down, so a
+    rising axis (gradient > 0) is a negative pitch."""
+    return -math.degrees(math.atan(gradient_percent / 100.0))
+
+
+def _pitch_range_deg(cfg: ProjectConfig) -> tuple[float, float] | None:
+    al = cfg.tunnel.alignment
+    if al is None:
+        return None
+    if al.gradient_percent is not None:
+        p = gradient_pitch_deg(al.gradient_percent)
+        return p, p
+    pitches = []
+    for a, b in zip(al.points, al.points[1:], strict=False):
+        run = math.hypot(b.x_m - a.x_m, b.y_m - a.y_m)
+        if run > 0:
+            pitches.append(-math.degrees(math.atan2(b.z_m - a.z_m, run)))
+    return (min(pitches), max(pitches)) if pitches else None
+
+
+def _base_pitch(cfg: ProjectConfig) -> str | None:
+    rng = _pitch_range_deg(cfg)
+    if rng is None:
+        return None
+    lo, hi = rng
+    pitch = cfg.base.pitch_deg
+    if lo - PITCH_TOLERANCE_DEG <= pitch <= hi + PITCH_TOLERANCE_DEG:
+        return None
+    al = cfg.tunnel.alignment
+    assert al is not None
+    if al.gradient_percent is not None:
+        source = f"tunnel.alignment.gradient_percent {_g(al.gradient_percent)} %"
+        want = f"{lo:.4f} within {_g(PITCH_TOLERANCE_DEG)}"
+    else:
+        source = f"tunnel.alignment.points: gradients {-hi:.4f}..{-lo:.4f} deg"
+        want = f"{lo:.4f}..{hi:.4f} within {_g(PITCH_TOLERANCE_DEG)}"
+    return (
+        f"base.pitch_deg: {_g(pitch)} deg is not the invert on the design axis's gradient "
+        f"({source}; +pitch turns x down, a falling axis is a positive pitch); expected {want}"
+    )
+
+
+def _reference_height(cfg: ProjectConfig) -> str | None:
+    if cfg.placement is None:
+        return None
+    height, inner = cfg.placement.reference_height_m, cfg.tunnel.inner_diameter_m
+    want = -inner / 2.0
+    if abs(height - want) <= HEIGHT_TOLERANCE_M:
+        return None
+    return (
+        f"placement.reference_height_m: {_g(height)} m does not put the part's bottom face "
+        f"on the invert (tunnel.inner_diameter_m {_g(inner)} m: the invert is the inner "
+        f"radius below the axis); expected {_g(want)}"
+    )
+
+
+#: Every cross-check, in the order the loader runs them and docs/config.md lists them.
+RULES: tuple[Rule, ...] = (
+    Rule(
+        "pressure-limit-within-rating",
+        ("safety.max_pressure_mpa", "hydraulics.rated_pressure_mpa"),
+        "`max_pressure_mpa` <= `rated_pressure_mpa`",
+        _max_pressure,
+    ),
+    Rule(
+        "supply-within-rating",
+        ("hydraulics.supply_pressure_mpa", "hydraulics.rated_pressure_mpa"),
+        "`supply_pressure_mpa` <= `rated_pressure_mpa`",
+        _supply_pressure,
+    ),
+    Rule(
+        "stroke-end-margin-within-stroke",
+        ("safety.stroke_end_margin_mm", "cylinders[*].stroke_mm"),
+        "`stroke_end_margin_mm` < half of every cylinder's `stroke_mm` (the shortest named)",
+        _stroke_end_margin,
+    ),
+    Rule(
+        "bus-load-within-budget",
+        ("can.max_bus_load_percent", "control.loop_rate_hz", "can.bitrate", "can.active_groups"),
+        "the bus load of the DBC's messages, `active_groups` at the loop rate (what "
+        "`wara can busload` prints), <= `max_bus_load_percent`",
+        provider="plc_bridge.busload",
+    ),
+    Rule(
+        "static-pressure-within-limit",
+        (
+            "safety.max_pressure_mpa",
+            "layers.*.bodies",
+            "layers.*.half_span_*_m",
+            "layers.*.bore_mm",
+            "base",
+        ),
+        "every attitude cylinder's cap pressure under the nominal load (the planner's "
+        "statics: the bodies, layers level on the base) < `max_pressure_mpa`",
+        provider="ipc_app.model.statics",
+    ),
+    Rule(
+        "step-divides-the-ring",
+        ("walking.step_length_mm", "tunnel.ring_width_m"),
+        f"1000 `ring_width_m` a whole number of `step_length_mm` (one step a ring, or "
+        f"a whole fraction of one; within {_g(STEP_TOLERANCE_MM)} mm)",
+        _step_length,
+    ),
+    Rule(
+        "workpiece-mass-is-its-body",
+        ("workpiece.mass_kg", "layers.upper.bodies[workpiece].mass_kg"),
+        f"`workpiece.mass_kg` left out (it is the body's), or the body's within "
+        f"{_g(MASS_TOLERANCE_KG)} kg",
+        _workpiece_mass,
+    ),
+    Rule(
+        "robot-mass-is-its-bodies",
+        ("robot.mass_kg", "layers.*.bodies", "frames.*.bodies"),
+        f"`robot.mass_kg` = the bodies' sum but the workpiece's, within "
+        f"{_g(100 * ROBOT_MASS_TOLERANCE)} % (with `frames`)",
+        _robot_mass,
+    ),
+    Rule(
+        "base-pitch-is-the-gradient",
+        ("base.pitch_deg", "tunnel.alignment"),
+        f"`pitch_deg` = -atan(`gradient_percent` / 100) within {_g(PITCH_TOLERANCE_DEG)} "
+        "deg (a `points` table: within its segments' range)",
+        _base_pitch,
+    ),
+    Rule(
+        "reference-height-on-the-invert",
+        ("placement.reference_height_m", "tunnel.inner_diameter_m"),
+        f"`reference_height_m` = -`inner_diameter_m` / 2 within {_g(HEIGHT_TOLERANCE_M)} m",
+        _reference_height,
+    ),
+)
+
+_BY_NAME = {r.name: r for r in RULES}
+_PROVIDED: dict[str, Check] = {}
+_importer: Callable[[str], object] | None = None
+
+
+def provide(name: str, module: str) -> Callable[[Check], Check]:
+    """Decorator: ``module`` provides the check of rule ``name`` (a rule whose
+    ``provider`` it is)."""
+    rule = _BY_NAME.get(name)
+    if rule is None or rule.provider != module:
+        raise ValueError(f"no cross-check {name!r} provided by {module!r} in config.crosscheck")
+
+    def register(fn: Check) -> Check:
+        _PROVIDED[name] = fn
+        return fn
+
+    return register
+
+
+def set_importer(importer: Callable[[str], object] | None) -> None:
+    """How to import a provider module when a rule's check is not registered yet
+    (``importlib.import_module``: the ``wara`` command installs it)."""
+    global _importer
+    _importer = importer
+
+
+def check_of(rule: Rule) -> Check | None:
+    """The rule's check: its own, the one its provider registered (importing the
+    provider with the installed importer if need be), or ``None``."""
+    if rule.check is not None:
+        return rule.check
+    if rule.name not in _PROVIDED and _importer is not None:
+        _importer(rule.provider)
+    return _PROVIDED.get(rule.name)
+
+
+def problems(cfg: ProjectConfig, skip: Collection[str] = ()) -> list[str]:
+    """The reason of every rule the project breaks, one line each, in table order
+    (``skip``: names of rules left out)."""
+    unknown = sorted(set(skip) - set(_BY_NAME))
+    if unknown:
+        raise ValueError(f"no cross-check(s) {unknown} in config.crosscheck")
+    out = []
+    for rule in RULES:
+        if rule.name in skip:
+            continue
+        check = check_of(rule)
+        reason = check(cfg) if check is not None else None
+        if reason is not None:
+            out.append(reason)
+    return out
+
+
+def docs_table() -> str:
+    """The table of docs/config.md, "Cross-checks between keys" (a test keeps it equal)."""
+    rows = ["| rule | keys | consistent when | check in |", "|---|---|---|---|"]
+    for r in RULES:
+        keys = ", ".join(f"`{k}`" for k in r.keys)
+        where = f"`{r.provider}`" if r.provider else "`config.crosscheck`"
+        rows.append(f"| `{r.name}` | {keys} | {r.consistent} | {where} |")
+    return "\n".join(rows) + "\n"
