@@ -53,6 +53,7 @@ from ipc_app.model.placement import (
     to_ring_frame,
     tunnel_frame,
 )
+from ipc_app.planner.capacity import available_pressure_pa, pressure_limit_pa
 from ipc_app.planner.plan import plan as plan_attitude
 
 #: Slack (mm, or mm-equivalent) within which a limit counts as kept.
@@ -430,6 +431,7 @@ def check_moves(
     yaw = in_heading.yaw - att.yaw_residual_rad - home.yaw
     ext: SixDofExtensions = six_dof_extensions(delta._replace(yaw=yaw), pl.rotation_lever_arm_m)
     checks: list[ActuatorCheck] = []
+    p_limit = units.to_mpa(pressure_limit_pa(cfg.hydraulics))
     lower = cfg.layers.lower
     d_lower = tuple(d + ext.heave for d in att.lower.displacement_m)
     reasons = list(att.reasons) if not att.feasible else []
@@ -445,7 +447,7 @@ def check_moves(
             tuple(units.to_mm(d) for d in d_lower),
             units.to_mm(lower.extension_limit_m),
             units.to_mpa(att.peak_pressure_pa),
-            cfg.hydraulics.rated_pressure_mpa,
+            p_limit,
             tuple(reasons),
         )
     )
@@ -456,13 +458,13 @@ def check_moves(
             tuple(units.to_mm(d) for d in att.upper.displacement_m),
             units.to_mm(upper.extension_limit_m),
             units.to_mpa(max(att.upper.pressure_pa)),
-            cfg.hydraulics.rated_pressure_mpa,
+            p_limit,
             (),  # the attitude planner's reasons stand with the lower layer's
         )
     )
     # The slide axes push the part on the upper platform against its friction.
     friction_n = pl.slide_friction_coefficient * cfg.workpiece_mass_kg * units.G
-    p_max = cfg.hydraulics.supply_pressure_mpa - cfg.hydraulics.load_sensing_margin_mpa
+    p_max = units.to_mpa(available_pressure_pa(cfg.hydraulics))
     for role, values, share in (
         ("rotation", ext.rotation, 0.5),
         ("lateral", ext.lateral, 0.5),

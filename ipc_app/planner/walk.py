@@ -41,6 +41,7 @@ from ipc_app.model.support import (
     stability_margin,
     support_forces,
 )
+from ipc_app.planner.capacity import pressure_limit_pa, pressure_reason
 
 _SAMPLES = 41  # samples per phase (the margin and forces are checked at each)
 
@@ -434,12 +435,14 @@ class _Planner:
             )  # fmt: skip
         pressure = phase.leg_forces_n / self.cap_area
         kk, jj = np.unravel_index(int(np.argmax(pressure)), pressure.shape)
-        p_max = cfg.hydraulics.rated_pressure_pa
-        if pressure[kk, jj] > p_max:
+        why = pressure_reason(
+            cfg.hydraulics, self.leg_ids[int(jj)], float(phase.leg_forces_n[kk, jj]),
+            float(pressure[kk, jj]),
+        )  # fmt: skip
+        if why is not None:
             self.violation(
-                phase, int(kk), "pressure", float(pressure[kk, jj]), p_max, "Pa",
-                f"{self.leg_ids[int(jj)]} cap pressure {pressure[kk, jj] / 1e6:.2f} MPa above "
-                f"the rated {p_max / 1e6:.2f} MPa",
+                phase, int(kk), "pressure", float(pressure[kk, jj]),
+                pressure_limit_pa(cfg.hydraulics), "Pa", why.removeprefix("pressure: "),
             )  # fmt: skip
         slip = np.abs(phase.travel_force_n) - phase.friction_capacity_n
         k = int(np.argmax(slip))

@@ -1,0 +1,122 @@
+"""Capacity: every planner holds a cylinder to what the supply gives (supply less the
+load-sensing margin, :mod:`ipc_app.planner.capacity`), not to its rating; a plan that
+needs more is refused at plan time naming the cylinder, its force, the pressure it needs
+and what the supply gives (exit 3 on the CLI). The walk plan's force ramps in kN."""
+
+from __future__ import annotations
+
+import json
+import re
+from pathlib import Path
+from typing import Any
+
+import pytest
+import yaml
+
+from config import ProjectConfig, default_project_path, load_project, units
+from ipc_app.model.placement import Pose
+from ipc_app.planner import plan
+from ipc_app.planner.capacity import available_pressure_pa, pressure_limit_pa
+from ipc_app.planner.placement import plan_from_deviation
+from ipc_app.planner.walk import plan_walk
+from tests.cli_helpers import run_main
+
+#: the refusal's wording: the cylinder, its force, the pressure it needs, what the supply
+#: gives (the shipped 16 MPa less 1.5)
+REASON = re.compile(
+    r"pressure: .*\b(?P<cid>(main|sub)_leg_\d|upper_\d)\)? needs (?P<mpa>\d+\.\d\d) MPa for "
+    r"(?P<kn>\d+\.\d) kN, above the 14\.50 MPa the supply gives \(16 MPa supply less the "
+    r"1\.5 MPa load-sensing margin\)"
+)
+
+
+def heavy_data(mass_kg: float) -> dict[str, Any]:
+    """The shipped project's data with the part at ``mass_kg``: the workpiece section
+    and the upper layer's body ``workpiece`` (what the statics carry)."""
+    data = yaml.safe_load(default_project_path().read_text())
+    data["workpiece"]["mass_kg"] = mass_kg
+    bodies = data["layers"]["upper"]["bodies"]
+    (part,) = [b for b in bodies if b["name"] == "workpiece"]
+    part["mass_kg"] = mass_kg
+    return data
+
+
+def heavy(tmp_path: Path, mass_kg: float) -> tuple[Path, ProjectConfig]:
+    path = tmp_path / f"part_{mass_kg:.0f}kg.yaml"
+    path.write_text(yaml.safe_dump(heavy_data(mass_kg), sort_keys=False))
+    return path, load_project(path)
+
+
+def test_a_cylinder_gets_the_supply_less_the_load_sensing_margin() -> None:
+    h = load_project().hydraulics
+    assert available_pressure_pa(h) == pytest.approx(units.mpa(16.0 - 1.5))
+    assert pressure_limit_pa(h) == available_pressure_pa(h)  # below the 25 MPa rating
+    rated_low = h.model_copy(update={"rated_pressure_mpa": 12.0})
+    assert pressure_limit_pa(rated_low) == pytest.approx(units.mpa(12.0))
+
+
+def test_the_shipped_plans_keep_within_what_the_supply_gives() -> None:
+    cfg = load_project()
+    limit = available_pressure_pa(cfg.hydraulics)
+    att = plan(cfg, -3.0, 2.0)
+    assert att.feasible and att.peak_pressure_pa < 0.6 * limit
+    walk = plan_walk(cfg, 1)
+    assert walk.feasible
+    place = plan_from_deviation(cfg, 2, Pose())
+    assert place.feasible
+    limits = {a.group: a.pressure_limit_mpa for a in place.actuators}
+    assert set(limits.values()) == {14.5}  # legs, upper cylinders and slide axes alike
+
+
+@pytest.mark.parametrize(("mass_kg", "cid"), [(60_000, "sub_leg_2"), (80_000, "main_leg_1")])
+def test_the_walk_planner_refuses_a_part_the_supply_cannot_carry(
+    tmp_path: Path, mass_kg: float, cid: str
+) -> None:
+    """The plan's largest leg pressure is 18.5 MPa at 60 t (a sub leg at 371 kN) and
+    22.6 MPa at 80 t, from a 16 MPa supply and within the 25 MPa rating: refused at plan
+    time, at the first violation along the plan."""
+    path, cfg = heavy(tmp_path, mass_kg)
+    walk = plan_walk(cfg, 1)
+    ref = walk.refusal
+    assert ref is not None and ref.constraint == "pressure"
+    m = REASON.search(ref.message)
+    assert m is not None, ref.message
+    assert m["cid"] == cid
+    cap = cfg.cylinder(cid).cap_area_m2
+    assert float(m["mpa"]) == pytest.approx(float(m["kn"]) * 1e3 / cap / 1e6, abs=0.01)
+    assert ref.limit == pytest.approx(units.mpa(14.5))
+    code, out, _ = run_main(["walk", "plan", "--steps", "1", "--config", str(path), "--json"])
+    assert code == 3
+    d = json.loads(out)
+    assert d["feasible"] is False and REASON.search(d["refusal"]["message"])
+
+
+def test_the_attitude_planner_refuses_a_target_the_supply_cannot_reach(tmp_path: Path) -> None:
+    """80 t at roll -5, pitch -5 deg: main_leg_2 needs 14.56 MPa (the old check passed it,
+    16.1 MPa and more within reach). The attitude statics carry the layers' bodies only
+    (not M's and S's frames), so a 60 t part needs at most 12.9 MPa within +-8 deg."""
+    path, cfg = heavy(tmp_path, 80_000)
+    p = plan(cfg, -5.0, -5.0)
+    assert not p.feasible
+    found = [m for r in p.reasons if (m := REASON.search(r))]
+    assert [m["cid"] for m in found] == ["main_leg_2"], p.reasons
+    code, out, _ = run_main(
+        ["plan", "--roll-deg", "-5", "--pitch-deg", "-5", "--config", str(path), "--json"]
+    )
+    assert code == 3
+    assert any(REASON.search(r) for r in json.loads(out)["reasons"])
+
+
+def test_the_placement_planner_refuses_a_move_the_supply_cannot_make(tmp_path: Path) -> None:
+    """The placement's attitude is within a few hundredths of a degree of the base: its
+    legs reach what the supply gives only at about 95 t (13.4 MPa at 80 t)."""
+    path, cfg = heavy(tmp_path, 100_000)
+    p = plan_from_deviation(cfg, 2, Pose())
+    assert not p.feasible
+    assert any(REASON.search(r) for r in p.reasons), p.reasons
+    lower = p.actuators[0]
+    assert lower.pressure_mpa is not None and lower.pressure_mpa > 14.5
+    assert lower.pressure_limit_mpa == 14.5 and lower.reasons
+    code, out, _ = run_main(["place", "plan", "--config", str(path), "--json"])
+    assert code == 3
+    assert any(REASON.search(r) for r in json.loads(out)["reasons"])
