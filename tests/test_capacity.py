@@ -18,7 +18,7 @@ from ipc_app.model.placement import Pose
 from ipc_app.planner import plan
 from ipc_app.planner.capacity import available_pressure_pa, pressure_limit_pa
 from ipc_app.planner.placement import plan_from_deviation
-from ipc_app.planner.walk import plan_walk
+from ipc_app.planner.walk import RAMP_PHASES, plan_walk
 from tests.cli_helpers import run_main
 
 #: the refusal's wording: the cylinder, its force, the pressure it needs, what the supply
@@ -120,3 +120,25 @@ def test_the_placement_planner_refuses_a_move_the_supply_cannot_make(tmp_path: P
     code, out, _ = run_main(["place", "plan", "--config", str(path), "--json"])
     assert code == 3
     assert any(REASON.search(r) for r in json.loads(out)["reasons"])
+
+
+def test_the_walk_plans_force_ramps_are_written_in_kn() -> None:
+    cfg = load_project()
+    walk = plan_walk(cfg, 1)
+    phases = walk.to_dict()["phases"]
+    ramps = [p for p in phases if p["phase"] in RAMP_PHASES]
+    assert {p["phase"] for p in ramps} == {"3", "4", "7b", "7c"}
+    for p in ramps:
+        assert "start_mm" not in p and "end_mm" not in p
+        assert len(p["start_kn"]) == len(p["end_kn"]) == len(p["moving"]) == 8
+        assert all(0.0 <= f < 400.0 for f in p["start_kn"] + p["end_kn"])  # kN, not N
+    # preload S: the sub legs from nothing to their preload, the whole weight carried
+    pre = next(p for p in ramps if p["phase"] == "3")
+    assert pre["start_kn"][4:] == [0.0] * 4 and min(pre["end_kn"][4:]) > 10.0
+    weight_kn = sum(pre["end_kn"])
+    assert weight_kn == pytest.approx(sum(pre["start_kn"]), rel=1e-6)
+    assert weight_kn == pytest.approx(sum(pre["leg_forces_end_kn"].values()), abs=0.05)
+    moves = [p for p in phases if p["phase"] not in RAMP_PHASES]
+    assert all("start_mm" in p and "start_kn" not in p for p in moves)
+    travel = next(p for p in moves if p["phase"] == "1")
+    assert travel["start_mm"] == [-1000.0, -1000.0] and travel["end_mm"] == [1000.0, 1000.0]

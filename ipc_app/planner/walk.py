@@ -57,6 +57,9 @@ PHASES: dict[str, str] = {
     "7c": "transfer to M",
     "8": "lift S",
 }
+#: The phases that ramp leg forces: their ``start_m``/``end_m`` are the standing legs'
+#: forces (N), not positions.
+RAMP_PHASES: frozenset[str] = frozenset({"3", "4", "7b", "7c"})
 #: The travel phases' names in a backward step (the other phases keep theirs).
 BACK_PHASES: dict[str, str] = {"1": "move S back", "6": "move M back"}
 #: The phases of one step in their order: forward (walking.md section 2) and backward
@@ -175,7 +178,9 @@ class Phase:
     duration_s: float
     standing: tuple[str, ...]  #: legs that carry load (ids)
     moving: tuple[str, ...]  #: cylinders in position control
-    start_m: tuple[float, ...]  #: their positions at the start (x_S for travel; extension)
+    #: at the start: their positions (x_S for travel; extension), or in a force ramp
+    #: (:data:`RAMP_PHASES`) the legs' forces (N)
+    start_m: tuple[float, ...]
     end_m: tuple[float, ...]
     t_s: Array  #: sample instants (from the walk's start)
     x_s_m: Array  #: S's position along the rails at the samples
@@ -190,6 +195,18 @@ class Phase:
         return phase_name(self.key, self.direction)
 
     def summary(self, leg_ids: tuple[str, ...]) -> dict[str, Any]:
+        """The phase for the plan's JSON: a move's start and end positions in mm
+        (``start_mm``, ``end_mm``), a force ramp's forces in kN (``start_kn``, ``end_kn``)."""
+        if self.key in RAMP_PHASES:
+            ends = {
+                "start_kn": [round(v / units.KN, 3) for v in self.start_m],
+                "end_kn": [round(v / units.KN, 3) for v in self.end_m],
+            }
+        else:
+            ends = {
+                "start_mm": [round(units.to_mm(v), 3) for v in self.start_m],
+                "end_mm": [round(units.to_mm(v), 3) for v in self.end_m],
+            }
         return {
             "step": self.step,
             "phase": self.key,
@@ -198,8 +215,7 @@ class Phase:
             "duration_s": round(self.duration_s, 3),
             "standing": list(self.standing),
             "moving": list(self.moving),
-            "start_mm": [round(units.to_mm(v), 3) for v in self.start_m],
-            "end_mm": [round(units.to_mm(v), 3) for v in self.end_m],
+            **ends,
             "min_stability_margin_m": round(float(self.margin_m.min()), 4),
             "leg_forces_end_kn": {
                 cid: round(float(f) / units.KN, 2)
