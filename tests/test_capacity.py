@@ -1,7 +1,9 @@
-"""Capacity: every planner holds a cylinder to what the supply gives (supply less the
-load-sensing margin, :mod:`ipc_app.planner.capacity`), not to its rating; a plan that
-needs more is refused at plan time naming the cylinder, its force, the pressure it needs
-and what the supply gives (exit 3 on the CLI). The walk plan's force ramps in kN."""
+"""Capacity: every planner holds a cylinder to what the supply gives
+(:mod:`ipc_app.planner.capacity`), not to its rating: the supply less the load-sensing
+margin for a cylinder that moves its load, the supply for one that holds it (a walk's
+standing legs); a plan that needs more is refused at plan time naming the cylinder, its
+force, the pressure it needs and what the supply gives (exit 3 on the CLI). The walk
+plan's force ramps in kN."""
 
 from __future__ import annotations
 
@@ -16,17 +18,23 @@ import yaml
 from config import ProjectConfig, default_project_path, load_project, units
 from ipc_app.model.placement import Pose
 from ipc_app.planner import plan
-from ipc_app.planner.capacity import available_pressure_pa, pressure_limit_pa
+from ipc_app.planner.capacity import available_pressure_pa, pressure_limit_pa, pressure_reason
 from ipc_app.planner.placement import plan_from_deviation
 from ipc_app.planner.walk import RAMP_PHASES, plan_walk
 from tests.cli_helpers import run_main
 
 #: the refusal's wording: the cylinder, its force, the pressure it needs, what the supply
-#: gives (the shipped 16 MPa less 1.5)
+#: gives a cylinder that moves its load (the shipped 16 MPa less 1.5)
 REASON = re.compile(
     r"pressure: .*\b(?P<cid>(main|sub)_leg_\d|upper_\d)\)? needs (?P<mpa>\d+\.\d\d) MPa for "
     r"(?P<kn>\d+\.\d) kN, above the 14\.50 MPa the supply gives \(16 MPa supply less the "
     r"1\.5 MPa load-sensing margin\)"
+)
+#: ... and one that holds it (a walk's standing leg: the supply itself)
+HOLD_REASON = re.compile(
+    r"\b(?P<cid>(main|sub)_leg_\d) needs (?P<mpa>\d+\.\d\d) MPa for (?P<kn>\d+\.\d) kN to "
+    r"hold its load, above the 16\.00 MPa the supply gives a standing cylinder \(the 16 MPa "
+    r"supply itself\)"
 )
 
 
@@ -47,12 +55,19 @@ def heavy(tmp_path: Path, mass_kg: float) -> tuple[Path, ProjectConfig]:
     return path, load_project(path)
 
 
-def test_a_cylinder_gets_the_supply_less_the_load_sensing_margin() -> None:
+def test_a_moving_cylinder_gets_the_supply_less_the_margin_a_holding_one_the_supply() -> None:
     h = load_project().hydraulics
-    assert available_pressure_pa(h) == pytest.approx(units.mpa(16.0 - 1.5))
-    assert pressure_limit_pa(h) == available_pressure_pa(h)  # below the 25 MPa rating
-    rated_low = h.model_copy(update={"rated_pressure_mpa": 12.0})
-    assert pressure_limit_pa(rated_low) == pytest.approx(units.mpa(12.0))
+    assert available_pressure_pa(h, "moves") == pytest.approx(units.mpa(16.0 - 1.5))
+    assert available_pressure_pa(h, "holds") == pytest.approx(units.mpa(16.0))
+    for duty in ("moves", "holds"):  # both below the 25 MPa rating
+        assert pressure_limit_pa(h, duty) == available_pressure_pa(h, duty)
+    rated_low = h.model_copy(update={"rated_pressure_mpa": 15.0})
+    assert pressure_limit_pa(rated_low, "moves") == pytest.approx(units.mpa(14.5))
+    assert pressure_limit_pa(rated_low, "holds") == pytest.approx(units.mpa(15.0))
+    why = pressure_reason(rated_low, "sub_leg_1", 311e3, units.mpa(15.47), "holds")
+    assert why == "pressure: sub_leg_1 needs 15.47 MPa for 311.0 kN, above its rated 15 MPa"
+    assert pressure_reason(h, "sub_leg_1", 311e3, units.mpa(15.47), "holds") is None
+    assert REASON.search(str(pressure_reason(h, "upper_1", 311e3, units.mpa(15.47))))
 
 
 def test_the_shipped_plans_keep_within_what_the_supply_gives() -> None:
@@ -68,27 +83,41 @@ def test_the_shipped_plans_keep_within_what_the_supply_gives() -> None:
     assert set(limits.values()) == {14.5}  # legs, upper cylinders and slide axes alike
 
 
-@pytest.mark.parametrize(("mass_kg", "cid"), [(60_000, "sub_leg_2"), (80_000, "main_leg_1")])
+@pytest.mark.parametrize(
+    ("mass_kg", "phase", "mpa"), [(60_000, "4", 17.49), (80_000, "4", 21.38), (50_000, "5", 16.36)]
+)
 def test_the_walk_planner_refuses_a_part_the_supply_cannot_carry(
-    tmp_path: Path, mass_kg: float, cid: str
+    tmp_path: Path, mass_kg: float, phase: str, mpa: float
 ) -> None:
-    """The plan's largest leg pressure is 18.5 MPa at 60 t (a sub leg at 371 kN) and
-    22.6 MPa at 80 t, from a 16 MPa supply and within the 25 MPa rating: refused at plan
-    time, at the first violation along the plan."""
+    """A standing sub leg needs more than the 16 MPa supply (the plan's largest leg
+    pressure 18.5 MPa at 60 t, 22.6 MPa at 80 t, within the 25 MPa rating): refused at plan
+    time, at the first violation along the plan, naming the leg."""
     path, cfg = heavy(tmp_path, mass_kg)
     walk = plan_walk(cfg, 1)
     ref = walk.refusal
-    assert ref is not None and ref.constraint == "pressure"
-    m = REASON.search(ref.message)
+    assert ref is not None and ref.constraint == "pressure" and ref.phase == phase
+    m = HOLD_REASON.search(ref.message)
     assert m is not None, ref.message
-    assert m["cid"] == cid
-    cap = cfg.cylinder(cid).cap_area_m2
+    assert m["cid"] == "sub_leg_2" and float(m["mpa"]) == mpa
+    cap = cfg.cylinder("sub_leg_2").cap_area_m2
     assert float(m["mpa"]) == pytest.approx(float(m["kn"]) * 1e3 / cap / 1e6, abs=0.01)
-    assert ref.limit == pytest.approx(units.mpa(14.5))
+    assert ref.limit == pytest.approx(units.mpa(16.0))
     code, out, _ = run_main(["walk", "plan", "--steps", "1", "--config", str(path), "--json"])
     assert code == 3
     d = json.loads(out)
-    assert d["feasible"] is False and REASON.search(d["refusal"]["message"])
+    assert d["feasible"] is False and HOLD_REASON.search(d["refusal"]["message"])
+
+
+def test_a_standing_leg_holds_up_to_the_supply(tmp_path: Path) -> None:
+    """A 45 t part: the sub legs hold up to 15.4 MPa while M lifts and advances, above
+    the 14.5 MPa a moving cylinder gets, within the 16 MPa supply (no flow to meter): the
+    walk plans. The legs that move (lifted, lowered) carry their feet only."""
+    _path, cfg = heavy(tmp_path, 45_000)
+    walk = plan_walk(cfg, 1)
+    assert walk.feasible, walk.refusal
+    peak = max(float((ph.leg_forces_n / cfg.cylinder("sub_leg_2").cap_area_m2).max())
+               for ph in walk.phases)  # fmt: skip
+    assert units.mpa(14.5) < peak < units.mpa(16.0)
 
 
 def test_the_attitude_planner_refuses_a_target_the_supply_cannot_reach(tmp_path: Path) -> None:

@@ -53,7 +53,7 @@ from ipc_app.model.placement import (
     to_ring_frame,
     tunnel_frame,
 )
-from ipc_app.planner.capacity import available_pressure_pa, pressure_limit_pa
+from ipc_app.planner.capacity import pressure_limit_pa, pressure_reason
 from ipc_app.planner.plan import plan as plan_attitude
 
 #: Slack (mm, or mm-equivalent) within which a limit counts as kept.
@@ -464,7 +464,7 @@ def check_moves(
     )
     # The slide axes push the part on the upper platform against its friction.
     friction_n = pl.slide_friction_coefficient * cfg.workpiece_mass_kg * units.G
-    p_max = units.to_mpa(available_pressure_pa(cfg.hydraulics))
+    p_max = units.to_mpa(pressure_limit_pa(cfg.hydraulics))
     for role, values, share in (
         ("rotation", ext.rotation, 0.5),
         ("lateral", ext.lateral, 0.5),
@@ -481,11 +481,9 @@ def check_moves(
                 )
         area = min(c.rod_area_m2 for c in cyls)
         p_need = units.to_mpa(share * friction_n / area) + cfg.hydraulics.tank_pressure_mpa
-        if p_need > p_max:
-            why.append(
-                f"pressure: {role} needs {p_need:.2f} MPa to slide the part, above "
-                f"{p_max:.2f} MPa (supply less the load-sensing margin)"
-            )
+        slide = pressure_reason(cfg.hydraulics, role, share * friction_n, units.mpa(p_need))
+        if slide is not None:
+            why.append(slide)
         checks.append(
             ActuatorCheck(
                 role,

@@ -41,7 +41,7 @@ from ipc_app.model.support import (
     stability_margin,
     support_forces,
 )
-from ipc_app.planner.capacity import pressure_limit_pa, pressure_reason
+from ipc_app.planner.capacity import Duty, pressure_limit_pa, pressure_reason
 
 _SAMPLES = 41  # samples per phase (the margin and forces are checked at each)
 
@@ -336,6 +336,9 @@ class _Planner:
         self.travel_ids = tuple(c.id for c in cfg.cylinders if c.role == "travel")
         legs = [cfg.cylinder(cid) for cid in self.leg_ids]
         self.cap_area = np.array([c.cap_area_m2 for c in legs])
+        self.limit_pa: dict[Duty, float] = {
+            d: pressure_limit_pa(cfg.hydraulics, d) for d in ("moves", "holds")
+        }
         self.leg_limit = np.array([c.stroke_m / 2 - cfg.layers.lower.reserve_m for c in legs])
         travel = [cfg.cylinder(cid) for cid in self.travel_ids]
         self.x_s_limit = min(c.stroke_m for c in travel) / 2 - self.walk.travel_reserve_m
@@ -449,16 +452,21 @@ class _Planner:
                 f"{cid} force {standing[kk, jj] / units.KN:.1f} kN below "
                 f"{f_min / units.KN:.1f} kN (lifts off)",
             )  # fmt: skip
+        # capacity (ipc_app.planner.capacity): a leg lifted or lowered in position control
+        # moves its load (its foot); standing legs hold theirs, and legs in a force ramp
+        # take theirs at the ramp's trickle of flow
+        moves = [phase.key not in RAMP_PHASES and cid in phase.moving for cid in self.leg_ids]
+        limit = np.array([self.limit_pa["moves" if m else "holds"] for m in moves])
         pressure = phase.leg_forces_n / self.cap_area
-        kk, jj = np.unravel_index(int(np.argmax(pressure)), pressure.shape)
+        kk, jj = np.unravel_index(int(np.argmax(pressure - limit)), pressure.shape)
         why = pressure_reason(
             cfg.hydraulics, self.leg_ids[int(jj)], float(phase.leg_forces_n[kk, jj]),
-            float(pressure[kk, jj]),
+            float(pressure[kk, jj]), "moves" if moves[int(jj)] else "holds",
         )  # fmt: skip
         if why is not None:
             self.violation(
-                phase, int(kk), "pressure", float(pressure[kk, jj]),
-                pressure_limit_pa(cfg.hydraulics), "Pa", why.removeprefix("pressure: "),
+                phase, int(kk), "pressure", float(pressure[kk, jj]), float(limit[jj]), "Pa",
+                why.removeprefix("pressure: "),
             )  # fmt: skip
         slip = np.abs(phase.travel_force_n) - phase.friction_capacity_n
         k = int(np.argmax(slip))
