@@ -29,9 +29,11 @@ Model
   the end stops, so cylinders that move out of step fight through the oil and the
   twist shows up as pressure.
 - Load-holding valves (option): while the PLC has the drives off, a cylinder's ports
-  are blocked: no valve flow and no leakage to tank (the paper's "external" leakage
-  is read as leakage on the valve side of the holding valves); internal leakage
-  across the piston stays.
+  are blocked and the cylinder is tight: no valve flow and neither of the paper's
+  leakages (read as the running servo's, its valve's null leakage in them: docs/hil.md).
+  A leaking holding valve (a fault) leaks both chambers to tank.
+- Start: parked (:func:`parked_pressures`): the load on the chamber that carries it, the
+  other at tank pressure, below the supply as on a rig set down by its drives.
 
 Everything is integrated together with fixed-step RK4 in one numba kernel.
 
@@ -49,7 +51,7 @@ step of all 19 cylinders form one kernel that must see them together.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from typing import Any
 
 import numpy as np
@@ -301,13 +303,21 @@ def inverse(a):
 # --------------------------------------------------------------------------- dynamics
 
 
+#: the row of the rig's parameter matrix after CylinderParams' fields: the leakage across
+#: the piston that stays behind closed holding valves (m^3/s/Pa; a worn seal's)
+SEAL_ROW = len(fields(CylinderParams))
+
+
 @jit
 def cylinder_forces(y, dy, u, ports, leak, f_ext, p, x, v, f_out):
     """Valves, chambers and rod forces of all cylinders at rod positions ``x``, speeds ``v``.
 
     Writes the valve and pressure derivatives and, for a standalone rod, ``x' = v``,
-    ``v' = F / m``; ``f_out``: the net rod forces. ``leak``: leakage to tank past a
-    blocked load-holding valve (m^3/s/Pa, both chambers), on top of the ports' own.
+    ``v' = F / m``; ``f_out``: the net rod forces. ``ports``: 1 open, 0 blocked by the
+    load-holding valves (no valve flow and neither of the YAML's leakages: a parked
+    cylinder is tight, but for a worn seal's leakage across the piston, row
+    :data:`SEAL_ROW` of ``p``); ``leak``: leakage to tank past a leaking holding valve
+    (m^3/s/Pa, both chambers).
     """
     for i in range(N):
         spool = y[_SPOOL + i]
@@ -318,7 +328,8 @@ def cylinder_forces(y, dy, u, ports, leak, f_ext, p, x, v, f_out):
         q_a, q_b = orifice_flows(spool, p_a, p_b, p[9, i], p[8, i], p[12, i], p[13, i], p[14, i])
         dp_a, dp_b = chamber_pressure_derivatives(
             x[i], v[i], p_a, p_b, q_a * ports[i], q_b * ports[i], p[0, i], p[1, i], p[2, i],
-            p[3, i], p[4, i], p[5, i], p[6, i], p[7, i] * ports[i] + leak[i],
+            p[3, i], p[4, i], p[5, i], p[6, i] * ports[i] + p[SEAL_ROW, i] * (1.0 - ports[i]),
+            p[7, i] * ports[i] + leak[i],
         )  # fmt: skip
         force = (
             rod_force_n(p_a, p_b, p[0, i], p[1, i])
@@ -479,6 +490,20 @@ class LayerTruth:
     twist_force_n: float
 
 
+def parked_pressures(
+    force_n: float, area_a: float, area_b: float, tank_pa: float
+) -> tuple[float, float]:
+    """Chamber pressures ``(p_A, p_B)`` of a parked cylinder holding ``force_n``
+    (compression positive): the chamber that carries the load holds it, the other is at
+    tank pressure, as the drives left it when they closed the load-holding valves (a
+    servo at rest under a load keeps its far chamber near tank: docs/hil.md). A leg's
+    cap side carries ``F / A_A``, below the supply wherever the supply can lift the load;
+    a hanging rod (a lifted foot) hangs on its rod side."""
+    if force_n >= 0.0:
+        return (force_n + tank_pa * area_b) / area_a, tank_pa
+    return tank_pa, (tank_pa * area_a - force_n) / area_b
+
+
 class Rig:
     """The plant: construct from the project, :meth:`advance`, read the truth.
 
@@ -505,7 +530,9 @@ class Rig:
         self.params = CylinderParams.from_config(
             cyls, cfg.hydraulics, [cfg.plant_of(c) for c in cyls]
         )
-        self._p = self.params.matrix()
+        # the fields of CylinderParams, then row SEAL_ROW: the leakage across the piston
+        # that stays behind closed holding valves (0: a sound seal; a worn one's)
+        self._p = np.vstack([self.params.matrix(), np.zeros((1, N))])
         self._p_nominal = self._p.copy()
         lo, up = cfg.layers.lower, cfg.layers.upper
         by_id = {c.id: c for c in cyls}
@@ -672,28 +699,38 @@ class Rig:
         return out
 
     def _settle_level(self) -> None:
-        """Level at mid-stroke, at rest, valves closed, pressures holding the load.
-
-        Each chamber pair is at the pressure that makes internal leakage vanish
-        (``p_A = p_B = F / (A_A - A_B)``), so with blocked ports nothing moves.
-        """
+        """Level at mid-stroke, at rest, valves closed, parked: each attitude cylinder's
+        pressures hold its static load (:func:`parked_pressures`)."""
         p = self.params
         self.y[:] = 0.0
         self.y[_X : _X + N] = p.stroke_m / 2
         force = np.zeros(N)
         force[self._plat_idx] = self.static_rod_forces_n(np.zeros(6))
-        pressure = force / (p.area_a_m2 - p.area_b_m2)
-        self.y[_PA : _PA + N] = pressure
-        self.y[_PB : _PB + N] = pressure
+        self.park(force)
         self._xv[0] = self.y[_X : _X + N]
         self._force[:] = force
         self.bound_friction()
 
+    def park(self, force_n: FloatArray) -> None:
+        """The start state's pressures: the cylinders of :attr:`platform_mask` parked
+        holding ``force_n`` (N, by can_index; :func:`parked_pressures`), the others (no
+        load: the slide axes) empty."""
+        p = self.params
+        self.y[_PA : _PA + N] = 0.0
+        self.y[_PB : _PB + N] = 0.0
+        for i in np.flatnonzero(self.platform_mask):
+            self.y[_PA + i], self.y[_PB + i] = parked_pressures(
+                float(force_n[i]), float(p.area_a_m2[i]), float(p.area_b_m2[i]), float(p.tank_pa[i])
+            )
+
     # ----------------------------------------------------------------- faults
 
     def set_internal_leakage(self, index: int, value: float | None) -> None:
-        """Internal leakage of cylinder ``index`` (m^3/s/Pa); ``None`` restores the YAML's."""
-        self._p[6, index] = self._p_nominal[6, index] if value is None else value
+        """Internal leakage of cylinder ``index`` (m^3/s/Pa): a worn piston seal, which
+        leaks across the piston also behind closed holding valves; ``None`` restores the
+        YAML's (the running servo's, none while parked)."""
+        for row in (6, SEAL_ROW):
+            self._p[row, index] = self._p_nominal[row, index] if value is None else value
 
     def set_platform_load(self, layer: str, mass_kg: float, cog_m: tuple[float, ...]) -> None:
         """The extra mass set down on a platform (frame of that platform)."""

@@ -71,8 +71,6 @@ _XW = _HD + 8
 N_WALK_STATE = _XW + 4
 #: ground offset slots: rows (x_from, x_to, y_from, y_to, dz) in the base frame, m
 N_GROUND = 8
-#: pressure kept on the lower chamber of a rod that hangs (a lifted foot, the travel pair)
-_HANG_PRESSURE_PA = 1.0e6
 
 
 @jit
@@ -234,15 +232,6 @@ def _walk_advance(
                     slip[frame] += abs(moved)
 
 
-def hold_pressures(force_n: float, area_a: float, area_b: float) -> tuple[float, float]:
-    """Chamber pressures ``(p_A, p_B)`` that hold ``force_n`` with no internal leakage
-    where the force pushes (``p_A = p_B``), else with ``_HANG_PRESSURE_PA`` on the cap side."""
-    equal = force_n / (area_a - area_b)
-    if equal >= 0.0:
-        return equal, equal
-    return _HANG_PRESSURE_PA, (_HANG_PRESSURE_PA * area_a - force_n) / area_b
-
-
 class WalkingRig(Rig):
     """The rig with the eight legs on the invert (module docstring).
 
@@ -390,13 +379,7 @@ class WalkingRig(Rig):
         for j in range(4, 8):
             xw = x_s + self._leg_xy[j, 0]
             y[_H + j] = ground_height(xw, self._leg_xy[j, 1], self.ground) + walk.clearance_m
-        for i in range(N):
-            pa, pb = (
-                hold_pressures(forces[i], p.area_a_m2[i], p.area_b_m2[i])
-                if self.platform_mask[i]
-                else (0.0, 0.0)
-            )
-            y[_PA + i], y[_PB + i] = pa, pb
+        self.park(forces)
         self.advance(0)
 
     # ----------------------------------------------------------------- faults
