@@ -10,7 +10,7 @@ values and what would be consistent. The loader runs every rule after the schema
 validates (:func:`config.loader.load_project`, ``wara config validate``).
 
 Two rules need what only another package computes: the bus load from the DBC
-(``plc_bridge.busload``) and the statics of the two layers (``ipc_app.model.statics``).
+(``plc_bridge.busload``) and the statics of the machine (``ipc_app.model.support``).
 ``config`` imports nothing of ours (tests/test_architecture.py), so their checks are
 *provided*: the rule names the module that holds its check, and that module registers
 it with :func:`provide` when imported. The ``wara`` command installs an importer
@@ -25,6 +25,7 @@ import math
 from collections.abc import Callable, Collection
 from dataclasses import dataclass
 
+from config import derived
 from config.schema import WORKPIECE_BODY, ProjectConfig
 
 #: A rule's check: ``None`` if the project keeps the rule, else the one-line reason.
@@ -40,8 +41,9 @@ PITCH_TOLERANCE_DEG = 0.01
 #: ``robot.mass_kg`` must be the machine's bodies' sum within this share (a weighed
 #: figure against its split into lumps).
 ROBOT_MASS_TOLERANCE = 0.01
-#: ``placement.reference_height_m`` must be minus the inner radius within this.
-HEIGHT_TOLERANCE_M = 0.001
+#: A cylinder's action point may lie this far outside the robot's envelope (its feet and
+#: the envelope's rounding).
+ENVELOPE_TOLERANCE_M = 0.001
 
 
 @dataclass(frozen=True)
@@ -126,6 +128,23 @@ def _workpiece_mass(cfg: ProjectConfig) -> str | None:
     )
 
 
+def _rods_in_bodies(cfg: ProjectConfig) -> str | None:
+    for owner, (key, role) in derived.ROD_OWNERS.items():
+        bodies = derived.owner_bodies(cfg, owner)
+        rods = derived.owned_rods_kg(cfg, owner)
+        own = sum(b.mass_kg for b in bodies if b.name != WORKPIECE_BODY)
+        if rods == 0.0 or rods < own:
+            continue
+        n = round(rods / cfg.hydraulics.rod_mass_kg)
+        return (
+            f"hydraulics.rod_mass_kg: {_g(cfg.hydraulics.rod_mass_kg)} kg, {n} {role} rods "
+            f"({_g(rods)} kg), is not within the bodies that weigh them in ({key}"
+            f"{' but the workpiece' if owner == 'upper' else ''}: {_g(own)} kg); expected "
+            f"below {_g(own / n)} kg a rod, or those bodies heavier"
+        )
+    return None
+
+
 def machine_bodies_kg(cfg: ProjectConfig) -> float | None:
     """The machine's own mass as its bodies give it (walking.md: robot 35 t = 15 upper
     structure + 6 fine-tuning platform + 6 main frame + 8 sub frame): the lower layer's
@@ -197,17 +216,69 @@ def _base_pitch(cfg: ProjectConfig) -> str | None:
     )
 
 
-def _reference_height(cfg: ProjectConfig) -> str | None:
-    if cfg.placement is None:
+def _envelope(cfg: ProjectConfig) -> str | None:
+    """The first action point outside the machine's footprint: (key, what, |x| or |y|,
+    the half dimension, the robot key)."""
+    rob = cfg.robot
+    half_l, half_w = rob.length_mm / 2000.0, rob.width_mm / 2000.0
+    spans: list[tuple[str, str, float, float]] = []
+    for name in ("lower", "upper"):
+        layer = getattr(cfg.layers, name)
+        spans.append(
+            (f"layers.{name}.half_span_x_m", f"the {name} layer's cylinders", layer.a_m, 0.0)
+        )
+        spans.append(
+            (f"layers.{name}.half_span_y_m", f"the {name} layer's cylinders", 0.0, layer.b_m)
+        )
+    if cfg.frames is not None and cfg.walking is not None:
+        sub, reach = cfg.frames.sub, cfg.walking.step_length_m / 2.0
+        spans.append(("frames.sub.half_span_x_m", "S's legs at either end of a step "
+                       f"(walking.step_length_mm {_g(cfg.walking.step_length_mm)})",
+                       reach + sub.a_m, 0.0))  # fmt: skip
+        spans.append(("frames.sub.half_span_y_m", "S's legs", 0.0, sub.b_m))
+    for key, what, x, y in spans:
+        if x > half_l + ENVELOPE_TOLERANCE_M:
+            return (
+                f"{key}: puts {what} {_g(round(x, 4))} m from the machine's centre, outside "
+                f"its length (robot.length_mm {_g(rob.length_mm)}: {_g(half_l)} m each way); "
+                f"expected within {_g(half_l)} m"
+            )
+        if y > half_w + ENVELOPE_TOLERANCE_M:
+            return (
+                f"{key}: puts {what} {_g(round(y, 4))} m from the machine's centre line, "
+                f"outside its width (robot.width_mm {_g(rob.width_mm)}: {_g(half_w)} m each "
+                f"way); expected within {_g(half_w)} m"
+            )
+    return None
+
+
+def _fits_the_tunnel(cfg: ProjectConfig) -> str | None:
+    """The envelope standing on the invert, centred on the axis: its top corners inside
+    the lining; and it passes through the placed parts' hollow (paper: the machine walks
+    through them), so it is lower than a part and narrower than one is long."""
+    rob, tun, part = cfg.robot, cfg.tunnel, cfg.workpiece
+    w, h, r = rob.width_mm / 1000.0, rob.height_mm / 1000.0, tun.inner_radius_m
+    if h >= part.height_m:
+        return (
+            f"robot.height_mm: {_g(rob.height_mm)} mm is not below the part's height "
+            f"(workpiece.height_m {_g(part.height_m)} m): the machine walks through the placed "
+            f"parts' hollow; expected below {_g(1000.0 * part.height_m)}"
+        )
+    if w >= part.length_m:
+        return (
+            f"robot.width_mm: {_g(rob.width_mm)} mm is not below the part's length across the "
+            f"tunnel (workpiece.length_m {_g(part.length_m)} m): the machine walks through the "
+            f"placed parts' hollow; expected below {_g(1000.0 * part.length_m)}"
+        )
+    corner = math.hypot(w / 2.0, h - r)
+    if corner <= r:
         return None
-    height, inner = cfg.placement.reference_height_m, cfg.tunnel.inner_diameter_m
-    want = -inner / 2.0
-    if abs(height - want) <= HEIGHT_TOLERANCE_M:
-        return None
+    most = 2.0 * math.sqrt(max(r * r - (h - r) ** 2, 0.0))
     return (
-        f"placement.reference_height_m: {_g(height)} m does not put the part's bottom face "
-        f"on the invert (tunnel.inner_diameter_m {_g(inner)} m: the invert is the inner "
-        f"radius below the axis); expected {_g(want)}"
+        f"robot.width_mm: {_g(rob.width_mm)} mm at robot.height_mm {_g(rob.height_mm)} puts "
+        f"the machine's top corners {corner:.3f} m from the axis, outside the lining "
+        f"(tunnel.inner_diameter_m {_g(tun.inner_diameter_m)}); expected at most "
+        f"{1000.0 * most:.0f} mm wide at that height"
     )
 
 
@@ -247,9 +318,10 @@ RULES: tuple[Rule, ...] = (
             "layers.*.bore_mm",
             "base",
         ),
-        "every attitude cylinder's cap pressure under the nominal load (the planner's "
-        "statics: the bodies, layers level on the base) < `max_pressure_mpa`",
-        provider="ipc_app.model.statics",
+        "every attitude cylinder's cap pressure as the machine stands at boot (the "
+        "planner's statics: the layers level on the base; with `frames`, M's legs carrying "
+        "the machine, S lifted) < `max_pressure_mpa`",
+        provider="ipc_app.model.support",
     ),
     Rule(
         "step-divides-the-ring",
@@ -266,9 +338,16 @@ RULES: tuple[Rule, ...] = (
         _workpiece_mass,
     ),
     Rule(
+        "rods-within-their-bodies",
+        ("hydraulics.rod_mass_kg", "layers.upper.bodies", "frames.*.bodies"),
+        "the rods each set of bodies weighs in (the upper cylinders' in the upper platform's "
+        "own bodies, each frame's legs' in its bodies) lighter than those bodies",
+        _rods_in_bodies,
+    ),
+    Rule(
         "robot-mass-is-its-bodies",
         ("robot.mass_kg", "layers.*.bodies", "frames.*.bodies"),
-        f"`robot.mass_kg` = the bodies' sum but the workpiece's, within "
+        f"`robot.mass_kg` = the bodies' sum but the workpiece's (the rods in them), within "
         f"{_g(100 * ROBOT_MASS_TOLERANCE)} % (with `frames`)",
         _robot_mass,
     ),
@@ -280,10 +359,20 @@ RULES: tuple[Rule, ...] = (
         _base_pitch,
     ),
     Rule(
-        "reference-height-on-the-invert",
-        ("placement.reference_height_m", "tunnel.inner_diameter_m"),
-        f"`reference_height_m` = -`inner_diameter_m` / 2 within {_g(HEIGHT_TOLERANCE_M)} m",
-        _reference_height,
+        "legs-within-the-envelope",
+        ("layers.*.half_span_*_m", "frames.sub.half_span_*_m", "robot.length_mm", "robot.width_mm"),
+        "every cylinder's action point (S's legs at both ends of a step) within half "
+        "`length_mm` along and half `width_mm` across the machine's centre (within "
+        f"{_g(1000 * ENVELOPE_TOLERANCE_M)} mm)",
+        _envelope,
+    ),
+    Rule(
+        "envelope-fits-the-tunnel",
+        ("robot.width_mm", "robot.height_mm", "tunnel.inner_diameter_m", "workpiece"),
+        "the envelope standing on the invert: its top corners inside the lining, lower than "
+        "`workpiece.height_m` and narrower than `workpiece.length_m` (it walks through the "
+        "placed parts)",
+        _fits_the_tunnel,
     ),
 )
 

@@ -148,20 +148,20 @@ class Alignment(Strict):
 
 
 class Tunnel(Strict):
-    outer_diameter_m: Annotated[Finite, Field(gt=0, le=30)]
+    """The lining the machine works in. ``inner_diameter_m``: the lining's inside, on
+    whose invert the parts sit (their reference height,
+    :attr:`ProjectConfig.reference_height_m`) and in which the machine must fit
+    (config.crosscheck); the outer diameter is the lining's, which nothing of the machine
+    depends on (not a key)."""
+
     inner_diameter_m: Annotated[Finite, Field(gt=0, le=30)]
     ring_width_m: Annotated[Finite, Field(gt=0, le=10)]
     #: the design axis; without it the machine cannot place (no ``placement``)
     alignment: Alignment | None = None
 
-    @model_validator(mode="after")
-    def _inner_smaller(self) -> Tunnel:
-        if self.inner_diameter_m >= self.outer_diameter_m:
-            raise ValueError(
-                f"inner_diameter_m ({self.inner_diameter_m}) must be smaller than "
-                f"outer_diameter_m ({self.outer_diameter_m})"
-            )
-        return self
+    @property
+    def inner_radius_m(self) -> float:
+        return self.inner_diameter_m / 2.0
 
 
 class Workpiece(Strict):
@@ -180,6 +180,9 @@ class Workpiece(Strict):
 
 
 class Robot(Strict):
+    """The machine as a whole (paper): its envelope, which its legs stand within and
+    which must fit the tunnel, and its weight, which is its bodies' (config.crosscheck)."""
+
     length_mm: LengthMm
     width_mm: LengthMm
     height_mm: LengthMm
@@ -660,6 +663,9 @@ class Acceptance(Strict):
 
 
 class Task(Strict):
+    """The assembly task an adjustment serves (paper): ``assembly_time_min``, the time it
+    takes; a plan states its solve time as a share of it (the paper's Table 2)."""
+
     assembly_time_min: Annotated[Finite, Field(gt=0, le=10_000)] = 5.0
 
 
@@ -810,8 +816,6 @@ class Placement(Strict):
 
     #: r_yaw: the rotation pair acts at this lever arm about the upper platform's z axis
     rotation_lever_arm_m: Annotated[Finite, Field(gt=0, le=20)] = 1.5
-    #: height of the part's reference point (bottom-face centre) above the design centreline
-    reference_height_m: Annotated[Finite, Field(ge=-20, le=20)] = 0.0
     #: the gap the planner aims for between the previous part's front face and the new one's
     target_gap_mm: Annotated[Finite, Field(ge=0, le=100)] = 5.0
     #: steering back: the new part's deviation from the design differs from the
@@ -952,6 +956,12 @@ class ProjectConfig(Strict):
                 "layer (layers.upper.bodies) whose mass it is"
             )
         return self
+
+    @property
+    def reference_height_m(self) -> float:
+        """The height of a part's reference point (its bottom-face centre) above the
+        design centreline: on the invert, the inner radius below the axis."""
+        return -self.tunnel.inner_radius_m
 
     @property
     def workpiece_body(self) -> Body | None:

@@ -58,6 +58,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from config import units
+from config.derived import without_rods
 from config.schema import N_CYLINDERS, WORKPIECE_BODY, ProjectConfig
 from hil_sim._jit import jit
 from hil_sim.hydraulics import (
@@ -552,8 +553,11 @@ class Rig:
         inertias: list[tuple[float, ...]] = []
         layers: list[int] = []
         part = -1
-        for k, layer in enumerate((lo, up)):
-            for b in layer.bodies:
+        # the upper cylinders' rods are masses of their own (below): out of the bodies
+        # that weigh them in (config.derived.without_rods)
+        for k, bodies in enumerate((lo.bodies, without_rods(cfg, "upper"))):
+            layer = (lo, up)[k]
+            for b in bodies:
                 is_part = k == 1 and b.name == WORKPIECE_BODY
                 part = len(masses) if is_part else part
                 masses.append(b.mass_kg)

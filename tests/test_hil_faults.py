@@ -11,7 +11,6 @@ import numpy as np
 import pytest
 
 from config import ProjectConfig, units
-from config.derived import viscous_damping_n_s_m
 from plc_bridge import Fault, LinkState, Mode, TargetAck, TargetRequest
 from plc_bridge.supervision import BusState
 from tests.hil_helpers import Bench, make_bench

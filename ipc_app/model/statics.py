@@ -17,7 +17,8 @@ from typing import NamedTuple
 import numpy as np
 from numpy.typing import ArrayLike
 
-from config import crosscheck, units
+from config import units
+from config.derived import without_rods
 from config.schema import WORKPIECE_BODY, Body, ProjectConfig
 from ipc_app.model.kinematics import Array, S, T, Vec, rotate, rotate_t
 
@@ -111,6 +112,12 @@ class MachineStatics:
         self.a_upper, self.b_upper = up.a_m, up.b_m
         self.lower_own = lump(lo.bodies)
         self.upper = lump(unloaded_upper_bodies(cfg) if unloaded else up.bodies)
+        # the same less the four rods they weigh in (config.derived.without_rods): the
+        # platform on the rods, each rod's weight then on its own cylinder
+        rodless = without_rods(cfg, "upper")
+        if unloaded:
+            rodless = tuple(b for b in rodless if b.name != WORKPIECE_BODY)
+        self.upper_rodless = lump(rodless)
         self.origin_upper = up.origin_in_lower_m
         #: an attitude cylinder's rod and piston (``hydraulics.rod_mass_kg``)
         self.rod_mass_kg = cfg.hydraulics.rod_mass_kg
@@ -154,12 +161,14 @@ class MachineStatics:
         upper_roll: ArrayLike,
         upper_pitch: ArrayLike,
     ) -> Array:
-        """The upper cylinders' hydraulic forces at rest, ``(..., 4)`` in N: the
-        platform's share of :meth:`forces` plus each cylinder's own rod and piston
-        (``hydraulics.rod_mass_kg``) along its axis, the upper base's z. What the rods'
-        pressures carry (``p_A A_A - p_B A_B``) when the platform stands still."""
-        _f_lower, f_upper = self.forces(lower_roll, lower_pitch, upper_roll, upper_pitch)
+        """The upper cylinders' hydraulic forces at rest, ``(..., 4)`` in N: the share
+        of the platform's bodies less the rods they weigh in, plus each cylinder's own rod
+        and piston (``hydraulics.rod_mass_kg``) along its axis, the upper base's z. What
+        the rods' pressures carry (``p_A A_A - p_B A_B``) when the platform stands still."""
         g_upper = gravity_in(lower_roll, lower_pitch, self.g_base)
+        m, c = self.upper_rodless
+        c_vec = Vec(np.asarray(c[0]), np.asarray(c[1]), np.asarray(c[2]))
+        f_upper = rod_forces(upper_roll, upper_pitch, self.a_upper, self.b_upper, m, c_vec, g_upper)
         return f_upper - self.rod_mass_kg * np.asarray(g_upper.z)[..., None]
 
 
@@ -175,24 +184,3 @@ def home_cap_pressures_pa(cfg: ProjectConfig) -> dict[str, float]:
         for cid, f in zip(layer.cylinders, np.asarray(forces, dtype=float), strict=True):
             out[cid] = float(f) / cfg.cylinder(cid).cap_area_m2
     return out
-
-
-@crosscheck.provide("static-pressure-within-limit", __name__)
-def check_static_pressure(cfg: ProjectConfig) -> str | None:
-    """The cross-check of the static load against the pressure limit (config.crosscheck):
-    a limit at or below a cylinder's pressure under the machine's own load trips the
-    pressure interlock (at boot, or on the first move)."""
-    pressures = home_cap_pressures_pa(cfg)
-    cid = max(pressures, key=lambda k: pressures[k])
-    p_mpa = units.to_mpa(pressures[cid])
-    limit = cfg.safety.max_pressure_mpa
-    if p_mpa < limit:
-        return None
-    lower = cid in cfg.layers.lower.cylinders
-    load = "layers.lower.bodies and layers.upper.bodies" if lower else "layers.upper.bodies"
-    return (
-        f"safety.max_pressure_mpa: {limit:g} MPa is not above the static load pressure of "
-        f"cylinder {cid} ({p_mpa:.2f} MPa: {load} at rest, the layers level on the base, as "
-        f"the planner's statics give it; the interlock trips under the machine's own load); "
-        f"expected above {p_mpa:.2f}"
-    )

@@ -431,7 +431,7 @@ def check_moves(
     yaw = in_heading.yaw - att.yaw_residual_rad - home.yaw
     ext: SixDofExtensions = six_dof_extensions(delta._replace(yaw=yaw), pl.rotation_lever_arm_m)
     checks: list[ActuatorCheck] = []
-    p_limit = units.to_mpa(pressure_limit_pa(cfg.hydraulics))
+    p_limit = units.to_mpa(pressure_limit_pa(cfg))
     lower = cfg.layers.lower
     d_lower = tuple(d + ext.heave for d in att.lower.displacement_m)
     reasons = list(att.reasons) if not att.feasible else []
@@ -464,7 +464,7 @@ def check_moves(
     )
     # The slide axes push the part on the upper platform against its friction.
     friction_n = pl.slide_friction_coefficient * cfg.workpiece_mass_kg * units.G
-    p_max = units.to_mpa(pressure_limit_pa(cfg.hydraulics))
+    p_max = units.to_mpa(pressure_limit_pa(cfg))
     for role, values, share in (
         ("rotation", ext.rotation, 0.5),
         ("lateral", ext.lateral, 0.5),
@@ -481,7 +481,7 @@ def check_moves(
                 )
         area = min(c.rod_area_m2 for c in cyls)
         p_need = units.to_mpa(share * friction_n / area) + cfg.hydraulics.tank_pressure_mpa
-        slide = pressure_reason(cfg.hydraulics, role, share * friction_n, units.mpa(p_need))
+        slide = pressure_reason(cfg, role, share * friction_n, units.mpa(p_need))
         if slide is not None:
             why.append(slide)
         checks.append(

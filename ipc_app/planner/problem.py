@@ -113,7 +113,7 @@ class PlanningProblem:
         self.path_limit_lower = path_limits(self.start_lower, self.limit_lower, half_lower)
         self.f_min = cfg.planner.min_rod_force_n
         #: what a cylinder can get: supply less the load-sensing margin (or its rating)
-        self.p_limit = pressure_limit_pa(cfg.hydraulics)
+        self.p_limit = pressure_limit_pa(cfg)
         self.dp_margin = cfg.hydraulics.load_sensing_margin_pa
         self.coplanarity_tol = cfg.planner.coplanarity_tolerance_m
         self.statics = MachineStatics(cfg)
@@ -296,7 +296,7 @@ class PlanningProblem:
                         f"lift-off: {name} rod force {units.to_kn(f[i]):.1f} kN below the minimum "
                         f"{units.to_kn(self.f_min):.1f} kN"
                     )
-                why = pressure_reason(cfg.hydraulics, name, float(f[i]), float(p[i]))
+                why = pressure_reason(cfg, name, float(f[i]), float(p[i]))
                 if why is not None:
                     out.append(why)
         return out

@@ -337,7 +337,7 @@ class _Planner:
         legs = [cfg.cylinder(cid) for cid in self.leg_ids]
         self.cap_area = np.array([c.cap_area_m2 for c in legs])
         self.limit_pa: dict[Duty, float] = {
-            d: pressure_limit_pa(cfg.hydraulics, d) for d in ("moves", "holds")
+            d: pressure_limit_pa(cfg, d) for d in ("moves", "holds")
         }
         self.leg_limit = np.array([c.stroke_m / 2 - cfg.layers.lower.reserve_m for c in legs])
         travel = [cfg.cylinder(cid) for cid in self.travel_ids]
@@ -460,7 +460,7 @@ class _Planner:
         pressure = phase.leg_forces_n / self.cap_area
         kk, jj = np.unravel_index(int(np.argmax(pressure - limit)), pressure.shape)
         why = pressure_reason(
-            cfg.hydraulics, self.leg_ids[int(jj)], float(phase.leg_forces_n[kk, jj]),
+            cfg, self.leg_ids[int(jj)], float(phase.leg_forces_n[kk, jj]),
             float(pressure[kk, jj]), "moves" if moves[int(jj)] else "holds",
         )  # fmt: skip
         if why is not None:
