@@ -64,25 +64,24 @@ def _g(v: float) -> str:
     return f"{v:g}"
 
 
-def _max_pressure(cfg: ProjectConfig) -> str | None:
-    limit, rated = cfg.safety.max_pressure_mpa, cfg.hydraulics.rated_pressure_mpa
-    if limit <= rated:
+def _within_rating(key: str, value: float, why: str, cfg: ProjectConfig) -> str | None:
+    rated = cfg.hydraulics.rated_pressure_mpa
+    if value <= rated:
         return None
     return (
-        f"safety.max_pressure_mpa: {_g(limit)} MPa is above the cylinders' rating "
-        f"(hydraulics.rated_pressure_mpa {_g(rated)} MPa): the interlock would let the "
-        f"pressure pass the rating; expected at most {_g(rated)}"
+        f"{key}: {_g(value)} MPa is above the cylinders' rating "
+        f"(hydraulics.rated_pressure_mpa {_g(rated)} MPa){why}; expected at most {_g(rated)}"
     )
+
+
+def _max_pressure(cfg: ProjectConfig) -> str | None:
+    why = ": the interlock would let the pressure pass the rating"
+    return _within_rating("safety.max_pressure_mpa", cfg.safety.max_pressure_mpa, why, cfg)
 
 
 def _supply_pressure(cfg: ProjectConfig) -> str | None:
-    supply, rated = cfg.hydraulics.supply_pressure_mpa, cfg.hydraulics.rated_pressure_mpa
-    if supply <= rated:
-        return None
-    return (
-        f"hydraulics.supply_pressure_mpa: {_g(supply)} MPa is above the cylinders' rating "
-        f"(hydraulics.rated_pressure_mpa {_g(rated)} MPa); expected at most {_g(rated)}"
-    )
+    supply = cfg.hydraulics.supply_pressure_mpa
+    return _within_rating("hydraulics.supply_pressure_mpa", supply, "", cfg)
 
 
 def _stroke_end_margin(cfg: ProjectConfig) -> str | None:
@@ -217,38 +216,32 @@ def _base_pitch(cfg: ProjectConfig) -> str | None:
 
 
 def _envelope(cfg: ProjectConfig) -> str | None:
-    """The first action point outside the machine's footprint: (key, what, |x| or |y|,
-    the half dimension, the robot key)."""
     rob = cfg.robot
     half_l, half_w = rob.length_mm / 2000.0, rob.width_mm / 2000.0
-    spans: list[tuple[str, str, float, float]] = []
+    # (key, its value, what it places, how far beyond it, along x)
+    spans: list[tuple[str, float, str, float, bool]] = []
     for name in ("lower", "upper"):
         layer = getattr(cfg.layers, name)
-        spans.append(
-            (f"layers.{name}.half_span_x_m", f"the {name} layer's cylinders", layer.a_m, 0.0)
-        )
-        spans.append(
-            (f"layers.{name}.half_span_y_m", f"the {name} layer's cylinders", 0.0, layer.b_m)
-        )
+        what = f"the {name} layer's cylinders"
+        spans.append((f"layers.{name}.half_span_x_m", layer.a_m, what, 0.0, True))
+        spans.append((f"layers.{name}.half_span_y_m", layer.b_m, what, 0.0, False))
     if cfg.frames is not None and cfg.walking is not None:
         sub, reach = cfg.frames.sub, cfg.walking.step_length_m / 2.0
-        spans.append(("frames.sub.half_span_x_m", "S's legs at either end of a step "
-                       f"(walking.step_length_mm {_g(cfg.walking.step_length_mm)})",
-                       reach + sub.a_m, 0.0))  # fmt: skip
-        spans.append(("frames.sub.half_span_y_m", "S's legs", 0.0, sub.b_m))
-    for key, what, x, y in spans:
-        if x > half_l + ENVELOPE_TOLERANCE_M:
-            return (
-                f"{key}: puts {what} {_g(round(x, 4))} m from the machine's centre, outside "
-                f"its length (robot.length_mm {_g(rob.length_mm)}: {_g(half_l)} m each way); "
-                f"expected within {_g(half_l)} m"
-            )
-        if y > half_w + ENVELOPE_TOLERANCE_M:
-            return (
-                f"{key}: puts {what} {_g(round(y, 4))} m from the machine's centre line, "
-                f"outside its width (robot.width_mm {_g(rob.width_mm)}: {_g(half_w)} m each "
-                f"way); expected within {_g(half_w)} m"
-            )
+        step = _g(cfg.walking.step_length_mm)
+        what = f"S's legs at either end of a step (walking.step_length_mm {step})"
+        spans.append(("frames.sub.half_span_x_m", sub.a_m, what, reach, True))
+        spans.append(("frames.sub.half_span_y_m", sub.b_m, "S's legs", 0.0, False))
+    for key, value, what, beyond, along in spans:
+        half = half_l if along else half_w
+        if value + beyond <= half + ENVELOPE_TOLERANCE_M:
+            continue
+        dim, robot_key = ("length", "robot.length_mm") if along else ("width", "robot.width_mm")
+        return (
+            f"{key}: {_g(value)} m puts {what} {_g(round(value + beyond, 4))} m from the "
+            f"machine's centre, outside its {dim} ({robot_key} "
+            f"{_g(rob.length_mm if along else rob.width_mm)}: {_g(half)} m each way); expected "
+            f"at most {_g(round(half - beyond, 4))}, or a larger {robot_key}"
+        )
     return None
 
 

@@ -60,7 +60,7 @@ def test_contact_is_unilateral_a_hole_under_a_foot_unloads_it(project: ProjectCo
     # a hole 0.5 m deep under main_leg_3 at (-a, -b): the foot hangs above it; the COG
     # is inside the triangle of legs 1, 2, 4, so the body rests on those three
     rig.set_ground([(-a - 0.3, -a + 0.3, -b - 0.3, -b + 0.3, -0.5)])
-    # the three legs' rods creep while their pressures even out across the pistons
+    # the body settles onto the other three legs (their oil compressed)
     rig.advance(round(2.5 / rig.step_s))
     forces = rig.foot_forces_n
     assert forces[2] == 0.0
