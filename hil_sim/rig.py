@@ -492,17 +492,57 @@ class LayerTruth:
 
 
 def parked_pressures(
-    force_n: float, area_a: float, area_b: float, tank_pa: float
+    force_n: float,
+    area_a: float,
+    area_b: float,
+    supply_pa: float,
+    tank_pa: float,
+    internal_leakage: float,
+    external_leakage: float,
 ) -> tuple[float, float]:
-    """Chamber pressures ``(p_A, p_B)`` of a parked cylinder holding ``force_n``
-    (compression positive): the chamber that carries the load holds it, the other is at
-    tank pressure, as the drives left it when they closed the load-holding valves (a
-    servo at rest under a load keeps its far chamber near tank: docs/hil.md). A leg's
-    cap side carries ``F / A_A``, below the supply wherever the supply can lift the load;
-    a hanging rod (a lifted foot) hangs on its rod side."""
-    if force_n >= 0.0:
-        return (force_n + tank_pa * area_b) / area_a, tank_pa
-    return tank_pa, (tank_pa * area_a - force_n) / area_b
+    """Chamber pressures ``(p_A, p_B)`` of a cylinder parked holding ``force_n``
+    (compression positive): those its servo held it at, at rest, when the drives closed
+    the load-holding valves (a parked cylinder is tight and keeps them; docs/hil.md).
+
+    At rest under the servo the valve's two metering edges pass just what the chambers
+    leak: into the loaded chamber from the supply what it loses (across the piston and
+    outside), out of the other to tank what it gains, through the same opening, so
+    ``sqrt(p_s - p_A) L_B = sqrt(p_B - p_T) L_A`` with ``L_A = C_i (p_A - p_B) + C_e p_A``,
+    ``L_B = C_i (p_A - p_B) - C_e p_B``, and ``p_A A_A - p_B A_B = F``: the loaded
+    chamber at its load pressure, below the supply; the other a little above tank. A
+    hanging rod (a lifted foot) is the mirror, its rod side loaded. Where there is no
+    such state (no leakage; a load the supply cannot hold) the far chamber is at tank."""
+    if force_n < 0.0:  # the mirror: the rod side carries the load
+        p_b, p_a = _servo_null(-force_n, area_b, area_a, supply_pa, tank_pa,
+                               internal_leakage, external_leakage)  # fmt: skip
+        return p_a, p_b
+    return _servo_null(
+        force_n, area_a, area_b, supply_pa, tank_pa, internal_leakage, external_leakage
+    )
+
+
+def _servo_null(
+    force_n: float, a_load: float, a_far: float, p_s: float, p_t: float, c_i: float, c_e: float
+) -> tuple[float, float]:
+    """:func:`parked_pressures` with the loaded chamber's area ``a_load``: ``(p_load,
+    p_far)``, bisecting on ``p_far`` from tank pressure up to where the loaded chamber
+    would reach the supply."""
+
+    def p_load(p_far: float) -> float:
+        return (force_n + p_far * a_far) / a_load
+
+    def balance(p_far: float) -> float:
+        p = p_load(p_far)
+        lost, gained = c_i * (p - p_far) + c_e * p, c_i * (p - p_far) - c_e * p_far
+        return math.sqrt(max(p_s - p, 0.0)) * gained - math.sqrt(max(p_far - p_t, 0.0)) * lost
+
+    lo, hi = p_t, (p_s * a_load - force_n) / a_far
+    if not (hi > lo and balance(lo) > 0.0 and balance(hi) < 0.0):
+        return p_load(p_t), p_t
+    for _ in range(60):
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if balance(mid) > 0.0 else (lo, mid)
+    return p_load(lo), lo
 
 
 class Rig:
@@ -724,8 +764,10 @@ class Rig:
         self.y[_PB : _PB + N] = 0.0
         for i in np.flatnonzero(self.platform_mask):
             self.y[_PA + i], self.y[_PB + i] = parked_pressures(
-                float(force_n[i]), float(p.area_a_m2[i]), float(p.area_b_m2[i]), float(p.tank_pa[i])
-            )
+                float(force_n[i]), float(p.area_a_m2[i]), float(p.area_b_m2[i]),
+                float(p.supply_pa[i]), float(p.tank_pa[i]),
+                float(p.internal_leakage_m3_s_pa[i]), float(p.external_leakage_m3_s_pa[i]),
+            )  # fmt: skip
 
     # ----------------------------------------------------------------- faults
 

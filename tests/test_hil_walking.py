@@ -108,7 +108,7 @@ def _travel_against(project: ProjectConfig, mu_sub: float) -> tuple[WalkingRig, 
 def test_standing_frame_slips_when_the_travel_force_exceeds_friction(
     project: ProjectConfig,
 ) -> None:
-    """S's feet lightly loaded (about 134 kN: the invert raised 0.5 mm into its parked
+    """S's feet lightly loaded (about 127 kN: the invert raised 0.5 mm into its parked
     legs): the travel pair at full supply pushes harder than friction can hold, so S
     slides, and the travel force it took is mu N."""
     for mu in (0.8, 0.4):
