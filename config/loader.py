@@ -39,6 +39,14 @@ class ConfigError(Exception):
     """
 
 
+#: Keys a project file once had, and where their fact comes from now (a fact has one key).
+RETIRED_KEYS: dict[str, str] = {
+    "placement.reference_height_m": "a part's reference height is on the invert, derived "
+    "from tunnel.inner_diameter_m (the inner radius below the axis)",
+    "tunnel.outer_diameter_m": "the lining's outer diameter governs nothing of the machine",
+}
+
+
 def default_project_path() -> Path:
     """The shipped Shanghai Airport Link project YAML."""
     return Path(str(resources.files("config") / "projects" / f"{DEFAULT_PROJECT}.yaml"))
@@ -187,7 +195,9 @@ def format_validation_error(source: str, exc: ValidationError, data: Any) -> str
         msg = err["msg"]
         if msg.startswith("Value error, "):
             msg = msg[len("Value error, ") :]
-        if kind == "extra_forbidden":
+        if kind == "extra_forbidden" and path in RETIRED_KEYS:
+            lines.append(f"{source}: {path}: no longer a key: {RETIRED_KEYS[path]}; leave it out")
+        elif kind == "extra_forbidden":
             lines.append(f"{source}: {path}: unknown key (not part of the schema)")
         elif kind == "missing":
             lines.append(f"{source}: {path}: missing required key")

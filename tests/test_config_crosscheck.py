@@ -262,3 +262,55 @@ def test_a_provider_must_be_the_rules() -> None:
         crosscheck.provide("bus-load-within-budget", "somewhere.else")
     with pytest.raises(ValueError, match="no cross-check"):
         crosscheck.problems(load_project(), skip=("no-such-rule",))
+
+
+def test_a_retired_key_says_where_its_fact_comes_from(tmp_path: Path) -> None:
+    """One key a fact: the part's reference height follows from the inner diameter, the
+    lining's outer diameter governs nothing; a file that still gives them is told so."""
+
+    def old(d: dict[str, Any]) -> None:
+        d["tunnel"]["outer_diameter_m"] = 13.6
+        d["placement"]["reference_height_m"] = -6.25
+
+    path = _write(tmp_path, old)
+    with pytest.raises(ConfigError) as exc:
+        load_project(path)
+    lines = str(exc.value).splitlines()
+    assert lines == [
+        f"{path}: tunnel.outer_diameter_m: no longer a key: the lining's outer diameter "
+        "governs nothing of the machine; leave it out",
+        f"{path}: placement.reference_height_m: no longer a key: a part's reference height "
+        "is on the invert, derived from tunnel.inner_diameter_m (the inner radius below the "
+        "axis); leave it out",
+    ]
+    assert load_project().reference_height_m == -6.25
+
+
+def test_the_assembly_time_is_what_a_plan_states_its_solve_time_against() -> None:
+    """The paper's Table 2: a solve time as a share of the 5 min assembly task."""
+    from ipc_app.planner import plan
+
+    cfg = load_project()
+    p = plan(cfg, 2.0, 1.0).to_dict()
+    assert p["solve_time_share_of_task_percent"] == pytest.approx(100 * p["solve_time_s"] / 300.0)
+    longer = cfg.model_copy(update={"task": cfg.task.model_copy(update={"assembly_time_min": 10})})
+    q = plan(longer, 2.0, 1.0).to_dict()
+    assert q["solve_time_share_of_task_percent"] == pytest.approx(100 * q["solve_time_s"] / 600.0)
+
+
+def test_the_envelope_rules_on_other_machines(tmp_path: Path) -> None:
+    """The legs within the envelope (a wider sub frame, a longer step); the envelope
+    through the parts (a machine taller than the part)."""
+    cases = [
+        (_set("frames.sub.half_span_y_m", 1.7), r"frames\.sub\.half_span_y_m: 1\.7 m .*width"),
+        (_set("walking.step_length_mm", 2000.0), None),
+        (_set("robot.height_mm", 2900), r"robot\.height_mm: 2900 mm is not below the part"),
+        (_set("robot.width_mm", 9600), r"robot\.width_mm: 9600 mm is not below the part"),
+    ]
+    for edit, pattern in cases:
+        path = _write(tmp_path, edit)
+        if pattern is None:
+            load_project(path)
+            continue
+        with pytest.raises(ConfigError, match=pattern):
+            load_project(path)
