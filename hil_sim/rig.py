@@ -32,8 +32,9 @@ Model
   are blocked and the cylinder is tight: no valve flow and neither of the paper's
   leakages (read as the running servo's, its valve's null leakage in them: docs/hil.md).
   A leaking holding valve (a fault) leaks both chambers to tank.
-- Start: parked (:func:`parked_pressures`): the load on the chamber that carries it, the
-  other at tank pressure, below the supply as on a rig set down by its drives.
+- Start: parked (:func:`parked_pressures`): the pressures its servo held it at, at rest,
+  when the drives closed the holding valves (the loaded chamber at its load pressure,
+  below the supply); a falling chamber pressure stops at zero (cavitation).
 
 Everything is integrated together with fixed-step RK4 in one numba kernel.
 
