@@ -12,6 +12,7 @@ docs/model-choices.md; the test suite checks it against a generic least-norm sol
 
 from __future__ import annotations
 
+import functools
 from typing import NamedTuple
 
 import numpy as np
@@ -112,12 +113,7 @@ class MachineStatics:
         self.a_upper, self.b_upper = up.a_m, up.b_m
         self.lower_own = lump(lo.bodies)
         self.upper = lump(unloaded_upper_bodies(cfg) if unloaded else up.bodies)
-        # the same less the four rods they weigh in (config.derived.without_rods): the
-        # platform on the rods, each rod's weight then on its own cylinder
-        rodless = without_rods(cfg, "upper")
-        if unloaded:
-            rodless = tuple(b for b in rodless if b.name != WORKPIECE_BODY)
-        self.upper_rodless = lump(rodless)
+        self._cfg, self._unloaded = cfg, unloaded
         self.origin_upper = up.origin_in_lower_m
         #: an attitude cylinder's rod and piston (``hydraulics.rod_mass_kg``)
         self.rod_mass_kg = cfg.hydraulics.rod_mass_kg
@@ -153,6 +149,16 @@ class MachineStatics:
             lower_roll, lower_pitch, self.a_lower, self.b_lower, m, cog, self.g_base
         )
         return f_lower, f_upper
+
+    @functools.cached_property
+    def upper_rodless(self) -> MassProperties:
+        """:attr:`upper` less the four rods its bodies weigh in
+        (:func:`config.derived.without_rods`): the platform on the rods, each rod's weight
+        on its own cylinder."""
+        rodless = without_rods(self._cfg, "upper")
+        if self._unloaded:
+            rodless = tuple(b for b in rodless if b.name != WORKPIECE_BODY)
+        return lump(rodless)
 
     def upper_cylinder_forces(
         self,
