@@ -10,7 +10,7 @@ from pathlib import Path
 import yaml
 
 from config import ProjectConfig, load_project
-from config.loader import defaulted_sections, read_yaml, validate_data
+from config.loader import cross_check, defaulted_sections, read_yaml, validate_data
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -28,7 +28,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def _validate(args: argparse.Namespace) -> int:
     data = read_yaml(Path(args.path))
-    cfg = validate_data(ProjectConfig, data, args.path)
+    cfg = cross_check(validate_data(ProjectConfig, data, args.path), args.path)
     defaulted = defaulted_sections(ProjectConfig, data)
     if defaulted:
         # Valid, but a whole section (safety limits, the bus) came from the defaults:
