@@ -488,8 +488,10 @@ class Planner(Strict):
 
 class Ladrc(Strict):
     order: Literal[1, 2] = 1
-    wc_rad_s: BandwidthPositive = 6.0
-    wo_rad_s: BandwidthPositive = 12.0
+    #: controller and observer bandwidths of every position loop; left out (null), each
+    #: group's are derived from the plant (``ipc_app.control.tuning``, docs/control.md)
+    wc_rad_s: BandwidthPositive | None = None
+    wo_rad_s: BandwidthPositive | None = None
     discretization: Literal["euler", "zoh"] = "zoh"
     rate_limit_per_s: Annotated[Finite, Field(gt=0, le=1e6)] = 20.0
     #: feed the trajectory's rod speeds forward (docs/control.md); off: model.md's plain law
@@ -526,6 +528,10 @@ class Control(Strict):
     pid: Pid = Pid()
     sync: Sync = Sync()
     realtime: Realtime = Realtime()
+    #: every loop must stay stable with this much extra measurement delay (socketcan, a
+    #: PLC scan out of phase, two processes): derived bandwidths keep twice it in the
+    #: loop model, explicit ones are refused below it (``ipc_app.control.tuning``)
+    delay_margin_ms: Annotated[Finite, Field(ge=5, le=1000)] = 20.0
     #: The rod speed of a jog in the MANUAL unit mode (``wara ctl jog``): slow enough
     #: for an operator beside the machine; 20 mm/s is the top of a hand-jog range.
     manual_jog_speed_mm_s: Annotated[Finite, Field(gt=0, le=20)] = 2.0
@@ -734,8 +740,9 @@ class Walking(Strict):
     touch_mpa: Annotated[Finite, Field(gt=0, le=70)] = 1.0
     #: a foot not touched down this far below the expected ground: stop (hole, obstacle)
     touchdown_travel_mm: Annotated[Finite, Field(gt=0, le=1000)] = 10.0
-    #: lowering speed from touchdown_travel_mm above the expected ground on
-    touchdown_speed_mm_s: Annotated[Finite, Field(gt=0, le=1000)] = 2.5
+    #: lowering speed from touchdown_travel_mm above the expected ground on; left out:
+    #: derived from the legs' stiffness and the pressures' age (``ipc_app.control.tuning``)
+    touchdown_speed_mm_s: Annotated[Finite, Field(gt=0, le=1000)] | None = None
     #: preload or transfer not done within this: stop
     transfer_timeout_s: Annotated[Finite, Field(gt=0, le=600)] = 30.0
     #: a receiving leg off its expected share by more than this at the transfer's end: stop
@@ -744,9 +751,10 @@ class Walking(Strict):
     resume_height_tolerance_mm: Annotated[Finite, Field(gt=0, le=100)] = 1.0
     #: resume check: leg forces within this of the values at the stop (of the leg's share)
     resume_force_tolerance_percent: Annotated[Finite, Field(gt=0, le=100)] = 10.0
-    #: force loop (touch-down, preload, transfer): LADRC bandwidths on the cap-side force
-    force_wc_rad_s: Annotated[Finite, Field(gt=0, le=1000)] = 4.0
-    force_wo_rad_s: Annotated[Finite, Field(gt=0, le=1000)] = 16.0
+    #: force loop (touch-down, preload, transfer): LADRC bandwidths on the cap-side force;
+    #: left out: derived from the plant (``ipc_app.control.tuning``)
+    force_wc_rad_s: Annotated[Finite, Field(gt=0, le=1000)] | None = None
+    force_wo_rad_s: Annotated[Finite, Field(gt=0, le=1000)] | None = None
     #: the twist-mode controller of a frame standing in position control (travel,
     #: the other frame's lowering and preload): the crossover of its force loop on the
     #: legs' twist, which sets the twist mode's share of their valve commands

@@ -29,6 +29,14 @@ def register(sub: argparse._SubParsersAction) -> None:
 def _validate(args: argparse.Namespace) -> int:
     data = read_yaml(Path(args.path))
     cfg = validate_data(ProjectConfig, data, args.path)
+    # the loops' delay margin (ipc_app.control.tuning; a cross-check rule once the
+    # loader has them)
+    from ipc_app.control.tuning import delay_margin_problem
+
+    problem = delay_margin_problem(cfg)
+    if problem is not None:
+        print(f"{args.path}: invalid: {problem}", file=sys.stderr)
+        return 2
     defaulted = defaulted_sections(ProjectConfig, data)
     if defaulted:
         # Valid, but a whole section (safety limits, the bus) came from the defaults:
