@@ -143,9 +143,7 @@ def test_a_larger_required_margin_derives_slower_loops(tmp_path: Path) -> None:
     for lt in slow.loops:
         assert lt.wo_rad_s <= shipped.loop(lt.group, lt.kind).wo_rad_s
         assert lt.delay_margin_s >= MARGIN_FACTOR * 0.040
-    assert any(
-        lt.wo_rad_s < shipped.loop(lt.group, lt.kind).wo_rad_s for lt in slow.loops
-    )
+    assert any(lt.wo_rad_s < shipped.loop(lt.group, lt.kind).wo_rad_s for lt in slow.loops)
 
 
 def test_group_loads_come_from_the_statics() -> None:

@@ -461,6 +461,7 @@ def fastest_observer(p: LoopPlant, required_s: float) -> tuple[float, str]:
     """The rule: the largest ``wo`` (grid :data:`GRID_RAD_S`) with ``wc = WC_RATIO wo``
     that keeps rules 1-3 (module doc), and the rule that stopped it. Below
     :data:`MIN_WO_RAD_S`: ``(0, rule)``."""
+
     def fails(wo: float) -> str:
         wc = WC_RATIO * wo
         if mode_in_reach(p, required_s) and mode_gain(p, wc, wo) > MODE_GAIN:
@@ -548,9 +549,14 @@ def derive(cfg: ProjectConfig) -> Tuning:
     loads = group_loads(cfg)
     loops = [
         _tuned(
-            ld.group, "position", position_plant(cfg, ld), required,
-            ("control.ladrc.wc_rad_s", "control.ladrc.wo_rad_s"), lad.wc_rad_s, lad.wo_rad_s,
-        )  # fmt: skip
+            ld.group,
+            "position",
+            position_plant(cfg, ld),
+            required,
+            ("control.ladrc.wc_rad_s", "control.ladrc.wo_rad_s"),
+            lad.wc_rad_s,
+            lad.wo_rad_s,
+        )
         for ld in loads
     ]
     td: float | None = None
@@ -561,10 +567,14 @@ def derive(cfg: ProjectConfig) -> Tuning:
             if ld.cylinder.role in ("main_leg", "sub_leg"):
                 loops.append(
                     _tuned(
-                        ld.group, "force", force_plant(cfg, ld.cylinder), required,
+                        ld.group,
+                        "force",
+                        force_plant(cfg, ld.cylinder),
+                        required,
                         ("walking.force_wc_rad_s", "walking.force_wo_rad_s"),
-                        w.force_wc_rad_s, w.force_wo_rad_s,
-                    )  # fmt: skip
+                        w.force_wc_rad_s,
+                        w.force_wo_rad_s,
+                    )
                 )
         td = touchdown_speed_m_s(cfg)
         td_source = "derived" if w.touchdown_speed_mm_s is None else "walking.touchdown_speed_mm_s"
@@ -610,3 +620,21 @@ def delay_margin_problem(cfg: ProjectConfig) -> str | None:
             f"than control.delay_margin_ms {need_ms:g} ms; {hint}"
         )
     return None
+
+
+def derived_value(cfg: ProjectConfig, path: str) -> float:
+    """The derived value of a tuning key left out of the YAML (``control.ladrc.wc_rad_s``
+    and ``wo_rad_s``: the lower layer's group's; ``walking.force_*``: the main legs';
+    ``walking.touchdown_speed_mm_s``), for a search that starts from it."""
+    lower = cfg.cylinder(cfg.layers.lower.cylinders[0])
+    t = derive(cfg)
+    values = {
+        "control.ladrc.wc_rad_s": lambda: t.loop(lower.group).wc_rad_s,
+        "control.ladrc.wo_rad_s": lambda: t.loop(lower.group).wo_rad_s,
+        "walking.force_wc_rad_s": lambda: t.loop(lower.group, "force").wc_rad_s,
+        "walking.force_wo_rad_s": lambda: t.loop(lower.group, "force").wo_rad_s,
+        "walking.touchdown_speed_mm_s": lambda: units.to_mm(touchdown_speed_m_s(cfg)),
+    }
+    if path not in values:
+        raise KeyError(f"{path} is not a derived tuning key ({', '.join(values)})")
+    return float(values[path]())

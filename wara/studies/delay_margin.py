@@ -40,9 +40,9 @@ from typing import Any
 
 import numpy as np
 
+from config import units
 from config.hil_scenario import HilScenario
 from config.loader import validate_data
-from config import units
 from config.schema import ProjectConfig
 from ipc_app.control.tuning import derive
 from ipc_app.service.modes import Mode
