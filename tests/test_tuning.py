@@ -72,17 +72,31 @@ def test_the_shipped_project_derives_near_its_former_tuning() -> None:
 
 def test_a_softer_oil_column_derives_slower_leg_loops() -> None:
     """The HFDU example: 400 MPa effective oil and 2 L hoses put the loaded legs' mode
-    lower; their loops are bounded by the gain at that mode, and the touch-down may be
-    faster (a softer leg adds less force in the pressures' age)."""
+    lower; their loops are bounded by the gain at that mode."""
     shipped, hfdu = derive(load_project()), derive(load_project(HFDU))
     for group in ("main_legs", "sub_legs"):
         s, h = shipped.loop(group), hfdu.loop(group)
         assert h.plant.mode_rad_s < s.plant.mode_rad_s
         assert h.wo_rad_s < s.wo_rad_s
         assert h.bound == "mode" and h.mode_gain <= MODE_GAIN
-    assert hfdu.touchdown_speed_m_s is not None and shipped.touchdown_speed_m_s is not None
-    assert hfdu.touchdown_speed_m_s > shipped.touchdown_speed_m_s
+    # a softer leg, a larger touch force (180 mm bores): 2.98 mm/s, rounded down
+    assert hfdu.touchdown_speed_m_s == pytest.approx(2.5e-3)
     assert delay_margin_problem(load_project(HFDU)) is None
+
+
+def test_the_touch_down_speed_follows_the_overload_headroom(tmp_path: Path) -> None:
+    """The foot's force before its loop holds it stays within the overload limit's
+    headroom above the touch force: a stiffer contact, a larger touch rise or a tighter
+    overload limit slow it; a softer contact lets it go faster."""
+    shipped = touchdown_speed_m_s(load_project())
+    for change in (
+        lambda d: d["walking"]["contact"].update(stiffness_n_m=1e9),
+        lambda d: d["walking"].update(touch_mpa=1.5),
+        lambda d: d["walking"].update(overload_percent=102),
+    ):
+        assert touchdown_speed_m_s(_changed(tmp_path, change)) < shipped
+    soft = _changed(tmp_path, lambda d: d["walking"]["contact"].update(stiffness_n_m=5e7))
+    assert touchdown_speed_m_s(soft) > shipped
 
 
 def test_an_explicit_tuning_overrides_every_group(tmp_path: Path) -> None:
