@@ -129,20 +129,35 @@ def test_a_project_that_leaves_too_little_delay_margin_is_refused(
     assert "control.delay_margin_ms 20 ms" in why and "wc 5.5, wo 11" in why
     assert main(["config", "validate", str(tmp_path / "p.yaml")]) == 2
     assert "control.ladrc.wc_rad_s 12" in capsys.readouterr().err
+    # the former fixed tuning: above the rule's ceiling at the main legs' mode under
+    # the main frame standing alone (47 rad/s), and more so the sub legs' (40 rad/s)
+    cfg = _changed(tmp_path, lambda d: d["control"]["ladrc"].update(wc_rad_s=6, wo_rad_s=12))
+    why = delay_margin_problem(cfg)
+    assert why is not None and "the main_legs position loop has a gain of 0.22" in why
+    assert derive(cfg).loop("sub_legs").mode_gain > 0.3
+    # and on the HFDU example already the main legs' (the lockstep hold kept 10 ms)
+    cfg = _changed(
+        tmp_path, lambda d: d["control"]["ladrc"].update(wc_rad_s=6, wo_rad_s=12), HFDU
+    )
+    why = delay_margin_problem(cfg)
+    assert why is not None and "the main_legs position loop has a gain of 0.29" in why
+    # below the rule's ceiling by hand: accepted
+    cfg = _changed(tmp_path, lambda d: d["control"]["ladrc"].update(wc_rad_s=3, wo_rad_s=6))
+    assert delay_margin_problem(cfg) is None
     # the force loops' keys are named as theirs
     cfg = _changed(tmp_path, lambda d: d["walking"].update(force_wc_rad_s=40, force_wo_rad_s=80))
     why = delay_margin_problem(cfg)
     assert why is not None and why.startswith("walking.force_wc_rad_s 40")
-    # a larger required margin refuses the shipped bandwidths set by hand
+    # a larger required margin refuses a slow tuning set by hand
     cfg = _changed(
         tmp_path,
         lambda d: (
-            d["control"]["ladrc"].update(wc_rad_s=6, wo_rad_s=12),
-            d["control"].update(delay_margin_ms=60),
+            d["control"]["ladrc"].update(wc_rad_s=3, wo_rad_s=6),
+            d["control"].update(delay_margin_ms=100),
         ),
     )
     why = delay_margin_problem(cfg)
-    assert why is not None and "control.delay_margin_ms 60 ms" in why
+    assert why is not None and "2 x control.delay_margin_ms 100 ms" in why
 
 
 def test_shipped_projects_validate(capsys: pytest.CaptureFixture[str]) -> None:

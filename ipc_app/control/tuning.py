@@ -38,7 +38,8 @@ stays within :data:`TOUCH_HEADROOM` of the overload limit's headroom on the smal
 share (the machine unloaded).
 
 :func:`delay_margin_problem` is the project's check: a loop whose tuning (explicit or
-derived) leaves less than ``control.delay_margin_ms``, named with its key.
+derived) breaks the rule's margins (1 and 2) for ``control.delay_margin_ms``, named with
+its keys.
 """
 
 from __future__ import annotations
@@ -464,18 +465,23 @@ def force_plant(cfg: ProjectConfig, cyl: Cylinder) -> LoopPlant:
 # ----------------------------------------------------------------------- the rule
 
 
+def rule_broken(p: LoopPlant, wc: float, wo: float, required_s: float) -> str:
+    """Which margin of the rule (module doc) the tuning breaks: ``"mode"`` (rule 2),
+    ``"delay"`` (rule 1), or ``""`` (none)."""
+    if mode_in_reach(p, required_s) and mode_gain(p, wc, wo) > MODE_GAIN:
+        return "mode"
+    if delay_margin_s(p, wc, wo) < MARGIN_FACTOR * required_s:
+        return "delay"
+    return ""
+
+
 def fastest_observer(p: LoopPlant, required_s: float) -> tuple[float, str]:
     """The rule: the largest ``wo`` (grid :data:`GRID_RAD_S`) with ``wc = WC_RATIO wo``
     that keeps rules 1-3 (module doc), and the rule that stopped it. Below
     :data:`MIN_WO_RAD_S`: ``(0, rule)``."""
 
     def fails(wo: float) -> str:
-        wc = WC_RATIO * wo
-        if mode_in_reach(p, required_s) and mode_gain(p, wc, wo) > MODE_GAIN:
-            return "mode"
-        if delay_margin_s(p, wc, wo) < MARGIN_FACTOR * required_s:
-            return "delay"
-        return ""
+        return rule_broken(p, WC_RATIO * wo, wo, required_s)
 
     hi = math.floor(VALVE_FRACTION * p.valve_rad_s / GRID_RAD_S)
     lo = math.ceil(MIN_WO_RAD_S / GRID_RAD_S)
@@ -624,20 +630,34 @@ def force_bandwidths(cfg: ProjectConfig, cyl: Cylinder) -> tuple[float, float]:
 
 
 def delay_margin_problem(cfg: ProjectConfig) -> str | None:
-    """The project's check: ``None``, or the first loop whose tuning leaves less than
-    ``control.delay_margin_ms`` of modelled delay margin, in one line naming its keys
-    and what the rule would derive."""
+    """The project's check: ``None``, or the first loop whose tuning breaks the rule's
+    stated margin (the modelled delay margin at least twice ``control.delay_margin_ms``,
+    the gain at an oil-column mode in reach at most :data:`MODE_GAIN`), in one line
+    naming its keys and what the rule would derive."""
     tuning = derive(cfg)
     need_ms = cfg.control.delay_margin_ms
     for lt in tuning.loops:
-        have_ms = units.to_ms(lt.delay_margin_s)
-        if have_ms >= need_ms:
+        broken = rule_broken(lt.plant, lt.wc_rad_s, lt.wo_rad_s, tuning.required_s)
+        if not broken:
             continue
         prefix = "walking.force_" if lt.kind == "force" else "control.ladrc."
         keys = f"{prefix}wc_rad_s {lt.wc_rad_s:g}, {prefix}wo_rad_s {lt.wo_rad_s:g}"
         if lt.source == "derived":
             keys += " (derived)"
-        have = "no margin (unstable)" if have_ms <= 0 else f"{have_ms:.1f} ms of delay margin"
+        have_ms = units.to_ms(lt.delay_margin_s)
+        if broken == "mode":
+            what = (
+                f"a gain of {lt.mode_gain:.2f} at its oil column's mode "
+                f"({lt.plant.mode_rad_s:.0f} rad/s), above {MODE_GAIN:g}: with "
+                f"control.delay_margin_ms {need_ms:g} ms of delay that mode's phase is "
+                f"not known, its gain must keep it stable"
+            )
+        else:
+            have = "no margin (unstable)" if have_ms <= 0 else f"{have_ms:.1f} ms of delay margin"
+            what = (
+                f"{have} in the loop model, less than {MARGIN_FACTOR:g} x "
+                f"control.delay_margin_ms {need_ms:g} ms"
+            )
         wo, _bound = fastest_observer(lt.plant, tuning.required_s)
         hint = (
             f"leave them out (derived for {lt.group}: wc {WC_RATIO * wo:g}, wo {wo:g}) or "
@@ -645,10 +665,7 @@ def delay_margin_problem(cfg: ProjectConfig) -> str | None:
             if wo > 0
             else "the plant allows no tuning with that margin: lower the delay or the load"
         )
-        return (
-            f"{keys}: the {lt.group} {lt.kind} loop has {have} in the loop model, less "
-            f"than control.delay_margin_ms {need_ms:g} ms; {hint}"
-        )
+        return f"{keys}: the {lt.group} {lt.kind} loop has {what}; {hint}"
     return None
 
 
