@@ -136,9 +136,7 @@ def test_a_project_that_leaves_too_little_delay_margin_is_refused(
     assert why is not None and "the main_legs position loop has a gain of 0.22" in why
     assert derive(cfg).loop("sub_legs").mode_gain > 0.3
     # and on the HFDU example already the main legs' (the lockstep hold kept 10 ms)
-    cfg = _changed(
-        tmp_path, lambda d: d["control"]["ladrc"].update(wc_rad_s=6, wo_rad_s=12), HFDU
-    )
+    cfg = _changed(tmp_path, lambda d: d["control"]["ladrc"].update(wc_rad_s=6, wo_rad_s=12), HFDU)
     why = delay_margin_problem(cfg)
     assert why is not None and "the main_legs position loop has a gain of 0.29" in why
     # below the rule's ceiling by hand: accepted

@@ -64,7 +64,7 @@ ComplexArray = NDArray[np.complex128]
 #: rule 1: the modelled delay margin at least this times ``control.delay_margin_ms``.
 #: The model is linear; the friction at the rods makes the hold hunt at rest, and that
 #: hunting passes the standstill goal (0.07 mm) at 0.6-0.75 of the modelled margin
-#: (docs/control.md, the lockstep measurements).
+#: (docs/decisions/0021-tuning-from-the-plant.md, the lockstep measurements).
 MARGIN_FACTOR = 2.0
 #: rule 2: the loop's gain at the oil column's mode at most this (14 dB below 1)
 MODE_GAIN = 0.2
@@ -332,14 +332,18 @@ def mode_in_reach(p: LoopPlant, required_s: float) -> bool:
 # ----------------------------------------------------------------------- the plant
 
 
+def _frame_cycle_s(cfg: ProjectConfig, frame: str) -> float:
+    """The DBC's cycle of ``frame`` while its cylinders are in the active group, s."""
+    from plc_bridge.catalog import load_catalog
+
+    return load_catalog().by_name(frame).cycle_in_force_s(True, cfg.control.period_s)
+
+
 def _measurement_age_s(cfg: ProjectConfig, frame: str) -> float:
     """One loop period, plus half of the frame's cycle (while its group is active)
     beyond it: a frame slower than the loop is held between samples."""
-    from plc_bridge.catalog import load_catalog
-
     period = cfg.control.period_s
-    cycle = load_catalog().by_name(frame).cycle_in_force_s(True, period)
-    return period + max(0.0, cycle - period) / 2
+    return period + max(0.0, _frame_cycle_s(cfg, frame) - period) / 2
 
 
 def _lowest_stiffness_n_m(cfg: ProjectConfig, cyl: Cylinder) -> float:
@@ -541,11 +545,7 @@ def derived_touchdown_speed_m_s(cfg: ProjectConfig) -> float:
     :data:`TOUCH_CYCLES` pressure frame cycles and two loop periods."""
     if cfg.walking is None:
         raise ValueError("the project has no walking section")
-    from plc_bridge.catalog import load_catalog
-
-    period = cfg.control.period_s
-    cycle = load_catalog().by_name(PRESSURE_FRAME).cycle_in_force_s(True, period)
-    t_touch = TOUCH_CYCLES * cycle + 2 * period
+    t_touch = TOUCH_CYCLES * _frame_cycle_s(cfg, PRESSURE_FRAME) + 2 * cfg.control.period_s
     limit_n = cfg.walking.overload_percent / 100 * smallest_share_n(cfg)
     speeds = []
     for cyl in cfg.cylinders:
