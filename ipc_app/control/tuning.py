@@ -408,6 +408,8 @@ def group_loads(cfg: ProjectConfig) -> tuple[GroupLoad, ...]:
         seen.add(cyl.group)
         plant = cfg.plant_of(cyl)
         kg, case = statics.get(cyl.group, (plant.moving_mass_kg, "the plant's moving_mass_kg"))
+        if not kg > 0.0:  # a group the statics load in tension only: its own lumped mass
+            kg, case = plant.moving_mass_kg, "the plant's moving_mass_kg"
         k = _lowest_stiffness_n_m(cfg, cyl)
         damping = viscous_damping_n_s_m(cyl, plant, cfg.hydraulics)
         out.append(
@@ -489,6 +491,8 @@ def fastest_observer(p: LoopPlant, required_s: float) -> tuple[float, str]:
 
     hi = math.floor(VALVE_FRACTION * p.valve_rad_s / GRID_RAD_S)
     lo = math.ceil(MIN_WO_RAD_S / GRID_RAD_S)
+    if hi < lo:
+        return 0.0, "valve"
     if not fails(hi * GRID_RAD_S):
         return hi * GRID_RAD_S, "valve"
     bound = fails(lo * GRID_RAD_S)

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import yaml
 
-from config import ProjectConfig, load_project
+from config import ConfigError, ProjectConfig, load_project
 from config.loader import defaulted_sections, read_yaml, validate_data
 
 
@@ -35,8 +35,7 @@ def _validate(args: argparse.Namespace) -> int:
 
     problem = delay_margin_problem(cfg)
     if problem is not None:
-        print(f"{args.path}: invalid: {problem}", file=sys.stderr)
-        return 2
+        raise ConfigError(f"{args.path}: {problem}")
     defaulted = defaulted_sections(ProjectConfig, data)
     if defaulted:
         # Valid, but a whole section (safety limits, the bus) came from the defaults:
