@@ -47,7 +47,7 @@ from config.schema import ProjectConfig
 from ipc_app.control.tuning import MARGIN_FACTOR, MODE_GAIN, derive, rule_broken
 from ipc_app.service.modes import Mode
 from ipc_app.service.worker import PlannerWorker
-from wara.examples import SYNC_TOL_MM
+from wara.goals import SYNC_TOL_MM
 from wara.harness import Harness
 from wara.studies import DEFAULT_DELAYS_MS
 
