@@ -49,7 +49,6 @@ import math
 from dataclasses import dataclass, replace
 
 import numpy as np
-import scipy.linalg
 from numpy.typing import NDArray
 
 from config import units
@@ -199,6 +198,8 @@ def _plant_matrices(p: LoopPlant) -> tuple[FloatArray, FloatArray, FloatArray]:
 @functools.lru_cache(maxsize=256)
 def _discrete_plant(p: LoopPlant) -> tuple[FloatArray, FloatArray, FloatArray]:
     """The plant with the command held over a period (zero-order hold)."""
+    import scipy.linalg  # here: the service's verbs import this module, not scipy
+
     a, b, c = _plant_matrices(p)
     n = len(b)
     big = np.zeros((n + 1, n + 1))
