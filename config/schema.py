@@ -590,10 +590,11 @@ class Planner(Strict):
 class Ladrc(Strict):
     #: the model's order (1: the command sets a rod speed)
     order: Literal[1, 2] = 1
-    #: controller bandwidth (crossover)
-    wc_rad_s: BandwidthPositive = 6.0
-    #: extended state observer bandwidth
-    wo_rad_s: BandwidthPositive = 12.0
+    #: controller bandwidth (crossover) of every position loop; left out (null): each
+    #: group's derived from the plant (``ipc_app.control.tuning``, docs/control.md)
+    wc_rad_s: BandwidthPositive | None = None
+    #: extended state observer bandwidth; left out (null): derived as ``wc_rad_s`` is
+    wo_rad_s: BandwidthPositive | None = None
     #: ``zoh``: exact, with the current observer; ``euler``: forward Euler
     discretization: Literal["euler", "zoh"] = "zoh"
     #: the command's largest change per second (full opening is 1)
@@ -641,6 +642,10 @@ class Control(Strict):
     pid: Pid = Pid()
     sync: Sync = Sync()
     realtime: Realtime = Realtime()
+    #: every loop must stay stable with this much extra measurement delay (socketcan, a
+    #: PLC scan out of phase, two processes): derived bandwidths keep twice it in the
+    #: loop model, explicit ones are refused below it (``ipc_app.control.tuning``)
+    delay_margin_ms: Annotated[Finite, Field(ge=5, le=1000)] = 20.0
     #: The rod speed of a jog in the MANUAL unit mode (``wara ctl jog``): slow enough
     #: for an operator beside the machine; 20 mm/s is the top of a hand-jog range.
     manual_jog_speed_mm_s: Annotated[Finite, Field(gt=0, le=20)] = 2.0
@@ -881,8 +886,9 @@ class Walking(Strict):
     touch_mpa: Annotated[Finite, Field(gt=0, le=70)] = 1.0
     #: a foot not touched down this far below the expected ground: stop (hole, obstacle)
     touchdown_travel_mm: Annotated[Finite, Field(gt=0, le=1000)] = 10.0
-    #: lowering speed from touchdown_travel_mm above the expected ground on
-    touchdown_speed_mm_s: Annotated[Finite, Field(gt=0, le=1000)] = 2.5
+    #: lowering speed from touchdown_travel_mm above the expected ground on; left out:
+    #: derived from the legs' stiffness and the pressures' age (``ipc_app.control.tuning``)
+    touchdown_speed_mm_s: Annotated[Finite, Field(gt=0, le=1000)] | None = None
     #: preload or transfer not done within this: stop
     transfer_timeout_s: Annotated[Finite, Field(gt=0, le=600)] = 30.0
     #: a receiving leg off its expected share by more than this at the transfer's end: stop
@@ -892,10 +898,10 @@ class Walking(Strict):
     #: resume check: leg forces within this of the values at the stop (of the leg's share)
     resume_force_tolerance_percent: Annotated[Finite, Field(gt=0, le=100)] = 10.0
     #: force loop (touch-down, preload, transfer): the LADRC's crossover on the cap-side
-    #: force
-    force_wc_rad_s: Annotated[Finite, Field(gt=0, le=1000)] = 4.0
-    #: and its observer's bandwidth
-    force_wo_rad_s: Annotated[Finite, Field(gt=0, le=1000)] = 16.0
+    #: force; left out (null): derived from the plant (``ipc_app.control.tuning``)
+    force_wc_rad_s: Annotated[Finite, Field(gt=0, le=1000)] | None = None
+    #: and its observer's bandwidth; left out (null): derived
+    force_wo_rad_s: Annotated[Finite, Field(gt=0, le=1000)] | None = None
     #: the twist-mode controller of a frame standing in position control (travel,
     #: the other frame's lowering and preload): the crossover of its force loop on the
     #: legs' twist, which sets the twist mode's share of their valve commands

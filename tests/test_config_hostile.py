@@ -167,7 +167,7 @@ def test_duplicate_key_names_both_lines(tmp_path: Path, capsys: pytest.CaptureFi
 
 
 def test_duplicate_key_in_a_flow_mapping_and_a_top_level_section(tmp_path: Path) -> None:
-    text = _edit("{order: 1, wc_rad_s: 6,", "{order: 1, wc_rad_s: 6, order: 2,")
+    text = _edit("{order: 1, discretization: zoh,", "{order: 1, discretization: zoh, order: 2,")
     flow = _write_text(tmp_path, text)
     with pytest.raises(ConfigError, match="duplicate key 'order'"):
         load_project(flow)

@@ -19,6 +19,7 @@ import yaml
 
 from config import load_project
 from config.hil_scenario import HilScenario
+from ipc_app.control.tuning import touchdown_speed_m_s
 from ipc_app.service.core import ServiceCore
 from ipc_app.service.interlocks import Interlock
 from ipc_app.service.modes import Mode
@@ -96,7 +97,9 @@ def test_a_hole_under_a_foot_stops_the_lowering(tmp_path: Path) -> None:
     assert f["interlock"] == str(Interlock.TOUCHDOWN) and f["where"] == "sub_leg_1"
     t2 = phase_starts(evs)["2"]
     # trapezoid to 40 mm, then 20 mm slow
-    lowering_s = (50 - 10) / 20 + 20 / 20 + 2 * 10 / walking.touchdown_speed_mm_s
+    lowering_s = (
+        (50 - 10) / 20 + 20 / 20 + 2 * 10 / (1e3 * touchdown_speed_m_s(load_project(config)))
+    )
     assert f["t_s"] - t2 <= lowering_s + 4 * PERIOD_S
     assert f["t_s"] - t2 >= lowering_s - 0.5  # not before the lowering ran out
 
