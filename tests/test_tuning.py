@@ -60,10 +60,10 @@ def test_the_model_orders_tunings_as_the_lockstep_hold_did() -> None:
 def test_the_shipped_project_derives_near_its_former_tuning() -> None:
     t = derive(load_project())
     got = {(lt.group, lt.kind): (lt.wc_rad_s, lt.wo_rad_s) for lt in t.loops}
-    assert got[("main_legs", "position")] == (5.5, 11.0)  # was 6 / 12
+    assert got[("main_legs", "position")] == (5.75, 11.5)  # was 6 / 12
     assert got[("upper", "position")] == (7.25, 14.5)
     assert got[("main_legs", "force")] == (8.25, 16.5)  # was 8 / 16
-    assert t.touchdown_speed_m_s == pytest.approx(2.5e-3)  # as before
+    assert t.touchdown_speed_m_s == pytest.approx(2.4e-3)  # was 2.5 (2.49 derived)
     for lt in t.loops:
         assert lt.source == "derived"
         assert lt.delay_margin_s >= MARGIN_FACTOR * t.required_s, lt
@@ -79,7 +79,7 @@ def test_a_softer_oil_column_derives_slower_leg_loops() -> None:
         assert h.plant.mode_rad_s < s.plant.mode_rad_s
         assert h.wo_rad_s < s.wo_rad_s
         assert h.bound == "mode" and h.mode_gain <= MODE_GAIN
-    # a softer leg, a larger touch force (180 mm bores): 2.98 mm/s, rounded down
+    # a softer leg, a larger touch force (180 mm bores): 2.5 mm/s
     assert hfdu.touchdown_speed_m_s == pytest.approx(2.5e-3)
     assert delay_margin_problem(load_project(HFDU)) is None
 
@@ -126,7 +126,7 @@ def test_a_project_that_leaves_too_little_delay_margin_is_refused(
     why = delay_margin_problem(cfg)
     assert why is not None
     assert why.startswith("control.ladrc.wc_rad_s 12, control.ladrc.wo_rad_s 25: the main_legs")
-    assert "control.delay_margin_ms 20 ms" in why and "wc 5.5, wo 11" in why
+    assert "control.delay_margin_ms 20 ms" in why and "wc 5.75, wo 11.5" in why
     assert main(["config", "validate", str(tmp_path / "p.yaml")]) == 2
     err = capsys.readouterr().err
     assert err.startswith(f"wara: configuration error: {tmp_path / 'p.yaml'}: control.ladrc")
@@ -134,12 +134,12 @@ def test_a_project_that_leaves_too_little_delay_margin_is_refused(
     # the main frame standing alone (47 rad/s), and more so the sub legs' (40 rad/s)
     cfg = _changed(tmp_path, lambda d: d["control"]["ladrc"].update(wc_rad_s=6, wo_rad_s=12))
     why = delay_margin_problem(cfg)
-    assert why is not None and "the main_legs position loop has a gain of 0.22" in why
+    assert why is not None and "the main_legs position loop has a gain of 0.21" in why
     assert derive(cfg).loop("sub_legs").mode_gain > 0.3
     # and on the HFDU example already the main legs' (the lockstep hold kept 10 ms)
     cfg = _changed(tmp_path, lambda d: d["control"]["ladrc"].update(wc_rad_s=6, wo_rad_s=12), HFDU)
     why = delay_margin_problem(cfg)
-    assert why is not None and "the main_legs position loop has a gain of 0.29" in why
+    assert why is not None and "the main_legs position loop has a gain of 0.28" in why
     # below the rule's ceiling by hand: accepted
     cfg = _changed(tmp_path, lambda d: d["control"]["ladrc"].update(wc_rad_s=3, wo_rad_s=6))
     assert delay_margin_problem(cfg) is None

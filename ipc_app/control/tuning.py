@@ -88,7 +88,7 @@ TOUCH_HEADROOM = 0.75
 #: measured 0.16 s on the HFDU example at 4.5 mm/s (19 kN above its touch force)
 TOUCH_CYCLES = 3
 #: derived touch-down speeds are multiples of this, m/s (rounded down)
-TOUCH_GRID_M_S = 0.5e-3
+TOUCH_GRID_M_S = 0.1e-3
 #: the CAN messages whose age the loops see
 POSITION_FRAME = "PLC_RodPos_0"
 PRESSURE_FRAME = "PLC_Pressure_0"
@@ -558,7 +558,7 @@ def derived_touchdown_speed_m_s(cfg: ProjectConfig) -> float:
             continue
         headroom_n = limit_n - units.mpa(cfg.walking.touch_mpa) * cyl.cap_area_m2
         speeds.append(TOUCH_HEADROOM * headroom_n / (leg_stiffness_n_m(cfg, cyl) * t_touch))
-    v = math.floor(min(speeds) / TOUCH_GRID_M_S) * TOUCH_GRID_M_S
+    v = round(math.floor(min(speeds) / TOUCH_GRID_M_S) * TOUCH_GRID_M_S, 9)
     return max(v, TOUCH_GRID_M_S)
 
 
