@@ -37,10 +37,19 @@ from typing import Any
 
 import pytest
 import structlog
+from hypothesis import HealthCheck, settings
 
 from config import ProjectConfig, load_project
 
 REPO = Path(__file__).resolve().parents[1]
+
+# Property tests check what a function computes, not how fast: no deadline per example and
+# no health check on slow generation, both measured on the wall clock (on a loaded machine
+# an example of tests/test_model.py took 1.2 s against the default 200 ms deadline, and
+# hypothesis failed the test as flaky). A test may still set its own deadline as a guard
+# against a hang (tests/test_service_ctl_fuzz.py: 10 s).
+settings.register_profile("wara", deadline=None, suppress_health_check=[HealthCheck.too_slow])
+settings.load_profile("wara")
 
 #: The key of xdist's worker input naming the directory where each worker writes how its
 #: tests are to be scheduled (:func:`pytest_collection_modifyitems`).
