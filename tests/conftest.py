@@ -108,6 +108,7 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
     if workerinput is not None and _ORDER_DIR in workerinput:
         order = {
             "realtime": [it.nodeid for it in items if _phase(it) == 2],
+            "slow": [it.nodeid for it in items if _phase(it) == 0],
             "groups": {it.nodeid: g for it in items if (g := _group(it)) is not None},
         }
         path = Path(workerinput[_ORDER_DIR]) / f"{workerinput['workerid']}.json"
@@ -154,6 +155,7 @@ def _realtime_last() -> type:
             super().__init__(config, log)
             self.order_dir = order_dir
             self.realtime: set[int] = set()
+            self.slow: set[int] = set()
             self.group_of: dict[int, str] = {}
             self.held: list[int] = []
             self.rt_node: Any = None
@@ -182,6 +184,7 @@ def _realtime_last() -> type:
                 order = json.loads(path.read_text(encoding="utf-8"))
                 index = {nodeid: i for i, nodeid in enumerate(self.collection)}
                 self.realtime = {index[n] for n in order["realtime"]}
+                self.slow = {index[n] for n in order["slow"]}
                 self.group_of = {index[n]: g for n, g in order["groups"].items()}
                 self.held = sorted(self.realtime)
                 self.pending[:] = [i for i in index.values() if i not in self.realtime]
@@ -192,9 +195,11 @@ def _realtime_last() -> type:
             if node.shutting_down:
                 return
             if self.pending:
-                # A worker starts a test once it knows the one after it: three queued
-                # (eight after a short test) keep it from waiting on this process.
-                depth = 3 if duration >= 0.5 else 8
+                # A worker starts a test once it knows the one after it: a slow test
+                # waits in the queue behind one other only (so the longest ones go to
+                # different workers), a short one behind seven (so the worker never
+                # waits for this process between them).
+                depth = 2 if self.pending[0] in self.slow else 8
                 queued = self.node2pending[node]
                 if len(queued) < depth:
                     self._send(node, depth - len(queued))
