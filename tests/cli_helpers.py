@@ -8,10 +8,14 @@ from __future__ import annotations
 
 import contextlib
 import io
+import json
 import os
 import subprocess
 import sys
+import tempfile
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 from wara.cli import main
 
@@ -31,35 +35,34 @@ def run_wara(
 ) -> subprocess.CompletedProcess[str]:
     """``wara ARGS`` as a child process of this checkout (its PYTHONPATH; run in ``cwd``,
     default the checkout's directory), text output captured, never checked."""
-    return subprocess.run(
-        [sys.executable, "-m", "wara", *args],
-        capture_output=True,
-        text=True,
-        timeout=timeout_s,
-        cwd=cwd,
-        env={**os.environ, "PYTHONPATH": str(REPO)},
-        check=False,
-    )
+    return _child([sys.executable, "-m", "wara", *args], timeout_s, cwd)
 
 
 def run_wara_observed(
-    args: list[str], hook: str, out: Path, timeout_s: float = 120, cwd: Path = REPO
-) -> subprocess.CompletedProcess[str]:
-    """:func:`run_wara` with a hook: the child process calls ``hook``
-    (``"module:function"``) with ``out`` first, then runs ``wara ARGS`` as ``python -m
-    wara`` would. The hook wraps a function the command calls and writes what it returned
-    or saw to ``out``, so that one run serves the tests of its printed output and those of
+    args: list[str], hook: Callable[[str], None], timeout_s: float = 120, cwd: Path = REPO
+) -> tuple[subprocess.CompletedProcess[str], Any]:
+    """:func:`run_wara` with a hook, and what the hook saw. The child process calls
+    ``hook`` (a module-level function of an importable module) with the path of a file
+    first, then runs ``wara ARGS`` as ``python -m wara`` would; the hook wraps a function
+    the command calls and writes what it returned or saw to that file as JSON (None if it
+    wrote nothing). So one run serves the tests of what the command prints and those of
     the figures behind it (e.g. the summary behind ``wara demo``'s table)."""
-    module, func = hook.split(":")
-    code = (
-        "import runpy, sys\n"
-        "from importlib import import_module\n"
-        f"getattr(import_module({module!r}), {func!r})({str(out)!r})\n"
-        f"sys.argv = ['wara', *{args!r}]\n"
-        "runpy.run_module('wara', run_name='__main__', alter_sys=True)\n"
-    )
+    with tempfile.TemporaryDirectory(prefix="wara-observed-") as d:
+        seen = Path(d) / "seen.json"
+        code = (
+            "import runpy, sys\n"
+            "from importlib import import_module\n"
+            f"import_module({hook.__module__!r}).{hook.__name__}({str(seen)!r})\n"
+            f"sys.argv = ['wara', *{args!r}]\n"
+            "runpy.run_module('wara', run_name='__main__', alter_sys=True)\n"
+        )
+        proc = _child([sys.executable, "-c", code], timeout_s, cwd)
+        return proc, json.loads(seen.read_text(encoding="utf-8")) if seen.exists() else None
+
+
+def _child(argv: list[str], timeout_s: float, cwd: Path) -> subprocess.CompletedProcess[str]:
     return subprocess.run(
-        [sys.executable, "-c", code],
+        argv,
         capture_output=True,
         text=True,
         timeout=timeout_s,

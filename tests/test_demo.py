@@ -100,10 +100,7 @@ def readme_demo(
     """``wara demo`` exactly as the README writes it, run once where a user runs it (a new
     directory): the process, that directory, and the summary behind its table."""
     cwd = tmp_path_factory.mktemp("readme-demo")
-    summary = tmp_path_factory.mktemp("readme-demo-summary") / "summary.json"
-    hook = f"{__name__}:{keep_ring_demo_summary.__name__}"
-    proc = run_wara_observed(["demo"], hook, summary, timeout_s=1800, cwd=cwd)
-    out = json.loads(summary.read_text(encoding="utf-8")) if summary.exists() else None
+    proc, out = run_wara_observed(["demo"], keep_ring_demo_summary, timeout_s=1800, cwd=cwd)
     return proc, cwd, out
 
 

@@ -439,17 +439,12 @@ def keep_transfer_force_ratios(out: str) -> None:
 
 
 @pytest.fixture(scope="module")
-def shipped_steps(
-    tmp_path_factory: pytest.TempPathFactory,
-) -> tuple[subprocess.CompletedProcess[str], dict[str, float]]:
+def shipped_steps() -> tuple[subprocess.CompletedProcess[str], dict[str, float]]:
     """`wara walk --steps 3 --lockstep --json` with the shipped project (2 m steps), run
     once as the user runs it, the transfers' force ratios kept by a hook."""
-    ratios = tmp_path_factory.mktemp("shipped-steps") / "force_ratios.json"
-    hook = f"{__name__}:{keep_transfer_force_ratios.__name__}"
     args = ["walk", "--steps", "3", "--lockstep", "--json"]
-    run = run_wara_observed(args, hook, ratios, timeout_s=7200, cwd=ROOT)
-    worst = json.loads(ratios.read_text(encoding="utf-8")) if ratios.exists() else {}
-    return run, worst
+    run, worst = run_wara_observed(args, keep_transfer_force_ratios, timeout_s=7200, cwd=ROOT)
+    return run, worst or {}
 
 
 @pytest.mark.slow(seconds=100)
