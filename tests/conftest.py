@@ -93,8 +93,7 @@ def _phase(item: pytest.Item) -> int:
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
     """The run's order: slow (the longest ``seconds=`` first, a group as its longest), the
     others, then the real-time tests; the collection's order within each (so a module's
-    tests stay together). Under xdist each worker also writes the real-time tests and the
-    groups for the controller's scheduler."""
+    tests stay together)."""
     hint: dict[str, float] = {}
     for it in items:
         mark = it.get_closest_marker("slow")
@@ -104,15 +103,23 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
         if g is not None:
             hint[g] = max(hint.get(g, 0.0), s)
     items.sort(key=lambda it: (_phase(it), -hint[_group(it) or it.nodeid]))
-    workerinput = getattr(config, "workerinput", None)
-    if workerinput is not None and _ORDER_DIR in workerinput:
-        order = {
-            "realtime": [it.nodeid for it in items if _phase(it) == 2],
-            "slow": [it.nodeid for it in items if _phase(it) == 0],
-            "groups": {it.nodeid: g for it in items if (g := _group(it)) is not None},
-        }
-        path = Path(workerinput[_ORDER_DIR]) / f"{workerinput['workerid']}.json"
-        path.write_text(json.dumps(order), encoding="utf-8")
+
+
+@pytest.hookimpl(tryfirst=True)  # before xdist sends the collection to the controller
+def pytest_collection_finish(session: pytest.Session) -> None:
+    """Under xdist, each worker writes which of the tests it will run are real-time, slow
+    and grouped, for the controller's scheduler."""
+    workerinput = getattr(session.config, "workerinput", None)
+    if workerinput is None or _ORDER_DIR not in workerinput:
+        return
+    items = session.items
+    order = {
+        "realtime": [it.nodeid for it in items if _phase(it) == 2],
+        "slow": [it.nodeid for it in items if _phase(it) == 0],
+        "groups": {it.nodeid: g for it in items if (g := _group(it)) is not None},
+    }
+    path = Path(workerinput[_ORDER_DIR]) / f"{workerinput['workerid']}.json"
+    path.write_text(json.dumps(order), encoding="utf-8")
 
 
 def pytest_configure(config: pytest.Config) -> None:
