@@ -26,7 +26,11 @@ BENCHES: dict[str, str] = {
     "demo": "wara.benches.demo:run",
     "opcua": "wara.benches.opcua:run",
     "harness": "wara.benches.harness:run",
+    "wire": "wara.benches.wire:run",
 }
+
+#: the benches that take ``--baseline DIR`` (this checkout against DIR's, in one run)
+WITH_BASELINE = ("harness", "step", "wire")
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -40,13 +44,13 @@ def register(sub: argparse._SubParsersAction) -> None:
         type=integer,
         default=None,
         metavar="N",
-        help="demo: how many runs (default 5); step with --baseline: rounds (default 5)",
+        help="demo: how many runs (default 5); harness, step with --baseline: rounds (default 5)",
     )
     p.add_argument(
         "--baseline",
         default=None,
         metavar="DIR",
-        help="step: a checkout of another revision, measured in turn with this one",
+        help="harness, step, wire: a checkout of another revision, measured in turn with this one",
     )
     p.add_argument(
         "--cpu-hog",
@@ -78,10 +82,14 @@ def _run(args: argparse.Namespace) -> int:
         raise UsageError(
             "--realtime goes with the ring cycles (the attitude examples run in real time)"
         )
-    if args.baseline is not None and args.name != "step":
-        raise UsageError("--baseline goes with `wara bench step`")
-    if args.runs is not None and not (args.name == "demo" or args.baseline is not None):
-        raise UsageError("--runs goes with `wara bench demo` or `wara bench step --baseline`")
+    if args.baseline is not None and args.name not in WITH_BASELINE:
+        raise UsageError(f"--baseline goes with `wara bench` {', '.join(WITH_BASELINE)}")
+    if args.runs is not None and not (
+        args.name == "demo" or (args.baseline is not None and args.name != "wire")
+    ):
+        raise UsageError(
+            "--runs goes with `wara bench demo` or `wara bench harness/step --baseline`"
+        )
     if args.runs is not None and args.runs < 1:
         raise UsageError("--runs must be at least 1")
     module_name, func_name = BENCHES[args.name].split(":")
