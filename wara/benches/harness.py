@@ -24,12 +24,24 @@ scales on Dask.
 
 ``--quick``: two runs per campaign instead of six. The machine is shared: compare
 ratios, and say how loaded it was (``load_average``).
+
+``--baseline DIR [--runs N]``: the ``lockstep`` part of this checkout against another
+revision's checkout in DIR, in one run: N rounds (default 5), each one ``lockstep`` of
+this checkout and one of DIR's (alternating which goes first), each in a fresh
+interpreter: DIR's own (``DIR/.venv/bin/python``) where it has one. The headline:
+``realtime_factor_cpu`` of this and of the baseline (medians over the rounds) and
+``ratio`` (the median of the rounds' ratios this / baseline, with their range); each
+checkout's median ``cpu_share``. No campaign part.
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import os
+import statistics
+import subprocess
+import sys
 import tempfile
 import time
 from pathlib import Path
@@ -157,6 +169,8 @@ def campaign(workers: int, runs: int) -> dict[str, Any]:
 
 
 def run(args: argparse.Namespace) -> dict[str, Any]:
+    if getattr(args, "baseline", None) is not None:
+        return run_against(args)
     from wara.extras import require_campaign
 
     require_campaign()
@@ -170,3 +184,95 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         out["scaling_2_vs_1"] = round(two["runs_per_minute"] / one["runs_per_minute"], 2)
     out["load_average_after"] = [round(x, 2) for x in os.getloadavg()]
     return out
+
+
+#: run in a fresh interpreter of the checkout measured: its ``lockstep`` as JSON
+_LOCKSTEP_CMD = (
+    "import json, sys; from wara.benches.harness import lockstep; "
+    "print(json.dumps(lockstep(sys.argv[1] or None)))"
+)
+
+
+def _lockstep_in(checkout: Path, config_path: str | None) -> dict[str, Any]:
+    """``lockstep`` in a fresh interpreter of ``checkout`` (its own ``.venv`` where it
+    has one, else this interpreter with the checkout first on the path)."""
+    checkout = checkout.resolve()
+    venv = checkout / ".venv" / "bin" / "python"
+    python = str(venv) if venv.is_file() else sys.executable
+    cfg = str(Path(config_path).resolve()) if config_path else ""
+    env = dict(os.environ, PYTHONPATH=str(checkout))
+    # cwd: `-c` puts the working directory first on sys.path, ahead of PYTHONPATH
+    out = subprocess.run(
+        [python, "-c", _LOCKSTEP_CMD, cfg],
+        env=env,
+        cwd=checkout,
+        capture_output=True,
+        text=True,
+        check=False,
+    )
+    if out.returncode != 0:
+        tail = out.stderr.strip().splitlines()[-1:] or ["no output"]
+        raise RuntimeError(f"bench harness in {checkout} failed: {tail[0]}")
+    result: dict[str, Any] = json.loads(out.stdout.strip().splitlines()[-1])
+    return result
+
+
+def run_against(args: argparse.Namespace) -> dict[str, Any]:
+    """``--baseline DIR``: this checkout's lockstep and DIR's, interleaved (module
+    docstring)."""
+    here = Path(__file__).resolve().parents[2]
+    base_dir = Path(args.baseline)
+    if not (base_dir / "wara" / "benches" / "harness.py").is_file():
+        raise RuntimeError(f"--baseline {base_dir}: not a checkout with wara/benches/harness.py")
+    rounds = int(args.runs or 5)
+    config_path = getattr(args, "config", None)
+    load_before = [round(x, 2) for x in os.getloadavg()]
+    this: list[dict[str, Any]] = []
+    base: list[dict[str, Any]] = []
+    for i in range(rounds):
+        order = [(here, this), (base_dir, base)]
+        for checkout, into in order if i % 2 == 0 else order[::-1]:
+            into.append(_lockstep_in(checkout, config_path))
+        ratio = this[-1]["realtime_factor_cpu"] / base[-1]["realtime_factor_cpu"]
+        print(
+            f"wara bench harness: round {i + 1}/{rounds}: realtime factor (CPU) "
+            f"{this[-1]['realtime_factor_cpu']} against {base[-1]['realtime_factor_cpu']}: "
+            f"{ratio:.2f}",
+            file=sys.stderr,
+        )
+    ratios = [
+        a["realtime_factor_cpu"] / b["realtime_factor_cpu"] for a, b in zip(this, base, strict=True)
+    ]
+
+    def median_of(runs: list[dict[str, Any]], key: str) -> float:
+        return round(statistics.median(r[key] for r in runs), 2)
+
+    def shares(runs: list[dict[str, Any]]) -> dict[str, float]:
+        return {
+            k: round(statistics.median(r["cpu_share"][k] for r in runs), 3)
+            for k in runs[0]["cpu_share"]
+        }
+
+    return {
+        "bench": "harness",
+        "against": str(base_dir),
+        "rounds": rounds,
+        "load_average": load_before,
+        "load_average_after": [round(x, 2) for x in os.getloadavg()],
+        "realtime_factor_cpu": {
+            "this": median_of(this, "realtime_factor_cpu"),
+            "baseline": median_of(base, "realtime_factor_cpu"),
+        },
+        "ratio": round(statistics.median(ratios), 3),
+        "ratio_range": [round(min(ratios), 3), round(max(ratios), 3)],
+        "ratio_per_round": [round(r, 3) for r in ratios],
+        "passed": {
+            "this": all(r["passed"] for r in this),
+            "baseline": all(r["passed"] for r in base),
+        },
+        "cpu_share": {"this": shares(this), "baseline": shares(base)},
+        "realtime_factor_cpu_per_round": {
+            "this": [r["realtime_factor_cpu"] for r in this],
+            "baseline": [r["realtime_factor_cpu"] for r in base],
+        },
+    }
