@@ -151,6 +151,18 @@ class FaultyWire(can.BusABC):
         spec = self.catalog.by_id(frame_id)
         return spec.name if spec is not None else f"0x{frame_id:03X}"
 
+    @property
+    def receives_all(self) -> bool:
+        """A receive hands over every frame there is, in order (no arrival horizon set,
+        nothing held back from an earlier one): what the simulator's compiled scans,
+        which drain the bus once per step, need."""
+        return self._horizon is None and self._early is None
+
+    @property
+    def has_delayed(self) -> bool:
+        """Frames are delayed on their way to the bus (:meth:`release_due`)."""
+        return bool(self._delayed)
+
     def set_arrival_horizon(self, epoch_s: float | None) -> None:
         """Receive only frames that arrived by ``epoch_s`` (None: all that are there)."""
         self._horizon = epoch_s

@@ -65,6 +65,11 @@ class LockstepBus(can.BusABC):
                 return msg
         return None
 
+    def has_error_frame(self) -> bool:
+        """An error frame is waiting to be received (the simulator's compiled scans
+        leave those to its Python scan)."""
+        return any(m.is_error_frame for m in self._queue)
+
     def shutdown(self) -> None:
         super().shutdown()
         self._open = False
