@@ -50,7 +50,7 @@ from hil_sim.plc_frames import (
     counter_table,
     encode_frame,
 )
-from hil_sim.rig import Rig
+from hil_sim.rig import Rig, _advance
 from plc_bridge.link import FAULT_HOLD_S, Fault, Mode, PlcStatus, TargetAck
 from plc_bridge.link.side import TxFrame, indices_of
 from plc_bridge.lockstep_bus import LockstepBus
@@ -200,13 +200,14 @@ def run_scans(
     press_read, pos_mm, press_mpa, stuck_idx, stuck_open, hmi_vals, values,
     in_id, in_len, in_classic, in_data, in_n,
     out_scan, out_id, out_len, out_data, events,
-    plant, plant_args,
+    plant_args,
 ):  # fmt: skip
     """``n_scans`` PLC scans from scan ``st_i[S_K]``; the frames received (``in_*``,
     ``in_n`` of them, as drained from the bus) are read from the first scan on (at most
     :data:`MAX_FRAMES` a scan), the frames sent go to ``out_*`` with their
     scan (0-based), what to log to ``events``. With ``cfg_i[C_PLANT]`` the plant is
-    integrated here after each scan (``plant(*plant_args)``, the rig's own kernel);
+    integrated here after each scan (the rig's own kernel with ``plant_args``:
+    :meth:`~hil_sim.rig.Rig.kernel_call`);
     else ``n_scans`` is 1 and the caller advances it. Returns 0, or
     :data:`~hil_sim.plc_frames.ENCODE_OVERFLOW`."""
     cycle = cfg_f[CF_CYCLE]
@@ -462,15 +463,10 @@ def run_scans(
             st_i[S_ST_VERSION] += 1
         # -- the plant over the scan, commands held (Rig.advance)
         if cfg_i[C_PLANT]:
-            plant(*plant_args)
+            _advance(*plant_args)
             st_f[SF_RIG_T] += cfg_i[C_SPC] * cfg_f[CF_STEP]
         st_i[S_K] = k + 1
     return 0
-
-
-@jit
-def _no_plant() -> None:
-    """The plant argument of :func:`run_scans` when the caller advances the plant."""
 
 
 class FastPlc:
@@ -550,7 +546,8 @@ class FastPlc:
         self.cfg_i[C_MASK] = ctl.signal_names.index("FastCylinderMask")
         self.cfg_i[C_SPC] = sim.steps_per_cycle
         self.cfg_i[C_HOLDING] = int(sim.rig.load_holding_valves)
-        self.cfg_i[C_PLANT] = int(type(sim.rig) is Rig)
+        # the plant in line where the rig's advance is its kernel's call (rig.Rig's)
+        self.cfg_i[C_PLANT] = int(type(sim.rig) is Rig and sim.rig.kernel_call(1)[0] is _advance)
         self.cfg_f = np.zeros(N_CF)
         self.cfg_f[CF_CYCLE] = sim.cycle_s
         self.cfg_f[CF_IPC_TIMEOUT] = plc._ipc_timeout_s
@@ -850,10 +847,9 @@ class FastPlc:
         st[S_IN_AT] = 0
         k0 = int(st[S_K])
         rig = sim.rig
-        if self.cfg_i[C_PLANT]:
-            plant, plant_args = rig.kernel_call(sim.steps_per_cycle)
-        else:
-            plant, plant_args = _no_plant, ()
+        # (the walking rig's advance does more than the kernel: its arguments are only
+        # there for the types, and the caller advances it)
+        _, plant_args = Rig.kernel_call(rig, sim.steps_per_cycle)
         status = run_scans(
             n_scans,
             self.rx.msg, self.rx.fields_i, self.rx.fields_f, self.counters, self.lookup,
@@ -866,7 +862,7 @@ class FastPlc:
             self.stuck_open, self.hmi_vals, self.values,
             in_id, in_len, in_classic, in_data, n_in,
             self.out_scan, self.out_id, self.out_len, self.out_data, self.events,
-            plant, plant_args,
+            plant_args,
         )  # fmt: skip
         if status == ENCODE_OVERFLOW:
             raise OverflowError("cannot convert float infinity to integer")
