@@ -733,8 +733,7 @@ class FastPlc:
             plc._tx_counter[s.frame_id] = int(self.tx_i[m, TI_COUNTER])
             plc._period[s.frame_id] = float(self.tx_f[m, TF_PERIOD])
             plc._next_due[s.frame_id] = float(self.tx_f[m, TF_NEXT_DUE])
-        plc._wake = -math.inf
-        plc._stale_check_at = -math.inf
+        plc._records_set()
         plc._commands_fresh_until = -math.inf
         plc._ipc_seen_until = -math.inf
         plc._last_fault = float(sf[SF_LAST_FAULT])

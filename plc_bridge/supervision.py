@@ -21,6 +21,7 @@ import math
 from collections import Counter
 from collections.abc import Iterable
 from enum import StrEnum
+from typing import Any
 
 from plc_bridge.bus import ErrorFrame
 from plc_bridge.codec import FrameCodec
@@ -89,6 +90,7 @@ class RxRecord:
         "counters",
         "grace_timeout_s",
         "grace_until",
+        "groups",
         "last_counter",
         "last_rx",
         "lost_frames",
@@ -123,6 +125,9 @@ class RxRecord:
         self.was_fresh = False
         self.lost_frames = 0
         self.counters: Counter[str] = Counter()
+        #: where the link keeps this message's values by can_index as they change
+        #: (``(SlotGroup, first slot, end slot, first value, end value)``, its own)
+        self.groups: tuple[Any, ...] = ()
 
     def set_timeout(self, timeout_s: float, now: float) -> None:
         """Change the stale timeout; a shorter one applies after one old timeout of grace."""

@@ -59,7 +59,7 @@ class IpcLink(LinkSide):
             (self._rx_by_name[m.name], list(m.slots))
             for m in self.catalog.with_prefix("PLC_Pressure_")
         ]
-        self._press_fast = self._compile_rows(self._press, 2)
+        self._press_fast = self._slot_group(self._press, 2)
         self._status_rec = self._rx_by_name["PLC_Status"]
         self._hmi_rec = self._rx_by_name["PLC_HmiTarget"]
         self._limits_rec = self._rx_by_name["PLC_Limits"]
@@ -185,11 +185,11 @@ class IpcLink(LinkSide):
 
     def positions_m(self, now: float | None = None) -> Reading:
         """Rod positions from fully retracted [m], by ``can_index`` (NaN where not valid)."""
-        return self._array(self._loop_slices, 1, units.MM, self._clock() if now is None else now)
+        return self._array(self._loop_slices, units.MM, self._clock() if now is None else now)
 
     def pressures_pa(self, now: float | None = None) -> Reading:
         """Chamber pressures [Pa], shape (19, 2): column 0 cap side, column 1 rod side."""
-        return self._array(self._press_fast, 2, units.MPA, self._clock() if now is None else now)
+        return self._array(self._press_fast, units.MPA, self._clock() if now is None else now)
 
     def status(self, now: float | None = None) -> PlcStatus | None:
         """The PLC status word, or None when stale (the PLC is then considered lost)."""

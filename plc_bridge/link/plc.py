@@ -91,7 +91,7 @@ class PlcLink(LinkSide):
 
     def valve_commands(self, now: float | None = None) -> Reading:
         """Spool commands in [-1, 1] by ``can_index``; NaN where stale (centre the spool)."""
-        return self._array(self._loop_slices, 1, 1.0, self._clock() if now is None else now)
+        return self._array(self._loop_slices, 1.0, self._clock() if now is None else now)
 
     def command_timeout(self, now: float | None = None) -> bool:
         """True when the control word or any valve frame is stale: hold spools at centre."""

@@ -106,6 +106,37 @@ class TxFrame(can.Message):
 _TxMessage = TxFrame
 
 
+class SlotGroup:
+    """Received messages' latest values by ``can_index`` (``width`` values a slot, DBC
+    units) and their receive times, kept as the frames arrive and go stale: the IPC's
+    positions and pressures, the PLC's valve commands. Plain lists, made into arrays
+    in one conversion per read (:meth:`LinkSide._array`).
+
+    What they hold: a message's values where its record has values (NaN where not),
+    its receive time where it has one (-inf where never). A record has values only
+    while fresh as of the link's last timeout check, so at that check's time these
+    lists are the reading; at any other time the reading is worked out from the records.
+    """
+
+    __slots__ = ("last", "rows", "vals", "width")
+
+    def __init__(self, rows: list[tuple[RxRecord, int, int, int, int]], width: int) -> None:
+        self.rows = rows
+        self.width = width
+        self.vals = [math.nan] * (N_CYLINDERS * width)
+        self.last = [-math.inf] * N_CYLINDERS
+        for rec, lo, hi, vlo, vhi in rows:
+            rec.groups += ((self, lo, hi, vlo, vhi),)
+
+    def refill(self) -> None:
+        """Take every row again from its record (after its state was set from outside)."""
+        for rec, lo, hi, vlo, vhi in self.rows:
+            v = rec.values
+            self.vals[vlo:vhi] = [math.nan] * (vhi - vlo) if v is None else v[: vhi - vlo]
+            last = rec.last_rx
+            self.last[lo:hi] = [-math.inf if last is None else last] * (hi - lo)
+
+
 def mask_of(indices: Iterable[int]) -> int:
     m = 0
     for i in indices:
@@ -178,7 +209,11 @@ class LinkSide:
             (self._rx_by_name[m.name], list(m.slots))
             for m in self.catalog.with_prefix(role.loop_rx_prefix)
         ]
-        self._loop_slices = self._compile_rows(self._loop_rows, 1)
+        self._groups: list[SlotGroup] = []
+        self._loop_slices = self._slot_group(self._loop_rows, 1)
+        #: the time of the last timeout check (NaN: none since the timeouts changed):
+        #: the records' freshness then is what their values say (:class:`SlotGroup`)
+        self._fresh_at = math.nan
         #: Per received word (:meth:`_word`): the values it was built from, and the word.
         self._words: dict[str, tuple[tuple[float, ...], Any]] = {}
         self._tx_counter: dict[int, int] = {m.frame_id: 0 for m in self.tx_specs}
@@ -245,6 +280,7 @@ class LinkSide:
         for spec in self.rx_specs:
             self._rx[spec.frame_id].set_timeout(self._timeout_for(spec, active), now)
         self._stale_check_at = -math.inf
+        self._fresh_at = math.nan
         for spec in self.tx_specs:
             self._period[spec.frame_id] = spec.cycle_in_force_s(
                 is_active(spec, active), self._loop_period_s
@@ -284,38 +320,54 @@ class LinkSide:
             out.append((rec, lo, hi, lo * width, hi * width))
         return out
 
-    def _array(
-        self,
-        rows: list[tuple[RxRecord, int, int, int, int]],
-        width: int,
-        si_per_unit: float,
-        now: float,
-    ) -> Reading:
-        """The latest values of ``rows`` by ``can_index`` in SI; NaN where not usable.
+    def _slot_group(self, rows: list[tuple[RxRecord, list[int]]], width: int) -> SlotGroup:
+        group = SlotGroup(self._compile_rows(rows, width), width)
+        self._groups.append(group)
+        return group
 
-        Plain list slices per message, one numpy conversion at the end (the IPC's
-        positions and pressures every loop cycle, the PLC's valve commands).
+    def _records_set(self) -> None:
+        """The records' state was set from outside (the simulator's compiled scans hand
+        theirs back): the groups taken again, every shortcut worked out anew."""
+        for group in self._groups:
+            group.refill()
+        self._wake = -math.inf
+        self._stale_check_at = -math.inf
+        self._fresh_at = math.nan
+
+    def _array(self, group: SlotGroup, si_per_unit: float, now: float) -> Reading:
+        """The latest values of ``group`` by ``can_index`` in SI; NaN where not usable.
+
+        At the time of the last timeout check (the loop polls, then reads) the group's
+        lists are the answer: one numpy conversion each. At any other time each row's
+        record says: values while fresh at ``now`` (:meth:`RxRecord.latest`, written
+        out), its age where it was ever received. The same figures either way
+        (``tests/test_plc_link.py``).
         """
-        vals = [math.nan] * (N_CYLINDERS * width)
-        ages = [math.inf] * N_CYLINDERS
-        for rec, lo, hi, vlo, vhi in rows:
-            last = rec.last_rx
-            if last is None:
-                continue
-            age = now - last
-            ages[lo:hi] = [age] * (hi - lo)
-            # rec.latest(now), written out: values while fresh (RxRecord.fresh)
-            v = rec.values
-            if v is not None and age <= (
-                rec.grace_timeout_s if now < rec.grace_until else rec.timeout_s
-            ):
-                vals[vlo:vhi] = v[: vhi - vlo]
-        val = np.array(vals)
+        width = group.width
+        if now == self._fresh_at:
+            val = np.array(group.vals)
+            age = now - np.array(group.last)  # never received: inf
+        else:
+            vals = [math.nan] * (N_CYLINDERS * width)
+            ages = [math.inf] * N_CYLINDERS
+            for rec, lo, hi, vlo, vhi in group.rows:
+                last = rec.last_rx
+                if last is None:
+                    continue
+                a = now - last
+                ages[lo:hi] = [a] * (hi - lo)
+                v = rec.values
+                if v is not None and a <= (
+                    rec.grace_timeout_s if now < rec.grace_until else rec.timeout_s
+                ):
+                    vals[vlo:vhi] = v[: vhi - vlo]
+            val = np.array(vals)
+            age = np.array(ages)
         if si_per_unit != 1.0:  # (times 1.0 changes no value: the valve commands)
             val *= si_per_unit  # DBC unit -> SI, factor from config.units
         if width > 1:
             val = val.reshape(N_CYLINDERS, width)
-        return Reading(value=val, valid=val == val, age_s=np.array(ages))  # == : not NaN
+        return Reading(value=val, valid=val == val, age_s=age)  # == : not NaN
 
     def _word(
         self, rec: RxRecord, build: Callable[[dict[str, float]], W], now: float | None
@@ -431,6 +483,11 @@ class LinkSide:
                 lost_before = rec.lost_frames
                 outcome = rec.on_frame(msg.data, now)
                 if outcome == "accepted":
+                    for g, lo, hi, vlo, vhi in rec.groups:
+                        g.vals[vlo:vhi] = rec.values[: vhi - vlo]  # type: ignore[index]
+                        g.last[lo:hi] = [now] * (hi - lo)
+                    if now < self._fresh_at:  # older than the check: fresh then?
+                        self._fresh_at = math.nan
                     if not rec.was_fresh:  # it may turn fresh: walk the records again
                         self._stale_check_at = -math.inf
                     self.bus_health.on_frame_ok()
@@ -457,11 +514,14 @@ class LinkSide:
 
     def _check_timeouts(self, now: float) -> None:
         if now < self._stale_check_at:
+            self._fresh_at = now
             return  # every record's own check below would change nothing
         check_at = math.inf
         for rec in self._rx.values():
             was = rec.was_fresh
             if rec.check_timeout(now):
+                for g, _lo, _hi, vlo, vhi in rec.groups:
+                    g.vals[vlo:vhi] = [math.nan] * (vhi - vlo)
                 self._last_fault = now
                 log.warning(
                     "%s: %s (0x%03X) stale: no valid frame for %.0f ms (timeout %.0f ms)",
@@ -478,6 +538,7 @@ class LinkSide:
                 if until < check_at:
                     check_at = until
         self._stale_check_at = check_at
+        self._fresh_at = now
 
     def _recover(self, now: float) -> None:
         if not self.bus_health.due_for_reopen(now):
