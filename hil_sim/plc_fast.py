@@ -28,8 +28,10 @@ from __future__ import annotations
 
 import logging
 import math
-from typing import TYPE_CHECKING
+import struct
+from typing import TYPE_CHECKING, Any
 
+import can
 import numpy as np
 from numpy.typing import NDArray
 
@@ -128,6 +130,9 @@ EV_FAULT, EV_STALE, EV_AGAIN, EV_ACTIVE = 0, 1, 2, 3
 MAX_EVENTS = 256
 #: frames a scan takes from the bus at most (PlcLink.poll's ``max_frames``)
 MAX_FRAMES = 1000
+#: a frame in and out of the compiled scans: id, a flag (in: classic; out: the scan),
+#: length, payload (cut or padded to 8 bytes)
+FRAME = struct.Struct("<IHBx8s")
 
 _MOTION = (int(Mode.MANUAL), int(Mode.ATTITUDE_ADJUST), int(Mode.WALK), int(Mode.HOMING))
 if set(_MOTION) != {1, 2, 3, 4} or int(Fault.IPC_TIMEOUT) != 6 or int(Fault.ESTOP) != 1:
@@ -192,25 +197,25 @@ def _apply_active(mask, now, rx_i, rx_f, tx_i, tx_f):
 
 @jit
 def run_scans(
-    n_scans,
+    n_scans, in_frames, pos_block, press_block, p_view, plant_args,
     rx_msg, rx_fi, rx_ff, counters, lookup, rx_i, rx_f, rx_vals, rx_counts, scratch,
     tx_msg, tx_fi, tx_ff, tx_src, tx_i, tx_f, link_counts,
     cfg_i, cfg_f, st_i, st_f,
-    u, command, ports, x_view, p_view, extended_at, pos_block, press_block, pos_read,
+    u, command, ports, x_view, extended_at, pos_read,
     press_read, pos_mm, press_mpa, stuck_idx, stuck_open, hmi_vals, values,
-    in_id, in_len, in_classic, in_data, in_n,
-    out_scan, out_id, out_len, out_data, events,
-    plant_args,
+    out_frames, events,
 ):  # fmt: skip
-    """``n_scans`` PLC scans from scan ``st_i[S_K]``; the frames received (``in_*``,
-    ``in_n`` of them, as drained from the bus) are read from the first scan on (at most
-    :data:`MAX_FRAMES` a scan), the frames sent go to ``out_*`` with their
-    scan (0-based), what to log to ``events``. With ``cfg_i[C_PLANT]`` the plant is
+    """``n_scans`` PLC scans from scan ``st_i[S_K]``; the frames received
+    (``in_frames``, as drained from the bus, one :data:`FRAME` a row, its flag: a
+    classic frame) are read from the first scan on (at most :data:`MAX_FRAMES` a
+    scan), the frames sent go to ``out_frames`` (its flag: the scan, 0-based), what to
+    log to ``events``. With ``cfg_i[C_PLANT]`` the plant is
     integrated here after each scan (the rig's own kernel with ``plant_args``:
     :meth:`~hil_sim.rig.Rig.kernel_call`);
     else ``n_scans`` is 1 and the caller advances it. Returns 0, or
     :data:`~hil_sim.plc_frames.ENCODE_OVERFLOW`."""
     cycle = cfg_f[CF_CYCLE]
+    in_n = in_frames.shape[0]
     n_rx = rx_i.shape[0]
     n_tx = tx_i.shape[0]
     n = N_CYLINDERS
@@ -237,8 +242,10 @@ def run_scans(
                 i = st_i[S_IN_AT]
                 st_i[S_IN_AT] = i + 1
                 taken += 1
-                fid = in_id[i]
-                if not in_classic[i]:
+                f = in_frames[i]
+                fid = np.int64(f[0]) | np.int64(f[1]) << 8 | np.int64(f[2]) << 16
+                fid |= np.int64(f[3]) << 24
+                if not f[4]:  # the flag: classic
                     outcome = NOT_CLASSIC
                 else:
                     r = lookup[fid] if 0 <= fid < lookup.shape[0] else -1
@@ -248,7 +255,7 @@ def run_scans(
                         outcome = OWN_ECHO
                     else:
                         outcome, lost = check_frame(
-                            rx_msg, rx_fi, rx_ff, counters, r, in_data[i], in_len[i],
+                            rx_msg, rx_fi, rx_ff, counters, r, f[8:16], np.int64(f[6]),
                             rx_i[r, RI_LAST_COUNTER : RI_LAST_COUNTER + 1], rx_vals[r], scratch,
                         )  # fmt: skip
                         if outcome == ACCEPTED:
@@ -355,12 +362,16 @@ def run_scans(
             counter = tx_i[m, TI_COUNTER]
             tx_i[m, TI_COUNTER] = (counter + 1) % 15
             o = st_i[S_OUT_N]
-            dlc = encode_frame(tx_msg, tx_fi, tx_ff, m, counter, values, out_data[o])
+            row = out_frames[o]
+            dlc = encode_frame(tx_msg, tx_fi, tx_ff, m, counter, values, row[8:16])
             if dlc == ENCODE_OVERFLOW:
                 return ENCODE_OVERFLOW
-            out_scan[o] = j
-            out_id[o] = tx_msg[m, 0]
-            out_len[o] = dlc
+            fid = tx_msg[m, 0]
+            for b in range(4):
+                row[b] = (fid >> (8 * b)) & 0xFF
+            row[4] = j & 0xFF
+            row[5] = (j >> 8) & 0xFF
+            row[6] = dlc
             st_i[S_OUT_N] = o + 1
             link_counts[TIMEOUTS] += 1  # tx_frames
             nd = tx_f[m, TF_NEXT_DUE] + period
@@ -570,12 +581,10 @@ class FastPlc:
         self.stuck_open = np.zeros(N_CYLINDERS)
         self.hmi_vals = np.zeros(max(width, self.tx.fields_i.shape[1]))
         self.values = np.zeros(self.hmi_vals.shape[0])
-        self.in_id = np.zeros(MAX_FRAMES, dtype=np.int64)
-        self.in_len = np.zeros(MAX_FRAMES, dtype=np.int64)
-        self.in_classic = np.zeros(MAX_FRAMES, dtype=np.int64)
-        self.in_data = np.zeros((MAX_FRAMES, 8), dtype=np.uint8)
         self._out_cap = 64
         self._alloc_out(self._out_cap)
+        self._rig_arrays: tuple[Any, ...] = ()
+        self._static: tuple[Any, ...] = ()
         self.events = np.zeros((MAX_EVENTS, 5))
         #: the Python objects' figures when the arrays took over (counts are added)
         self._status_version = 0
@@ -584,10 +593,7 @@ class FastPlc:
 
     def _alloc_out(self, cap: int) -> None:
         self._out_cap = cap
-        self.out_scan = np.zeros(cap, dtype=np.int64)
-        self.out_id = np.zeros(cap, dtype=np.int64)
-        self.out_len = np.zeros(cap, dtype=np.int64)
-        self.out_data = np.zeros((cap, 8), dtype=np.uint8)
+        self.out_frames = np.zeros((cap, FRAME.size), dtype=np.uint8)
 
     # ----------------------------------------------------------------- when
 
@@ -813,59 +819,50 @@ class FastPlc:
         sim = self.sim
         if not self.owner:
             self.take_over()
-        wire = sim.wire
-        ids: list[int] = []
-        lens: list[int] = []
-        classic: list[bool] = []
-        blob = bytearray()
-        recv = wire.recv
-        while len(ids) < MAX_FRAMES:
-            msg = recv()
-            if msg is None:
-                break
-            data = msg.data
-            ids.append(msg.arbitration_id)
-            lens.append(len(data))
-            classic.append(not (msg.is_remote_frame or msg.is_extended_id or msg.is_fd))
-            blob += data[:8].ljust(8, b"\0")
-        n_in = len(ids)
-        in_id, in_len, in_classic, in_data = self.in_id, self.in_len, self.in_classic, self.in_data
-        if n_in:
-            in_id[:n_in] = ids
-            in_len[:n_in] = lens
-            in_classic[:n_in] = classic
-            in_data[:n_in] = np.frombuffer(blob, dtype=np.uint8).reshape(n_in, 8)
-        if n_in == MAX_FRAMES:
+        rig = sim.rig
+        if (rig.command, rig.ports_open, rig.x_view) != self._rig_arrays:
+            self._rig_arrays = (rig.command, rig.ports_open, rig.x_view)
+            self._static = self._static_args()
+        msgs = sim.wire.recv_all(MAX_FRAMES)
+        pack = FRAME.pack
+        frames = b"".join(
+            [
+                pack(
+                    m.arbitration_id,
+                    not (m.is_remote_frame or m.is_extended_id or m.is_fd),
+                    len(m.data),
+                    m.data,
+                )
+                for m in msgs
+            ]
+        )
+        if len(msgs) == MAX_FRAMES:
             n_scans = 1  # the next scan takes the rest from the bus
         need = n_scans * len(self.tx_specs)
         if need > self._out_cap:
             self._alloc_out(need)
+            self._static = self._static_args()
         st = self.st_i
         st[S_OUT_N] = 0
         st[S_EV_N] = 0
         st[S_IN_AT] = 0
         k0 = int(st[S_K])
-        rig = sim.rig
         # (the walking rig's advance does more than the kernel: its arguments are only
         # there for the types, and the caller advances it)
         _, plant_args = Rig.kernel_call(rig, sim.steps_per_cycle)
         status = run_scans(
             n_scans,
-            self.rx.msg, self.rx.fields_i, self.rx.fields_f, self.counters, self.lookup,
-            self.rx_i, self.rx_f, self.rx_vals, self.rx_counts, self.scratch,
-            self.tx.msg, self.tx.fields_i, self.tx.fields_f, self.tx_src, self.tx_i, self.tx_f,
-            self.link_counts, self.cfg_i, self.cfg_f, st, self.st_f,
-            self.u, rig.command, rig.ports_open, rig.x_view, rig.pressure_view,
-            sim._extended_at, sim._pos_sensor._block, sim._press_sensor._block,
-            self.pos_read, self.press_read, self.pos_mm, self.press_mpa, self.stuck_idx,
-            self.stuck_open, self.hmi_vals, self.values,
-            in_id, in_len, in_classic, in_data, n_in,
-            self.out_scan, self.out_id, self.out_len, self.out_data, self.events,
+            np.frombuffer(frames, dtype=np.uint8).reshape(len(msgs), FRAME.size),
+            sim._pos_sensor._block,
+            sim._press_sensor._block,
+            rig.pressure_view,
             plant_args,
-        )  # fmt: skip
+            *self._static,
+        )
         if status == ENCODE_OVERFLOW:
             raise OverflowError("cannot convert float infinity to integer")
-        self._send_out(k0, n_scans)
+        if st[S_OUT_N] or sim.wire.has_delayed:
+            self._send_out(k0, n_scans)
         if st[S_EV_N]:
             self._log_events()
         k = int(st[S_K])
@@ -877,28 +874,54 @@ class FastPlc:
             rig.advance(sim.steps_per_cycle)
             self.st_f[SF_RIG_T] = rig.t_s
 
+    def _static_args(self) -> tuple[Any, ...]:
+        """:func:`run_scans`' arguments after the per-call ones: arrays kept from call to
+        call (made anew when one of them is)."""
+        sim = self.sim
+        command, ports, x_view = self._rig_arrays
+        return (
+            self.rx.msg, self.rx.fields_i, self.rx.fields_f, self.counters, self.lookup,
+            self.rx_i, self.rx_f, self.rx_vals, self.rx_counts, self.scratch,
+            self.tx.msg, self.tx.fields_i, self.tx.fields_f, self.tx_src, self.tx_i, self.tx_f,
+            self.link_counts, self.cfg_i, self.cfg_f, self.st_i, self.st_f,
+            self.u, command, ports, x_view, sim._extended_at,
+            self.pos_read, self.press_read, self.pos_mm, self.press_mpa, self.stuck_idx,
+            self.stuck_open, self.hmi_vals, self.values,
+            self.out_frames, self.events,
+        )  # fmt: skip
+
     def _send_out(self, k0: int, n_scans: int) -> None:
         """The scans' frames through the wire, each scan's at its time (the wire's
-        delays and its clock), as the Python scans send them."""
+        delays and its clock: frames it delayed go on the bus at each scan's start), as
+        the Python scans send them."""
         sim = self.sim
         wire = sim.wire
-        n_out = int(self.st_i[S_OUT_N])
-        scans = self.out_scan[:n_out].tolist()
-        ids = self.out_id[:n_out].tolist()
-        lens = self.out_len[:n_out].tolist()
-        blob = self.out_data[:n_out].tobytes()
         cycle = sim.cycle_s
-        send = wire.send
-        release = wire.release_due
-        i = 0
-        for j in range(n_scans):
-            # the simulator's clock at the scan (the wire's clock: its delays)
+        n_out = int(self.st_i[S_OUT_N])
+        groups: list[tuple[int, list[can.Message]]] = []
+        for fid, j, dlc, data in FRAME.iter_unpack(self.out_frames[:n_out].tobytes()):
+            if not groups or groups[-1][0] != j:
+                groups.append((j, []))
+            groups[-1][1].append(TxFrame(fid, data[:dlc]))
+
+        def at(j: int) -> None:
+            """The simulator's clock (the wire's) at scan ``j``, the frames it delayed
+            until then released, as at the start of each Python scan."""
             sim._k = k0 + j
-            t = sim.t_s = sim._k * cycle
-            release(t)
-            while i < n_out and scans[i] == j:
-                send(TxFrame(ids[i], blob[8 * i : 8 * i + lens[i]]))
-                i += 1
+            sim.t_s = sim._k * cycle
+            wire.release_due(sim.t_s)
+
+        first = 0  # the first scan not yet gone through
+        for j, group in groups:
+            if wire.has_delayed:
+                for between in range(first, j):
+                    at(between)
+            at(j)
+            wire.send_all(group)
+            first = j + 1
+        if wire.has_delayed:
+            for between in range(first, n_scans):
+                at(between)
 
     def _log_events(self) -> None:
         """What the compiled scans asked to log, as ``LinkSide`` and ``PlcLink`` log it."""

@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable, Sequence
+from functools import lru_cache
 from typing import Any
 
 from plc_bridge.catalog import MessageSpec
@@ -97,58 +98,10 @@ class FrameCodec:
 
     def _compile(self) -> None:
         """Make :attr:`crc_of`, :attr:`decode_word` and :attr:`encode` from the fields
-        (the module docstring); names are only formatted numbers."""
-        n_body = self.dlc - 1  # bytes 1..DLC-1 under the CRC
-        state = self._crc0  # the data id's state through the body as zero bytes
-        for _ in range(n_body):
-            state = CRC_TABLE[state]
-        terms = [str(state), *(f"S{n_body - i}[d[{i}]]" for i in range(1, n_body + 1))]
-        lines = [f"def crc_of(d):\n    return {' ^ '.join(terms)}\n"]
-        # decode: each signal's raw value, sign-extended, scaled where in range
-        body = ["def decode_word(w):"]
-        outs = []
-        for k, (shift, mask, sign, scale, offset, lo, hi, _, _) in enumerate(self._fields):
-            body.append(f"    r{k} = (w >> {shift}) & {mask}")
-            if sign:
-                body.append(f"    if r{k} & {sign}:\n        r{k} -= {mask + 1}")
-            # (+ 0.0 changes no product of a positive scale: -0.0 needs r = 0 and scale < 0)
-            plain = offset == 0.0 and scale > 0
-            value = f"r{k} * {scale!r}" + ("" if plain else f" + {offset!r}")
-            outs.append(f"({value} if {lo} <= r{k} <= {hi} else nan)")
-        body.append(f"    return ({', '.join(outs)}{',' if len(outs) == 1 else ''})")
-        lines.append("\n".join(body) + "\n")
-        # encode: NaN -> its raw value, else round((v - offset) / scale) clipped
-        args = ", ".join(f"v{k}" for k in range(self._n))
-        body = [
-            "def encode(counter, values):",
-            f"    if len(values) != {self._n}:",
-            "        raise ValueError(wrong_count + str(len(values)))",
-        ]
-        if self._n:
-            body.append(f"    {args}{',' if self._n == 1 else ''} = values")
-        word = ["((counter & 15) << 8)"]
-        for k, (shift, mask, offset, scale, lo, hi, nan_raw) in enumerate(self._enc):
-            x = f"(v{k} - {offset!r})" if offset != 0.0 else f"v{k}"
-            body += [
-                f"    if v{k} != v{k}:\n        r{k} = {nan_raw}",
-                f"    else:\n        r{k} = round({x} / {scale!r})",
-                f"        if r{k} < {lo}:\n            r{k} = {lo}",
-                f"        elif r{k} > {hi}:\n            r{k} = {hi}",
-            ]
-            word.append(f"((r{k} & {mask}) << {shift})")
-        body.append(f"    w = {' | '.join(word)}")
-        body.append(f"    crc = crc_of(w.to_bytes({self.dlc}, 'little'))")
-        body.append(f"    return (w | crc).to_bytes({self.dlc}, 'little')")
-        lines.append("\n".join(body) + "\n")
-        scope: dict[str, Any] = {f"S{k}": t for k, t in enumerate(CRC_SHIFTED)}
-        scope.update(
-            nan=math.nan,
-            wrong_count=f"{self.name}: expected {self._n} values {self.signal_names}, got ",
+        (the module docstring; made once per layout: links and simulators share them)."""
+        self.crc_of, self.decode_word, self.encode = _compiled(
+            self.name, self.signal_names, self.dlc, self._crc0, self._fields, self._enc
         )
-        exec("\n".join(lines), scope)  # the source made above: numbers only
-        self.crc_of = scope["crc_of"]
-        self.decode_word = scope["decode_word"]
-        self.encode = scope["encode"]
 
     # ------------------------------------------------------------------ encode
 
@@ -225,3 +178,65 @@ class FrameCodec:
 
     def __repr__(self) -> str:
         return f"FrameCodec({self.name}, id=0x{self.frame_id:03X}, dlc={self.dlc})"
+
+
+@lru_cache(maxsize=256)
+def _compiled(
+    name: str,
+    signal_names: tuple[str, ...],
+    dlc: int,
+    crc0: int,
+    fields: tuple[tuple[Any, ...], ...],
+    enc: tuple[tuple[Any, ...], ...],
+) -> tuple[Any, Any, Any]:
+    """The code of a message (:class:`FrameCodec`'s ``crc_of``, ``decode_word`` and
+    ``encode``) made from its fields; the source only formatted numbers."""
+    n_body = dlc - 1  # bytes 1..DLC-1 under the CRC
+    state = crc0  # the data id's state through the body as zero bytes
+    for _ in range(n_body):
+        state = CRC_TABLE[state]
+    terms = [str(state), *(f"S{n_body - i}[d[{i}]]" for i in range(1, n_body + 1))]
+    lines = [f"def crc_of(d):\n    return {' ^ '.join(terms)}\n"]
+    # decode: each signal's raw value, sign-extended, scaled where in range
+    body = ["def decode_word(w):"]
+    outs = []
+    for k, (shift, mask, sign, scale, offset, lo, hi, _, _) in enumerate(fields):
+        body.append(f"    r{k} = (w >> {shift}) & {mask}")
+        if sign:
+            body.append(f"    if r{k} & {sign}:\n        r{k} -= {mask + 1}")
+        # (+ 0.0 changes no product of a positive scale: -0.0 needs r = 0 and scale < 0)
+        plain = offset == 0.0 and scale > 0
+        value = f"r{k} * {scale!r}" + ("" if plain else f" + {offset!r}")
+        outs.append(f"({value} if {lo} <= r{k} <= {hi} else nan)")
+    body.append(f"    return ({', '.join(outs)}{',' if len(outs) == 1 else ''})")
+    lines.append("\n".join(body) + "\n")
+    # encode: NaN -> its raw value, else round((v - offset) / scale) clipped
+    args = ", ".join(f"v{k}" for k in range(len(fields)))
+    body = [
+        "def encode(counter, values):",
+        f"    if len(values) != {len(fields)}:",
+        "        raise ValueError(wrong_count + str(len(values)))",
+    ]
+    if len(fields):
+        body.append(f"    {args}{',' if len(fields) == 1 else ''} = values")
+    word = ["((counter & 15) << 8)"]
+    for k, (shift, mask, offset, scale, lo, hi, nan_raw) in enumerate(enc):
+        x = f"(v{k} - {offset!r})" if offset != 0.0 else f"v{k}"
+        body += [
+            f"    if v{k} != v{k}:\n        r{k} = {nan_raw}",
+            f"    else:\n        r{k} = round({x} / {scale!r})",
+            f"        if r{k} < {lo}:\n            r{k} = {lo}",
+            f"        elif r{k} > {hi}:\n            r{k} = {hi}",
+        ]
+        word.append(f"((r{k} & {mask}) << {shift})")
+    body.append(f"    w = {' | '.join(word)}")
+    body.append(f"    crc = crc_of(w.to_bytes({dlc}, 'little'))")
+    body.append(f"    return (w | crc).to_bytes({dlc}, 'little')")
+    lines.append("\n".join(body) + "\n")
+    scope: dict[str, Any] = {f"S{k}": t for k, t in enumerate(CRC_SHIFTED)}
+    scope.update(
+        nan=math.nan,
+        wrong_count=f"{name}: expected {len(fields)} values {signal_names}, got ",
+    )
+    exec("\n".join(lines), scope)  # the source made above: numbers only
+    return scope["crc_of"], scope["decode_word"], scope["encode"]

@@ -59,15 +59,7 @@ def _run(
         sim = HilSimulator(cfg, plc_bus, HilScenario.model_validate(scenario))
         assert (sim._fast is not None) is compiled
         for side, bus in (("plc", plc_bus), ("ipc", ipc_bus)):
-            send = bus.send
-
-            def recording(msg: can.Message, timeout: float | None = None, *, _s=send, _n=side):  # type: ignore[no-untyped-def]
-                frames.append(
-                    (sim.t_s, _n, msg.arbitration_id, bytes(msg.data), msg.is_error_frame)
-                )
-                _s(msg, timeout)
-
-            bus.send = recording  # type: ignore[method-assign]
+            _record_sends(bus, side, frames, sim)
         ipc = IpcLink(cfg, ipc_bus, clock=sim.clock)
         ipc.set_control(mode=Mode.ATTITUDE_ADJUST, enable=True)
         caplog.clear()
@@ -100,6 +92,29 @@ def _run(
         ipc.close()
         sim.close()
         return out
+
+
+def _record_sends(
+    bus: LockstepBus, side: str, frames: list[tuple[Any, ...]], sim: HilSimulator
+) -> None:
+    """Every frame ``bus`` sends, one by one or in a batch, into ``frames`` with the
+    simulator's time and the sender."""
+    send, send_all = bus.send, bus.send_all
+
+    def record(msg: can.Message) -> None:
+        frames.append((sim.t_s, side, msg.arbitration_id, bytes(msg.data), msg.is_error_frame))
+
+    def one(msg: can.Message, timeout: float | None = None) -> None:
+        record(msg)
+        send(msg, timeout)
+
+    def batch(msgs: list[can.Message]) -> None:
+        for msg in msgs:
+            record(msg)
+        send_all(msgs)
+
+    bus.send = one  # type: ignore[method-assign]
+    bus.send_all = batch  # type: ignore[method-assign]
 
 
 def _same(

@@ -14,6 +14,7 @@ from config import units
 from config.schema import N_CYLINDERS, ProjectConfig
 from plc_bridge.busload import BusLoad, bus_load
 from plc_bridge.catalog import MessageSpec
+from plc_bridge.codec import FrameCodec
 from plc_bridge.errors import BusLoadError
 from plc_bridge.link.side import LinkSide, SideRole, mask_of
 from plc_bridge.link.words import (
@@ -49,10 +50,13 @@ class IpcLink(LinkSide):
     def __init__(self, cfg: ProjectConfig, bus: can.BusABC | None = None, **kwargs: Any):
         super().__init__(cfg, bus, role=self.ROLE, **kwargs)
         self._control = ControlWord()
-        self._valve = [
-            (self._codec_by_name[m.name], list(m.slots))
-            for m in self.catalog.with_prefix("IPC_ValveCmd_")
-        ]
+        #: the valve frames: (codec, first slot, end slot), each a run of can_index slots
+        self._valve: list[tuple[FrameCodec, int, int]] = []
+        for m in self.catalog.with_prefix("IPC_ValveCmd_"):
+            lo, hi = m.slots[0], m.slots[-1] + 1
+            if list(m.slots) != list(range(lo, hi)):
+                raise ValueError(f"{m.name}: slots {m.slots} are not consecutive")
+            self._valve.append((self._codec_by_name[m.name], lo, hi))
         self._last_hmi_seq: int | None = None
         self._pos = self._loop_rows
         self._press = [
@@ -151,34 +155,39 @@ class IpcLink(LinkSide):
                 f"valve commands: expected {N_CYLINDERS} values, got shape {arr.shape}"
             )
         # Plain floats (numpy's per-call overhead dominates on 19 values): NaN -> 0, then
-        # clipped to [-1, 1], each counted, as np.where / np.clip did.
+        # clipped to [-1, 1], each counted, as np.where / np.clip did. (The sum is NaN
+        # with a NaN in it; min and max bound the rest.)
         vals = arr.tolist()
-        nan = clipped = 0
-        for i, v in enumerate(vals):
-            if v != v:
-                vals[i] = 0.0
-                nan += 1
-            elif v > 1.0:
-                vals[i] = 1.0
-                clipped += 1
-            elif v < -1.0:
-                vals[i] = -1.0
-                clipped += 1
-        if nan:
-            self.tx_counts["nan"] += nan
-        if clipped:
-            self.tx_counts["clipped"] += clipped
+        total = sum(vals)
+        if total != total or min(vals) < -1.0 or max(vals) > 1.0:
+            nan = clipped = 0
+            for i, v in enumerate(vals):
+                if v != v:
+                    vals[i] = 0.0
+                    nan += 1
+                elif v > 1.0:
+                    vals[i] = 1.0
+                    clipped += 1
+                elif v < -1.0:
+                    vals[i] = -1.0
+                    clipped += 1
+            if nan:
+                self.tx_counts["nan"] += nan
+            if clipped:
+                self.tx_counts["clipped"] += clipped
         sent = 0
         period = self._loop_period_s
-        for codec, slots in self._valve:
+        periods, next_due = self._period, self._next_due
+        for codec, lo, hi in self._valve:
             fid = codec.frame_id
-            if self._period.get(fid, 0.0) > period:  # inactive: on its own cycle
-                due = self._next_due.get(fid, -math.inf)
+            own = periods.get(fid, 0.0)
+            if own > period:  # inactive: on its own cycle
+                due = next_due.get(fid, -math.inf)
                 if now < due - 0.25 * period:
                     continue
-                self._next_due[fid] = max(due + self._period[fid], now)
+                next_due[fid] = max(due + own, now)
                 self._wake = -math.inf
-            sent += self._send(codec, [vals[i] for i in slots], now)
+            sent += self._send(codec, vals[lo:hi], now)
         return sent
 
     # ----------------------------------------------------------------- readings

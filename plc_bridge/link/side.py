@@ -137,6 +137,10 @@ class SlotGroup:
             self.last[lo:hi] = [-math.inf if last is None else last] * (hi - lo)
 
 
+#: bus states in which nothing is sent (:meth:`BusHealth.can_send`)
+_CANNOT_SEND = frozenset({BusState.BUS_OFF, BusState.DOWN})
+
+
 def mask_of(indices: Iterable[int]) -> int:
     m = 0
     for i in indices:
@@ -210,10 +214,14 @@ class LinkSide:
             for m in self.catalog.with_prefix(role.loop_rx_prefix)
         ]
         self._groups: list[SlotGroup] = []
+        self._hooked = type(self)._on_accepted is not LinkSide._on_accepted
         self._loop_slices = self._slot_group(self._loop_rows, 1)
-        #: the time of the last timeout check (NaN: none since the timeouts changed):
-        #: the records' freshness then is what their values say (:class:`SlotGroup`)
+        #: the time of the last timeout check (NaN: none since the timeouts changed or
+        #: a record that was not fresh took a frame): the records' freshness then is
+        #: what their values and ``was_fresh`` say (:class:`SlotGroup`, :meth:`state`)
         self._fresh_at = math.nan
+        #: at that check: (the critical records fresh, every record fresh)
+        self._fresh_counts = (False, False)
         #: Per received word (:meth:`_word`): the values it was built from, and the word.
         self._words: dict[str, tuple[tuple[float, ...], Any]] = {}
         self._tx_counter: dict[int, int] = {m.frame_id: 0 for m in self.tx_specs}
@@ -390,22 +398,25 @@ class LinkSide:
     def _send(self, codec: FrameCodec, values: Sequence[float], now: float) -> bool:
         """Send one frame without blocking; failures are counted, never raised."""
         fid = codec.frame_id
-        counter = self._tx_counter[fid]
-        self._tx_counter[fid] = (counter + 1) % COUNTER_MODULO
-        if not self.bus_health.can_send():
+        counters = self._tx_counter
+        counter = counters[fid]
+        counters[fid] = (counter + 1) % COUNTER_MODULO
+        health = self.bus_health
+        if health.state in _CANNOT_SEND:  # (BusHealth.can_send)
             self.tx_counts["tx_suppressed"] += 1
             return False
         msg = TxFrame(fid, codec.encode(counter, values))
         try:
             self.bus.send(msg, timeout=0.0)
         except can.CanError as exc:
-            self.bus_health.on_send_error(getattr(exc, "error_code", None), str(exc), now)
+            health.on_send_error(getattr(exc, "error_code", None), str(exc), now)
             return False
         except OSError as exc:
-            self.bus_health.on_send_error(exc.errno, str(exc), now)
+            health.on_send_error(exc.errno, str(exc), now)
             return False
         self.tx_counts["tx_frames"] += 1
-        self.bus_health.on_send_ok()
+        if health.tx_error_active:  # a failure before: it works again (logged once)
+            health.on_send_ok()
         return True
 
     def _send_due(self, now: float) -> None:
@@ -490,10 +501,13 @@ class LinkSide:
                         self._fresh_at = math.nan
                     if not rec.was_fresh:  # it may turn fresh: walk the records again
                         self._stale_check_at = -math.inf
-                    self.bus_health.on_frame_ok()
+                        self._fresh_at = math.nan  # (its was_fresh is not fresh(now))
+                    health = self.bus_health
+                    health.backoff_s = health.backoff_initial_s  # (BusHealth.on_frame_ok)
                     if rec.lost_frames != lost_before:
                         self._last_fault = now
-                    self._on_accepted(rec, now)
+                    if self._hooked:
+                        self._on_accepted(rec, now)
                 elif outcome in RX_FAULTS:
                     self._last_fault = now
                     last = self._fault_logged_at.get(rec.name, -math.inf)
@@ -510,7 +524,8 @@ class LinkSide:
         return outcome
 
     def _on_accepted(self, rec: RxRecord, now: float) -> None:
-        """Hook: a frame passed all checks (the PLC side reads the active mask here)."""
+        """Hook: a frame passed all checks (the PLC side reads the active mask here;
+        called only where a subclass has its own)."""
 
     def _check_timeouts(self, now: float) -> None:
         if now < self._stale_check_at:
@@ -539,6 +554,8 @@ class LinkSide:
                     check_at = until
         self._stale_check_at = check_at
         self._fresh_at = now
+        critical = all(r.was_fresh for r in self._critical_recs)
+        self._fresh_counts = (critical, critical and all(r.was_fresh for r in self._rx.values()))
 
     def _recover(self, now: float) -> None:
         if not self.bus_health.due_for_reopen(now):
@@ -566,13 +583,18 @@ class LinkSide:
             now = self._clock()
         if not self.bus_health.can_send():
             return LinkState.LOST
-        if not all_fresh(self._critical_recs, now):
+        if now == self._fresh_at:  # as of the timeout check at this time
+            critical_fresh, all_fresh_now = self._fresh_counts
+        else:
+            critical_fresh = all_fresh(self._critical_recs, now)
+            all_fresh_now = critical_fresh and all_fresh(self._rx.values(), now)
+        if not critical_fresh:
             return LinkState.LOST
         if (
             self.bus_health.state is not BusState.ACTIVE
             or now - self._last_fault <= FAULT_HOLD_S
             or now - self.bus_health.last_fault_time <= FAULT_HOLD_S
-            or not all_fresh(self._rx.values(), now)
+            or not all_fresh_now
         ):
             return LinkState.DEGRADED
         return LinkState.OK

@@ -50,17 +50,29 @@ def record(out: Path, quick: bool) -> None:
         harnesses.append(self)
 
     send = LockstepBus.send
+    send_all = getattr(LockstepBus, "send_all", None)  # (a batch: newer revisions)
 
-    def recording_send(self: LockstepBus, msg: Any, timeout: float | None = None) -> None:
+    def record(bus: LockstepBus, msg: Any) -> None:
         h = harnesses[-1] if harnesses else None
         t = h.sim.t_s if h is not None else float("nan")
-        side = "plc" if h is not None and self is h.sim.wire.inner else "ipc"
+        side = "plc" if h is not None and bus is h.sim.wire.inner else "ipc"
         err = "E" if msg.is_error_frame else ""
         frames.append(f"{t:.6f} {side} {msg.arbitration_id:03X}{err} {bytes(msg.data).hex()}")
+
+    def recording_send(self: LockstepBus, msg: Any, timeout: float | None = None) -> None:
+        record(self, msg)
         send(self, msg, timeout)
+
+    def recording_send_all(self: LockstepBus, msgs: list[Any]) -> None:
+        for msg in msgs:
+            record(self, msg)
+        assert send_all is not None
+        send_all(self, msgs)
 
     harness_mod.Harness.__init__ = tracking_init  # type: ignore[method-assign]
     LockstepBus.send = recording_send  # type: ignore[method-assign]
+    if send_all is not None:
+        LockstepBus.send_all = recording_send_all  # type: ignore[attr-defined]
     logs = configure_logging("ERROR")
     result: dict[str, Any] = {}
     try:
@@ -82,6 +94,8 @@ def record(out: Path, quick: bool) -> None:
         logs.stop()
         harness_mod.Harness.__init__ = init  # type: ignore[method-assign]
         LockstepBus.send = send  # type: ignore[method-assign]
+        if send_all is not None:
+            LockstepBus.send_all = send_all  # type: ignore[attr-defined]
     out.write_text(json.dumps(result), encoding="utf-8")
 
 
