@@ -255,7 +255,7 @@ def run_scans(
                         outcome = OWN_ECHO
                     else:
                         outcome, lost = check_frame(
-                            rx_msg, rx_fi, rx_ff, counters, r, f[8:16], np.int64(f[6]),
+                            rx_msg, rx_fi, rx_ff, counters, r, f[8:16], int(f[6]),
                             rx_i[r, RI_LAST_COUNTER : RI_LAST_COUNTER + 1], rx_vals[r], scratch,
                         )  # fmt: skip
                         if outcome == ACCEPTED:

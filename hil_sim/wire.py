@@ -284,7 +284,7 @@ class FaultyWire(can.BusABC):
             and isinstance(inner, LockstepBus)
         ):
             return inner.recv_all(limit)
-        out = []
+        out: list[can.Message] = []
         while len(out) < limit and (msg := self.recv()) is not None:
             out.append(msg)
         return out

@@ -64,7 +64,7 @@ class LockstepBus(can.BusABC):
         self._check_open()
         q = self._queue
         if self._filters is not None or len(q) > limit:
-            out = []
+            out: list[can.Message] = []
             while len(out) < limit and (msg := self.recv()) is not None:
                 out.append(msg)
             return out

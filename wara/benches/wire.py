@@ -72,7 +72,7 @@ def record(out: Path, quick: bool) -> None:
     harness_mod.Harness.__init__ = tracking_init  # type: ignore[method-assign]
     LockstepBus.send = recording_send  # type: ignore[method-assign]
     if send_all is not None:
-        LockstepBus.send_all = recording_send_all  # type: ignore[attr-defined]
+        LockstepBus.send_all = recording_send_all  # type: ignore[method-assign]
     logs = configure_logging("ERROR")
     result: dict[str, Any] = {}
     try:
@@ -95,7 +95,7 @@ def record(out: Path, quick: bool) -> None:
         harness_mod.Harness.__init__ = init  # type: ignore[method-assign]
         LockstepBus.send = send  # type: ignore[method-assign]
         if send_all is not None:
-            LockstepBus.send_all = send_all  # type: ignore[attr-defined]
+            LockstepBus.send_all = send_all  # type: ignore[method-assign]
     out.write_text(json.dumps(result), encoding="utf-8")
 
 
