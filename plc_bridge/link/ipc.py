@@ -92,8 +92,11 @@ class IpcLink(LinkSide):
             k in CONTROL_FIELDS and getattr(c, k) == v for k, v in changes.items()
         ):
             return  # every field already so (the loop sets mode and enable every cycle)
-        new = replace(word if word is not None else c, **changes)
-        if new != self._control:
+        if word is not None and not changes:
+            new = word  # (frozen: taken as it is)
+        else:
+            new = replace(word if word is not None else c, **changes)
+        if new != c:
             self._control = new
             now = self._clock()
             self._send(self._ctl_codec, self._control_values(), now)

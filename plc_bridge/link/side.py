@@ -532,6 +532,7 @@ class LinkSide:
             self._fresh_at = now
             return  # every record's own check below would change nothing
         check_at = math.inf
+        every = True  # every record fresh
         for rec in self._rx.values():
             was = rec.was_fresh
             if rec.check_timeout(now):
@@ -552,13 +553,15 @@ class LinkSide:
                 until = rec.fresh_until_s()
                 if until < check_at:
                     check_at = until
+            else:
+                every = False
         self._stale_check_at = check_at
         self._fresh_at = now
-        critical = all(r.was_fresh for r in self._critical_recs)
-        self._fresh_counts = (critical, critical and all(r.was_fresh for r in self._rx.values()))
+        self._fresh_counts = (every or all(r.was_fresh for r in self._critical_recs), every)
 
     def _recover(self, now: float) -> None:
-        if not self.bus_health.due_for_reopen(now):
+        health = self.bus_health
+        if health.state not in _CANNOT_SEND or not health.due_for_reopen(now):
             return
         if self._bus_factory is None:
             # A bus passed in cannot be made anew here: after the same back-off it is
