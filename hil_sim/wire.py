@@ -160,6 +160,11 @@ class FaultyWire(can.BusABC):
         return self._horizon is None and self._early is None
 
     @property
+    def quiet(self) -> bool:
+        """No fault in force and nothing delayed: frames pass as they are, at once."""
+        return not self._faults and not self._delayed
+
+    @property
     def has_delayed(self) -> bool:
         """Frames are delayed on their way to the bus (:meth:`release_due`)."""
         return bool(self._delayed)

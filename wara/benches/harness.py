@@ -9,10 +9,13 @@ scales on Dask.
   ``realtime_factor_wall`` over the wall time. ``cpu_split_s``: where the CPU time went,
   from a second run with each call timed by ``time.process_time`` (the headline run
   carries no timers): the simulator's PLC scans (``simulator``), of them the compiled
-  plant kernel (``plant_kernel``) and the rest, the emulated PLC's Python
-  (``plc_scan_python``: link, codec, supervision, interlocks); the service core's steps
-  (``service_core``); the harness's own loop (``rest``). ``cpu_share``: each over that
-  run's CPU time (``split_run_cpu_s``).
+  scans (``compiled_scans``: the emulated PLC and the plant in machine code,
+  :mod:`hil_sim.plc_fast`), the plant kernel called from Python (``plant_kernel``: the
+  scans that run as Python) and the rest, the simulator's Python (``plc_scan_python``:
+  the frames in and out through the wire, the Python scans); the service core's steps
+  (``service_core``: the IPC's link, codec and supervision, the controllers, the
+  interlocks); the harness's own loop (``rest``). ``cpu_share``: each over that run's
+  CPU time (``split_run_cpu_s``).
 - ``campaign``: a small campaign (short targets, ``runs`` runs) on an embedded
   LocalCluster of 1 and of 2 worker processes, timed from the first submit (cluster up,
   workers warmed): runs per minute, and the engine's overhead as a share of task time,
@@ -78,14 +81,14 @@ def lockstep(config_path: str | None) -> dict[str, Any]:
         warm.advance(0.1)  # the compiled plant loaded from numba's cache
         warm.close()
         res, sim_s, cpu, wall = _example_run(cfg, path, planner, None)
-        split = {"simulator": 0.0, "plant_kernel": 0.0, "service_core": 0.0}
+        split = dict.fromkeys(("simulator", "compiled_scans", "plant_kernel", "service_core"), 0.0)
         _, _, timed_cpu, _ = _example_run(cfg, path, planner, split)
     finally:
         planner.close()
         logs.stop()
-    # the simulator's PLC scans less the plant: the emulated PLC's own Python (link,
-    # codec, supervision, interlocks); the rest: the harness's own loop and the logs
-    split["plc_scan_python"] = split["simulator"] - split["plant_kernel"]
+    # the simulator's scans less the machine code: its Python (the frames through the
+    # wire, the Python scans); the rest: the harness's own loop and the logs
+    split["plc_scan_python"] = split["simulator"] - split["compiled_scans"] - split["plant_kernel"]
     split["rest"] = timed_cpu - split["simulator"] - split["service_core"]
     return {
         "example": list(EXAMPLE),
@@ -108,13 +111,16 @@ def _example_run(
     """One timed run of the example from a new harness: (result, simulated s, CPU s,
     wall s). ``split``: time the parts' calls into it (a second run: the headline run
     carries no timers)."""
+    import hil_sim.plc_fast
     from ipc_app.service.modes import Mode
     from wara.harness import Harness
 
     h = Harness(cfg, path, mode="lockstep", planner=planner, trace=False)
+    kernel = hil_sim.plc_fast.run_scans
     try:
         if split is not None:
             _time_calls(h.sim, "step", split, "simulator")
+            _time_calls(hil_sim.plc_fast, "run_scans", split, "compiled_scans")
             _time_calls(h.sim.rig, "advance", split, "plant_kernel")
             _time_calls(h.core, "step", split, "service_core")
         c0, w0 = time.process_time(), time.perf_counter()
@@ -123,12 +129,14 @@ def _example_run(
         cpu, wall = time.process_time() - c0, time.perf_counter() - w0
         return res, h.sim.t_s, cpu, wall
     finally:
+        hil_sim.plc_fast.run_scans = kernel
         h.close()
 
 
 def _time_calls(obj: Any, name: str, acc: dict[str, float], key: str) -> None:
-    """Add the CPU time of every call of ``obj.name`` to ``acc[key]`` (an instance
-    attribute over the method: the harness and the simulator call it through ``obj``)."""
+    """Add the CPU time of every call of ``obj.name`` to ``acc[key]`` (an instance or
+    module attribute over the function: the harness, the simulator and its compiled
+    scans call it through ``obj``)."""
     method = getattr(obj, name)
     clock = time.process_time
 
