@@ -108,12 +108,12 @@ _CONTROL_SIGNALS = (
 )
 # constants, ints: the control word's record and its signals' positions, ...
 C_CTL, C_MODE, C_ENABLE, C_STOP, C_RESET, C_ACK_SEQ, C_ACK_STATUS, C_MASK = range(8)
-C_SPC, C_HOLDING, C_N_STUCK, C_ESTOP, C_IGNORE, C_PLANT = 8, 9, 10, 11, 12, 13
-N_CI = 14
+C_HOLDING, C_N_STUCK, C_ESTOP, C_IGNORE, C_PLANT = 8, 9, 10, 11, 12
+N_CI = 13
 # constants, floats
-CF_CYCLE, CF_IPC_TIMEOUT, CF_SUPPLY_MPA, CF_STEP, CF_POS_RES, CF_POS_INV = 0, 1, 2, 3, 4, 5
-CF_PRESS_RES, CF_PRESS_INV, CF_LIMIT_M, CF_MM, CF_MPA, CF_FAULT_HOLD = 6, 7, 8, 9, 10, 11
-N_CF = 12
+CF_CYCLE, CF_IPC_TIMEOUT, CF_SUPPLY_MPA, CF_POS_RES, CF_POS_INV = 0, 1, 2, 3, 4
+CF_PRESS_RES, CF_PRESS_INV, CF_LIMIT_M, CF_MM, CF_MPA, CF_FAULT_HOLD = 5, 6, 7, 8, 9, 10
+N_CF = 11
 # the scan's state, ints
 S_K, S_ACTIVE, S_LATCHED, S_ENGAGED, S_DRIVES = 0, 1, 2, 3, 4
 S_ACK_HAS, S_ACK_SEQ, S_ACK_STATUS, S_ACK_VERSION = 5, 6, 7, 8
@@ -123,8 +123,8 @@ S_ST_VERSION, S_LIM_RET, S_LIM_EXT, S_PLC_RET, S_PLC_EXT = 21, 22, 23, 24, 25
 S_POS_NEXT, S_PRESS_NEXT, S_OUT_N, S_EV_N, S_IN_AT, S_U_VERSION, S_LIM_VERSION = range(26, 33)
 N_SI = 33
 # the scan's state, floats
-SF_LAST_FAULT, SF_RIG_T, SF_ST_SUPPLY = 0, 1, 2
-N_SF = 3
+SF_LAST_FAULT, SF_ST_SUPPLY = 0, 1
+N_SF = 2
 # what the compiled scans ask the caller to log: (kind, record, t, a, b)
 EV_FAULT, EV_STALE, EV_AGAIN, EV_ACTIVE = 0, 1, 2, 3
 MAX_EVENTS = 256
@@ -133,6 +133,9 @@ MAX_FRAMES = 1000
 #: a frame in and out of the compiled scans: id, a flag (in: classic; out: the scan),
 #: length, payload (cut or padded to 8 bytes)
 FRAME = struct.Struct("<IHBx8s")
+#: what :func:`run_scans` returns when a transducer's noise block has no row left
+NOISE_EXHAUSTED = -2
+_NO_FRAMES = np.frombuffer(b"", dtype=np.uint8).reshape(0, FRAME.size)
 
 _MOTION = (int(Mode.MANUAL), int(Mode.ATTITUDE_ADJUST), int(Mode.WALK), int(Mode.HOMING))
 if set(_MOTION) != {1, 2, 3, 4} or int(Fault.IPC_TIMEOUT) != 6 or int(Fault.ESTOP) != 1:
@@ -209,13 +212,16 @@ def run_scans(
     (``in_frames``, as drained from the bus, one :data:`FRAME` a row, its flag: a
     classic frame) are read from the first scan on (at most :data:`MAX_FRAMES` a
     scan), the frames sent go to ``out_frames`` (its flag: the scan, 0-based), what to
-    log to ``events``. With ``cfg_i[C_PLANT]`` the plant is
+    log to ``events``. Returns (0 or :data:`~hil_sim.plc_frames.ENCODE_OVERFLOW`, the
+    frames sent, the events). With ``cfg_i[C_PLANT]`` the plant is
     integrated here after each scan (the rig's own kernel with ``plant_args``:
     :meth:`~hil_sim.rig.Rig.kernel_call`);
-    else ``n_scans`` is 1 and the caller advances it. Returns 0, or
-    :data:`~hil_sim.plc_frames.ENCODE_OVERFLOW`."""
+    else ``n_scans`` is 1 and the caller advances it."""
     cycle = cfg_f[CF_CYCLE]
     in_n = in_frames.shape[0]
+    st_i[S_OUT_N] = 0
+    st_i[S_EV_N] = 0
+    st_i[S_IN_AT] = 0
     n_rx = rx_i.shape[0]
     n_tx = tx_i.shape[0]
     n = N_CYLINDERS
@@ -224,6 +230,8 @@ def run_scans(
         t = k * cycle
         # -- _sample: the transducers' noise streams move on; the readings are taken
         # only when a frame needs them (PlcLink.defer_readings); the limit switches
+        if st_i[S_POS_NEXT] >= pos_block.shape[0] or st_i[S_PRESS_NEXT] >= press_block.shape[0]:
+            return NOISE_EXHAUSTED, st_i[S_OUT_N], st_i[S_EV_N]  # (scans_allowed keeps clear)
         st_i[S_POS_NEXT] += 1
         st_i[S_PRESS_NEXT] += 1
         pos_taken = False
@@ -365,7 +373,7 @@ def run_scans(
             row = out_frames[o]
             dlc = encode_frame(tx_msg, tx_fi, tx_ff, m, counter, values, row[8:16])
             if dlc == ENCODE_OVERFLOW:
-                return ENCODE_OVERFLOW
+                return ENCODE_OVERFLOW, st_i[S_OUT_N], st_i[S_EV_N]
             fid = tx_msg[m, 0]
             for b in range(4):
                 row[b] = (fid >> (8 * b)) & 0xFF
@@ -472,12 +480,12 @@ def run_scans(
             st_i[S_ST_FAULT] = fault
             st_f[SF_ST_SUPPLY] = cfg_f[CF_SUPPLY_MPA]
             st_i[S_ST_VERSION] += 1
-        # -- the plant over the scan, commands held (Rig.advance)
+        # -- the plant over the scan, commands held (Rig.advance; the caller keeps its
+        # time)
         if cfg_i[C_PLANT]:
             _advance(*plant_args)
-            st_f[SF_RIG_T] += cfg_i[C_SPC] * cfg_f[CF_STEP]
         st_i[S_K] = k + 1
-    return 0
+    return 0, st_i[S_OUT_N], st_i[S_EV_N]
 
 
 class FastPlc:
@@ -555,7 +563,6 @@ class FastPlc:
         self.cfg_i[C_ACK_SEQ] = ctl.signal_names.index("TargetAckSeq")
         self.cfg_i[C_ACK_STATUS] = ctl.signal_names.index("TargetAckStatus")
         self.cfg_i[C_MASK] = ctl.signal_names.index("FastCylinderMask")
-        self.cfg_i[C_SPC] = sim.steps_per_cycle
         self.cfg_i[C_HOLDING] = int(sim.rig.load_holding_valves)
         # the plant in line where the rig's advance is its kernel's call (rig.Rig's)
         self.cfg_i[C_PLANT] = int(type(sim.rig) is Rig and sim.rig.kernel_call(1)[0] is _advance)
@@ -563,7 +570,6 @@ class FastPlc:
         self.cfg_f[CF_CYCLE] = sim.cycle_s
         self.cfg_f[CF_IPC_TIMEOUT] = plc._ipc_timeout_s
         self.cfg_f[CF_SUPPLY_MPA] = units.to_mpa(sim.cfg.hydraulics.supply_pressure_pa)
-        self.cfg_f[CF_STEP] = sim.rig.step_s
         pos, press = sim._pos_sensor, sim._press_sensor
         self.cfg_f[CF_POS_RES], self.cfg_f[CF_POS_INV] = pos.resolution, pos._inv_res
         self.cfg_f[CF_PRESS_RES], self.cfg_f[CF_PRESS_INV] = press.resolution, press._inv_res
@@ -683,7 +689,6 @@ class FastPlc:
         st[S_POS_NEXT] = sim._pos_sensor._next
         st[S_PRESS_NEXT] = sim._press_sensor._next
         sf[SF_LAST_FAULT] = plc._last_fault
-        sf[SF_RIG_T] = sim.rig.t_s
         self.u[:] = sim._applied
         self.pos_read[:] = sim._pos_reading
         self.press_read[:] = np.ascontiguousarray(sim._press_reading.T).ravel()
@@ -773,7 +778,6 @@ class FastPlc:
         sim._press_reading = self.press_read.reshape(2, N_CYLINDERS).T.copy()
         plc._pos_m, plc._pos_mm = sim._pos_reading.copy(), None
         plc._press_pa, plc._press_mpa = sim._press_reading.copy(), None
-        sim.rig.t_s = float(sf[SF_RIG_T])
         # the caches of the Python scan: worked out anew at its first logic
         sim._ctl = None
         sim._fresh_scan = True
@@ -824,35 +828,37 @@ class FastPlc:
             self._rig_arrays = (rig.command, rig.ports_open, rig.x_view)
             self._static = self._static_args()
         msgs = sim.wire.recv_all(MAX_FRAMES)
-        pack = FRAME.pack
-        frames = b"".join(
-            [
-                pack(
-                    m.arbitration_id,
-                    not (m.is_remote_frame or m.is_extended_id or m.is_fd),
-                    len(m.data),
-                    m.data,
-                )
-                for m in msgs
-            ]
-        )
-        if len(msgs) == MAX_FRAMES:
-            n_scans = 1  # the next scan takes the rest from the bus
-        need = n_scans * len(self.tx_specs)
-        if need > self._out_cap:
-            self._alloc_out(need)
+        if msgs:
+            pack = FRAME.pack
+            frames = np.frombuffer(
+                b"".join(
+                    [
+                        pack(
+                            m.arbitration_id,
+                            not (m.is_remote_frame or m.is_extended_id or m.is_fd),
+                            len(m.data),
+                            m.data,
+                        )
+                        for m in msgs
+                    ]
+                ),
+                dtype=np.uint8,
+            ).reshape(len(msgs), FRAME.size)
+            if len(msgs) == MAX_FRAMES:
+                n_scans = 1  # the next scan takes the rest from the bus
+        else:
+            frames = _NO_FRAMES
+        if n_scans * len(self.tx_specs) > self._out_cap:
+            self._alloc_out(n_scans * len(self.tx_specs))
             self._static = self._static_args()
-        st = self.st_i
-        st[S_OUT_N] = 0
-        st[S_EV_N] = 0
-        st[S_IN_AT] = 0
-        k0 = int(st[S_K])
+        k0 = sim._k
+        spc = sim.steps_per_cycle
         # (the walking rig's advance does more than the kernel: its arguments are only
         # there for the types, and the caller advances it)
-        _, plant_args = Rig.kernel_call(rig, sim.steps_per_cycle)
-        status = run_scans(
+        _, plant_args = Rig.kernel_call(rig, spc)
+        status, n_out, n_events = run_scans(
             n_scans,
-            np.frombuffer(frames, dtype=np.uint8).reshape(len(msgs), FRAME.size),
+            frames,
             sim._pos_sensor._block,
             sim._press_sensor._block,
             rig.pressure_view,
@@ -861,18 +867,20 @@ class FastPlc:
         )
         if status == ENCODE_OVERFLOW:
             raise OverflowError("cannot convert float infinity to integer")
-        if st[S_OUT_N] or sim.wire.has_delayed:
-            self._send_out(k0, n_scans)
-        if st[S_EV_N]:
+        if status == NOISE_EXHAUSTED:
+            raise RuntimeError("FastPlc.run: more scans than the noise blocks hold")
+        if n_out or sim.wire.has_delayed:
+            self._send_out(k0, n_scans, n_out)
+        if n_events:
             self._log_events()
-        k = int(st[S_K])
-        sim._k = k
+        sim._k = k = k0 + n_scans
         sim.t_s = k * sim.cycle_s
         if self.cfg_i[C_PLANT]:
-            rig.t_s = float(self.st_f[SF_RIG_T])
+            step = spc * rig.step_s
+            for _ in range(n_scans):  # the sum Rig.advance makes, scan by scan
+                rig.t_s += step
         else:
-            rig.advance(sim.steps_per_cycle)
-            self.st_f[SF_RIG_T] = rig.t_s
+            rig.advance(spc)
 
     def _static_args(self) -> tuple[Any, ...]:
         """:func:`run_scans`' arguments after the per-call ones: arrays kept from call to
@@ -890,14 +898,13 @@ class FastPlc:
             self.out_frames, self.events,
         )  # fmt: skip
 
-    def _send_out(self, k0: int, n_scans: int) -> None:
+    def _send_out(self, k0: int, n_scans: int, n_out: int) -> None:
         """The scans' frames through the wire, each scan's at its time (the wire's
         delays and its clock: frames it delayed go on the bus at each scan's start), as
         the Python scans send them."""
         sim = self.sim
         wire = sim.wire
         cycle = sim.cycle_s
-        n_out = int(self.st_i[S_OUT_N])
         groups: list[tuple[int, list[can.Message]]] = []
         for fid, j, dlc, data in FRAME.iter_unpack(self.out_frames[:n_out].tobytes()):
             if not groups or groups[-1][0] != j:
