@@ -529,6 +529,22 @@ def _reference_array(rows: Any, width: int, si_per_unit: float, now: float) -> A
     return val, np.array(ages)
 
 
+def _assert_readings_are_the_reference(ipc: IpcLink, now: float) -> bool:
+    """The link's positions and pressures at ``now`` are the reference's, bit for bit;
+    True when a row of them is not usable (NaN)."""
+    stale = False
+    for reading, rows, width, unit in (
+        (ipc.positions_m(now), ipc._pos, 1, 1e-3),
+        (ipc.pressures_pa(now), ipc._press, 2, 1e6),
+    ):
+        ref_val, ref_age = _reference_array(rows, width, unit, now)
+        np.testing.assert_array_equal(reading.value, ref_val)
+        np.testing.assert_array_equal(reading.age_s, ref_age)
+        np.testing.assert_array_equal(reading.valid, ~np.isnan(ref_val))
+        stale = stale or bool(np.isnan(ref_val).any())
+    return stale
+
+
 def test_readings_match_the_reference_definition_bit_for_bit(project: ProjectConfig) -> None:
     clock = Clock()
     bus = QueueBus()
@@ -550,14 +566,7 @@ def test_readings_match_the_reference_definition_bit_for_bit(project: ProjectCon
     ipc._pos[3][0].last_rx = None  # one never received (e.g. after a restart)
     ipc._pos[3][0].values = None
     for now in (clock.t, clock.t + 0.02, clock.t + 1.0):
-        for reading, rows, width, unit in (
-            (ipc.positions_m(now), ipc._pos, 1, 1e-3),
-            (ipc.pressures_pa(now), ipc._press, 2, 1e6),
-        ):
-            ref_val, ref_age = _reference_array(rows, width, unit, now)
-            np.testing.assert_array_equal(reading.value, ref_val)
-            np.testing.assert_array_equal(reading.age_s, ref_age)
-            np.testing.assert_array_equal(reading.valid, ~np.isnan(ref_val))
+        _assert_readings_are_the_reference(ipc, now)
     x = ipc.positions_m(clock.t)
     assert x.valid.any() and not x.valid.all()  # the cases above were all exercised
 
@@ -592,14 +601,7 @@ def test_readings_right_after_the_poll_match_the_reference(project: ProjectConfi
         ipc.poll(now)
         if late is not None:  # a frame taken in after the poll, with an older time
             ipc.on_message(late, now - 0.5)
-        for reading, rows, width, unit in (
-            (ipc.positions_m(now), ipc._pos, 1, 1e-3),
-            (ipc.pressures_pa(now), ipc._press, 2, 1e6),
-        ):
-            ref_val, ref_age = _reference_array(rows, width, unit, now)
-            np.testing.assert_array_equal(reading.value, ref_val)
-            np.testing.assert_array_equal(reading.age_s, ref_age)
-            checked += int(np.isnan(ref_val).any())
+        checked += _assert_readings_are_the_reference(ipc, now)
         clock.advance(DT)
     assert checked > 50  # stale rows were part of it
 
