@@ -565,7 +565,9 @@ class FastPlc:
         self.cfg_i[C_MASK] = ctl.signal_names.index("FastCylinderMask")
         self.cfg_i[C_HOLDING] = int(sim.rig.load_holding_valves)
         # the plant in line where the rig's advance is its kernel's call (rig.Rig's)
-        self.cfg_i[C_PLANT] = int(type(sim.rig) is Rig and sim.rig.kernel_call(1)[0] is _advance)
+        self._plant_inline = type(sim.rig) is Rig and sim.rig.kernel_call(1)[0] is _advance
+        self.cfg_i[C_PLANT] = int(self._plant_inline)
+        self._rows_left = 0
         self.cfg_f = np.zeros(N_CF)
         self.cfg_f[CF_CYCLE] = sim.cycle_s
         self.cfg_f[CF_IPC_TIMEOUT] = plc._ipc_timeout_s
@@ -626,20 +628,20 @@ class FastPlc:
                 or health.tx_error_active
             ):
                 return 0
-        pos_next = self.st_i[S_POS_NEXT] if self.owner else sim._pos_sensor._next
-        press_next = self.st_i[S_PRESS_NEXT] if self.owner else sim._press_sensor._next
-        limit = min(
-            limit,
-            sim._pos_sensor._block_len - int(pos_next),
-            sim._press_sensor._block_len - int(press_next),
-        )
+        if self.owner:
+            rows = self._rows_left
+        else:
+            pos, press = sim._pos_sensor, sim._press_sensor
+            rows = min(pos._block_len - pos._next, press._block_len - press._next)
+        if rows < limit:
+            limit = rows
         if sim.scenario.events:
-            k = int(self.st_i[S_K]) if self.owner else sim._k
+            k = sim._k
             for j in range(limit):
                 if sim._now_active((k + j) * sim.cycle_s) != sim._active:
                     return j
-        if not self.cfg_i[C_PLANT]:
-            limit = min(limit, 1)
+        if not self._plant_inline and limit > 1:
+            limit = 1
         return max(limit, 0)
 
     # ----------------------------------------------------------------- the state
@@ -686,8 +688,10 @@ class FastPlc:
         sf[SF_ST_SUPPLY] = units.to_mpa(word.supply_pressure_pa)
         st[S_LIM_RET], st[S_LIM_EXT] = sim._limits
         st[S_PLC_RET], st[S_PLC_EXT] = plc._limits
-        st[S_POS_NEXT] = sim._pos_sensor._next
-        st[S_PRESS_NEXT] = sim._press_sensor._next
+        pos, press = sim._pos_sensor, sim._press_sensor
+        st[S_POS_NEXT], st[S_PRESS_NEXT] = pos._next, press._next
+        #: scans left before a transducer's noise block runs out (scans_allowed)
+        self._rows_left = min(pos._block_len - pos._next, press._block_len - press._next)
         sf[SF_LAST_FAULT] = plc._last_fault
         self.u[:] = sim._applied
         self.pos_read[:] = sim._pos_reading
@@ -875,7 +879,8 @@ class FastPlc:
             self._log_events()
         sim._k = k = k0 + n_scans
         sim.t_s = k * sim.cycle_s
-        if self.cfg_i[C_PLANT]:
+        self._rows_left -= n_scans
+        if self._plant_inline:
             step = spc * rig.step_s
             for _ in range(n_scans):  # the sum Rig.advance makes, scan by scan
                 rig.t_s += step
