@@ -228,10 +228,12 @@ def _lockstep_in(checkout: Path, config_path: str | None) -> dict[str, Any]:
 def run_against(args: argparse.Namespace) -> dict[str, Any]:
     """``--baseline DIR``: this checkout's lockstep and DIR's, interleaved (module
     docstring)."""
+    from wara.cli import UsageError
+
     here = Path(__file__).resolve().parents[2]
     base_dir = Path(args.baseline)
     if not (base_dir / "wara" / "benches" / "harness.py").is_file():
-        raise RuntimeError(f"--baseline {base_dir}: not a checkout with wara/benches/harness.py")
+        raise UsageError(f"--baseline {base_dir}: not a checkout with wara/benches/harness.py")
     rounds = int(args.runs or 5)
     config_path = getattr(args, "config", None)
     load_before = [round(x, 2) for x in os.getloadavg()]

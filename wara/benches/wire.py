@@ -140,6 +140,13 @@ def _summary(run: dict[str, Any]) -> dict[str, Any]:
 def run(args: argparse.Namespace) -> dict[str, Any]:
     quick = bool(getattr(args, "quick", False))
     here = Path(__file__).resolve().parents[2]
+    if (
+        getattr(args, "baseline", None) is not None
+        and not (Path(args.baseline) / "wara" / "harness.py").is_file()
+    ):
+        from wara.cli import UsageError
+
+        raise UsageError(f"--baseline {args.baseline}: not a checkout with wara/harness.py")
     this = _record_in(here, quick)
     out: dict[str, Any] = {"bench": "wire", "this": {k: _summary(v) for k, v in this.items()}}
     if getattr(args, "baseline", None) is None:
