@@ -108,8 +108,11 @@ class Cycle(Strict):
 
 
 class ProjectInfo(Strict):
+    #: the project's name (shown in the reports and the OPC UA identification)
     name: str = Field(min_length=1)
+    #: the tunnel section it covers
     section: str = ""
+    #: free text
     description: str = ""
 
 
@@ -117,9 +120,13 @@ class AlignmentPoint(Strict):
     """One row of a design-axis table: the centreline at a chainage, project coordinates
     (x, y horizontal, z up)."""
 
+    #: the chainage of this row (increasing from row to row)
     chainage_m: Annotated[Finite, Field(ge=-1e6, le=1e6)]
+    #: the centreline's x at this chainage, project frame
     x_m: Annotated[Finite, Field(ge=-1e7, le=1e7)]
+    #: its y (horizontal)
     y_m: Annotated[Finite, Field(ge=-1e7, le=1e7)]
+    #: its z (up)
     z_m: Annotated[Finite, Field(ge=-1e4, le=1e4)]
 
 
@@ -129,9 +136,12 @@ class Alignment(Strict):
     coordinates. ``first_ring_chainage_m``: the chainage of ring 1's rear joint face; ring
     ``n``'s is ``n - 1`` ring widths further."""
 
+    #: the chainage of ring 1's rear joint face; ring n's is n - 1 ring widths further
     first_ring_chainage_m: Annotated[Finite, Field(ge=-1e6, le=1e6)] = 0.0
     #: straight axis through the project origin, rising this much per 100 m of chainage
     gradient_percent: Annotated[Finite, Field(ge=-10, le=10)] | None = None
+    #: the design axis as a table of centreline points, linear between rows (instead of
+    #: gradient_percent)
     points: tuple[AlignmentPoint, ...] = ()
 
     @model_validator(mode="after")
@@ -148,8 +158,12 @@ class Alignment(Strict):
 
 
 class Tunnel(Strict):
+    #: the tunnel's outer diameter (project data; no check reads it)
     outer_diameter_m: Annotated[Finite, Field(gt=0, le=30)]
+    #: the tunnel's inner diameter, smaller than the outer (project data)
     inner_diameter_m: Annotated[Finite, Field(gt=0, le=30)]
+    #: a ring's width along the axis: ring n's chainage, a survey's plausible offset along
+    #: the axis (half of it)
     ring_width_m: Annotated[Finite, Field(gt=0, le=10)]
     #: the design axis; without it the machine cannot place (no ``placement``)
     alignment: Alignment | None = None
@@ -167,23 +181,33 @@ class Tunnel(Strict):
 class Workpiece(Strict):
     """The precast arc part."""
 
+    #: the arc part's length across the tunnel (Table 4's corners, the angles' lever arm)
     length_m: LengthM
+    #: its height (the joint face's corners, the simulated survey's points)
     height_m: LengthM
+    #: its width along the tunnel (the ring width it fills: the joint's position, the pads)
     width_m: LengthM
+    #: its mass (the slide axes' friction check; the statics use the body ``workpiece``)
     mass_kg: MassKg
 
 
 class Robot(Strict):
+    #: the machine's envelope length (project data; no check reads it)
     length_mm: LengthMm
+    #: its envelope width (project data)
     width_mm: LengthMm
+    #: its envelope height (project data)
     height_mm: LengthMm
+    #: its mass (project data; the statics use the layers' and frames' bodies)
     mass_kg: MassKg
 
 
 class Base(Strict):
     """Attitude of the tunnel invert under the standing frame (model.md section 1)."""
 
+    #: roll of the tunnel invert under the standing frame
     roll_deg: Annotated[Finite, Field(ge=-15, le=15)] = 0.0
+    #: pitch of the invert (positive turns x down: a falling gradient)
     pitch_deg: Annotated[Finite, Field(ge=-15, le=15)] = 0.0
 
     @property
@@ -208,8 +232,12 @@ class Body(Strict):
     points at mid-stroke (model.md section 5).
     """
 
+    #: the body's name (``workpiece`` on the upper layer: the arc part)
     name: str = Field(min_length=1)
+    #: its mass, a point mass at its centre of gravity
     mass_kg: MassKg
+    #: its centre of gravity in its platform's frame (origin at the action points' centre
+    #: at mid-stroke)
     cog_m: Vec3
 
 
@@ -239,12 +267,19 @@ class CylinderPlant(Strict):
     ratio of the hydraulic spring-mass mode (see docs/model-choices.md).
     """
 
+    #: leakage across the piston, per Pa of pressure difference (Table 3)
     internal_leakage_m3_s_pa: Annotated[Finite, Field(ge=0, le=1e-8)] = 7.2e-12
+    #: leakage to tank from each chamber, per Pa (Table 3)
     external_leakage_m3_s_pa: Annotated[Finite, Field(ge=0, le=1e-8)] = 7.2e-12
+    #: the valve's area gradient w (opening width per spool travel, as a length)
     area_gradient_mm: Annotated[Finite, Field(gt=0, le=1000)] = 26.0
+    #: Table 3's viscous damping factor, read as the damping ratio of the hydraulic mode
     damping_ratio: Annotated[Finite, Field(ge=0, le=10)] = 0.65
+    #: oil volume of each chamber's valve block and hose
     dead_volume_l: Annotated[Finite, Field(gt=0, le=1000)] = 1.0
+    #: Coulomb friction of the rod seals
     coulomb_friction_n: Annotated[Finite, Field(ge=0, le=1e6)] = 2000.0
+    #: the moving mass of a standalone cylinder (rod plus its load)
     moving_mass_kg: MassKg = 9000.0
 
     @property
@@ -259,13 +294,21 @@ class CylinderPlant(Strict):
 class Cylinder(Strict):
     """One of the 19 cylinders: identity, geometry and its place on the CAN wire."""
 
+    #: the cylinder's name (``main_leg_1``): used in messages, logs and the status
     id: str = Field(pattern=r"^[a-z][a-z0-9_]*$")
+    #: what it does on the machine (the counts per role are fixed)
     role: CylinderRole
+    #: its synchronization and CAN group (``main_legs``, ``upper``, ...)
     group: str = Field(pattern=r"^[a-z][a-z0-9_]*$")
+    #: its position 1-4 in its layer (attitude cylinders and legs only)
     position: Annotated[int, Field(ge=1, le=4)] | None = None
+    #: cap-side bore
     bore_mm: DiameterMm
+    #: rod diameter (smaller than the bore)
     rod_mm: DiameterMm
+    #: stroke
     stroke_mm: StrokeMm
+    #: its slot in the DBC's per-cylinder signals (``ValveCmd_NN``, ``RodPos_NN``)
     can_index: Annotated[int, Field(ge=0, lt=N_CYLINDERS)]
     plant: CylinderPlant | None = None
 
@@ -297,13 +340,21 @@ class Cylinder(Strict):
 class Layer(Strict):
     """One attitude layer: four vertical cylinders under a rigid platform."""
 
+    #: half the distance between the cylinders' action points along x (a)
     half_span_x_m: Annotated[Finite, Field(gt=0, le=20)]
+    #: half the distance along y (b)
     half_span_y_m: Annotated[Finite, Field(gt=0, le=20)]
+    #: the layer's cylinder bore (each listed cylinder has the same)
     bore_mm: DiameterMm
+    #: their rod diameter
     rod_mm: DiameterMm
+    #: their stroke
     stroke_mm: StrokeMm
+    #: stroke kept in reserve at each end: the planning limit is stroke/2 less this
     reserve_mm: Annotated[Finite, Field(ge=0, le=10_000)]
+    #: the four cylinder ids, at positions 1-4
     cylinders: tuple[str, str, str, str]
+    #: the bodies the platform carries
     bodies: tuple[Body, ...] = ()
 
     @model_validator(mode="after")
@@ -354,6 +405,7 @@ class Layer(Strict):
 class UpperLayer(Layer):
     """The fine stage; its base is the lower platform."""
 
+    #: the upper base's origin in the lower platform's frame
     origin_in_lower_m: Vec3 = (0.0, 0.0, 0.0)
 
 
@@ -366,16 +418,27 @@ class Layers(Strict):
 
 
 class Hydraulics(Strict):
+    #: supply pressure (Table 3)
     supply_pressure_mpa: PressureMpa
+    #: tank pressure, below the supply
     tank_pressure_mpa: PressureMarginMpa = 0.0
+    #: the cylinders' rated pressure: the planner's pressure limit
     rated_pressure_mpa: PressureMpa
+    #: the load-sensing pump's margin: what the slide axes may use is supply less this
     load_sensing_margin_mpa: PressureMarginMpa
+    #: oil density (the orifice flows)
     oil_density_kg_m3: Annotated[Finite, Field(ge=500, le=1500)]
+    #: oil bulk modulus (the chambers' stiffness)
     bulk_modulus_mpa: Annotated[Finite, Field(ge=10, le=5000)]
+    #: the valve orifices' discharge coefficient
     discharge_coefficient: Annotated[Finite, Field(gt=0, le=1)] = 0.61
+    #: pump flow: the trajectory's duration keeps the extending cylinders' flow within it
     pump_flow_l_min: Annotated[Finite, Field(gt=0, le=10_000)]
+    #: the servo valve's spool natural frequency
     valve_natural_frequency_hz: Annotated[Finite, Field(gt=0, le=1000)] = 60.0
+    #: the spool's damping ratio
     valve_damping_ratio: Annotated[Finite, Field(gt=0, le=10)] = 0.7
+    #: full spool opening (command 1)
     valve_max_opening_mm: Annotated[Finite, Field(gt=0, le=20)] = 0.5
     #: weight of each leg's and upper-platform cylinder's rod and piston (a leg's with its
     #: foot): what a hanging leg pulls on the body, and what the upper rods add to the
@@ -424,12 +487,19 @@ class Hydraulics(Strict):
 class LdwPso(Strict):
     """The paper's planner: particle swarm, linearly decreasing inertia weight."""
 
+    #: particles
     swarm_size: Annotated[int, Field(ge=4, le=10_000)] = 50
+    #: iterations per solve
     iterations: Annotated[int, Field(ge=1, le=100_000)] = 1000
+    #: inertia weight at the first iteration
     inertia_start: Annotated[Finite, Field(gt=0, le=2)] = 0.9
+    #: inertia weight at the last (linear in between)
     inertia_end: Annotated[Finite, Field(gt=0, le=2)] = 0.4
+    #: the cognitive coefficient
     c1: Annotated[Finite, Field(gt=0, le=10)] = 2.0
+    #: the social coefficient
     c2: Annotated[Finite, Field(gt=0, le=10)] = 2.0
+    #: the swarm's random seed
     seed: Annotated[int, Field(ge=0, lt=2**32)] = 0
     #: Weight of one unit of dimensionless violation against the objective divided by
     #: its median over the initial swarm.
@@ -439,17 +509,26 @@ class LdwPso(Strict):
 class Exact(Strict):
     """The project's deterministic planner (grid, Newton on vertices, pattern search)."""
 
+    #: points per axis of the first grid over the upper layer's extensions
     grid_points: Annotated[int, Field(ge=5, le=1001)] = 21
+    #: Newton steps on the critical curves' vertices
     newton_iterations: Annotated[int, Field(ge=0, le=100)] = 8
+    #: points per axis of each pattern-search grid
     zoom_points: Annotated[int, Field(ge=3, le=201)] = 7
+    #: how much each pattern-search grid shrinks
     zoom_factor: Annotated[Finite, Field(gt=1, le=50)] = 3.0
+    #: the search stops when its step is below this
     tolerance_m: Annotated[Finite, Field(gt=0, le=1e-3)] = 1e-10
 
 
 class Trajectory(Strict):
+    #: the time scaling of a move: quintic or trapezoidal in velocity
     profile: Literal["quintic", "trapezoidal"] = "quintic"
+    #: largest rod speed of a planned move (the walk's legs too)
     max_rod_speed_mm_s: Annotated[Finite, Field(gt=0, le=1000)] = 20.0
+    #: largest rod acceleration of a planned move
     max_rod_accel_mm_s2: Annotated[Finite, Field(gt=0, le=10_000)] = 20.0
+    #: a plan's constraints are checked at samples this far apart
     sample_period_s: Annotated[Finite, Field(ge=0.001, le=10)] = 0.05
 
     @property
@@ -462,10 +541,15 @@ class Trajectory(Strict):
 
 
 class Planner(Strict):
+    #: what the split between the layers minimizes
     objective: Literal["sum_pressure", "peak_pressure", "pump_energy"] = "pump_energy"
+    #: the planner: ``exact`` (grid, Newton on vertices) or the paper's ``ldw_pso``
     method: Literal["exact", "ldw_pso"] = "exact"
+    #: lift-off: every rod pushes at least this
     min_rod_force_kn: Annotated[Finite, Field(ge=0, le=10_000)]
+    #: the action points' largest distance from a plane (paper eq. 17)
     coplanarity_tolerance_mm: Annotated[Finite, Field(gt=0, le=100)]
+    #: a plan whose achieved attitude is further from the target is refused
     attitude_tolerance_rad: Annotated[Finite, Field(gt=0, le=1e-3)] = 1e-9
     ldw_pso: LdwPso = LdwPso()
     exact: Exact = Exact()
@@ -487,33 +571,46 @@ class Planner(Strict):
 
 
 class Ladrc(Strict):
+    #: the model's order (1: the command sets a rod speed)
     order: Literal[1, 2] = 1
+    #: controller bandwidth (crossover)
     wc_rad_s: BandwidthPositive = 6.0
+    #: extended state observer bandwidth
     wo_rad_s: BandwidthPositive = 12.0
+    #: ``zoh``: exact, with the current observer; ``euler``: forward Euler
     discretization: Literal["euler", "zoh"] = "zoh"
+    #: the command's largest change per second (full opening is 1)
     rate_limit_per_s: Annotated[Finite, Field(gt=0, le=1e6)] = 20.0
     #: feed the trajectory's rod speeds forward (docs/control.md); off: model.md's plain law
     reference_feedforward: bool = True
 
 
 class Pid(Strict):
+    #: proportional gain: command per m of error
     kp_per_m: GainNonNegative = 100.0
+    #: integral gain: command per m s
     ki_per_m_s: GainNonNegative = 20.0
+    #: derivative gain: command per m/s
     kd_s_per_m: GainNonNegative = 0.0
     #: corner frequency of the first-order filter on the derivative term
     derivative_filter_hz: BandwidthPositive = 20.0
 
 
 class Sync(Strict):
+    #: how a group's synchronization error is formed from its tracking errors
     scheme: Literal["mean_deviation", "cross_coupled"] = "mean_deviation"
+    #: weight of the synchronization error in each cylinder's error (dual error)
     coupling_lambda: Annotated[Finite, Field(ge=0, le=100)] = 1.0
 
 
 class Realtime(Strict):
     """Applied by the service when asked and allowed; reported when refused."""
 
+    #: SCHED_FIFO priority of the loop thread; 0 leaves the scheduler alone
     priority: Annotated[int, Field(ge=0, le=99)] = 0
+    #: CPUs the loop thread may run on; empty: any
     cpu_affinity: tuple[Annotated[int, Field(ge=0, le=4095)], ...] = ()
+    #: lock the service's memory (``mlockall``)
     lock_memory: bool = False
 
 
@@ -521,6 +618,7 @@ class Control(Strict):
     #: 50 Hz is the slowest rate at which the interlocks and the sync control still
     #: act within the safety timeouts; 2000 Hz the fastest the bus budget allows.
     loop_rate_hz: Annotated[Finite, Field(ge=50, le=2000)] = 200.0
+    #: the attitude loops' controller: LADRC, or the paper's PID baseline
     controller: Literal["ladrc", "pid"] = "ladrc"
     ladrc: Ladrc = Ladrc()
     pid: Pid = Pid()
@@ -547,9 +645,15 @@ class CanLink(Strict):
     bit rate for the load budget; on ``socketcan`` the OS sets it (deploy/).
     """
 
+    #: the bus back-end: ``socketcan`` on the machine, ``virtual`` in-process,
+    #: ``udp_multicast`` or ``wara_udp`` across processes on one host, ``remote``
     interface: Literal["socketcan", "virtual", "udp_multicast", "wara_udp", "remote"] = "virtual"
+    #: the interface name (``can0``), the multicast group (``239.74.163.2``), ``host:port``
+    #: for remote, any name for virtual
     channel: str = "wara"
+    #: the bus's bit rate, for the load budget (on socketcan the OS sets it: deploy/)
     bitrate: Annotated[int, Field(ge=10_000, le=1_000_000)] = 500_000
+    #: an active group whose worst-case load is above this is refused
     max_bus_load_percent: Annotated[Finite, Field(gt=0, le=100)] = 50.0
     #: Cylinder groups whose frames run at the loop rate at start-up (the attitude
     #: group with the main frame standing); the IPC may switch it at run time.
@@ -566,12 +670,17 @@ class CanLink(Strict):
 
 
 class Safety(Strict):
+    #: a layer's measured twist above this latches ``twist``
     max_twist_mm: Annotated[Finite, Field(gt=0, le=100)] = 1.5
+    #: a group's synchronization error above this latches ``sync error``; also the resume
+    #: check
     max_sync_error_mm: Annotated[Finite, Field(gt=0, le=100)] = 2.0
     #: Largest |reference - measurement| of an attitude cylinder while moving (catches a
     #: group that stops as a whole: commands ignored, all valves stuck).
     max_tracking_error_mm: Annotated[Finite, Field(gt=0, le=1000)] = 10.0
+    #: a valid chamber pressure above this latches ``pressure``
     max_pressure_mpa: PressureMpa = 24.0
+    #: an active rod closer than this to an end of its stroke latches ``stroke end``
     stroke_end_margin_mm: Annotated[Finite, Field(ge=0, le=1000)] = 5.0
     #: IPC: a rod position of the active group lost for longer latches FAULT (a shorter
     #: loss suspends the motion and resumes it)
@@ -603,11 +712,13 @@ class OpcUa(Strict):
     certificate there and ``wara opcua adduser`` the users file.
     """
 
+    #: ``wara serve`` starts the OPC UA server beside the service
     enabled: bool = False
     #: the address the server listens on (``0.0.0.0``: every interface)
     host: str = Field(
         default="0.0.0.0", min_length=1, max_length=253, pattern=r"^[A-Za-z0-9.:\-]+$"
     )
+    #: the TCP port (the endpoint ``opc.tcp://HOST:PORT/wara/``)
     port: Annotated[int, Field(ge=1024, le=65535)] = 4840
     #: the only security policy offered, always with SignAndEncrypt
     security_policy: Literal["Basic256Sha256", "Aes128_Sha256_RsaOaep", "Aes256_Sha256_RsaPss"] = (
@@ -643,17 +754,27 @@ ToleranceDeg = Annotated[Finite, Field(gt=0, le=10)]
 class Acceptance(Strict):
     """Paper Table 4. The angle rows lost their values in the source: no default."""
 
+    #: Table 4: the largest vertical step between two parts at the joint
     vertical_misalignment_mm: ToleranceMm
+    #: Table 4: the largest horizontal step at the joint
     horizontal_misalignment_mm: ToleranceMm
+    #: Table 4: the largest gap between the two parts
     max_gap_mm: ToleranceMm
+    #: Table 4: horizontal offset of the part from the design axis
     centreline_deviation_x_mm: ToleranceMm
+    #: Table 4: vertical offset from the design axis
     centreline_deviation_y_mm: ToleranceMm
+    #: pitch limit (lost in the source; none: recorded, not judged)
     pitch_angle_deg: ToleranceDeg | None = None
+    #: tilt (roll) limit (none: not judged)
     tilt_angle_deg: ToleranceDeg | None = None
+    #: rotation (yaw) limit (none: not judged)
     rotation_angle_deg: ToleranceDeg | None = None
 
 
 class Task(Strict):
+    #: the paper's assembly time of a part (project data; the cycle is judged against
+    #: ``cycle.max_cycle_time_min``)
     assembly_time_min: Annotated[Finite, Field(gt=0, le=10_000)] = 5.0
 
 
@@ -665,6 +786,7 @@ class MainFrame(Strict):
     = the lower layer's half-spans); ``bodies`` its own structure, in the lower
     platform frame."""
 
+    #: M's own structure, in the lower platform's frame
     bodies: tuple[Body, ...] = ()
 
 
@@ -672,8 +794,11 @@ class SubFrame(Strict):
     """Sub frame S inside M: legs ``sub_leg_1..4`` at ``(x_S + s_i a_S, t_i b_S)`` in M's
     frame; ``bodies`` its structure, in S's frame (origin at the centre of its legs)."""
 
+    #: half the distance between S's legs along x
     half_span_x_m: Annotated[Finite, Field(gt=0, le=20)]
+    #: half the distance between S's legs along y
     half_span_y_m: Annotated[Finite, Field(gt=0, le=20)]
+    #: S's structure, in S's frame (origin at the centre of its legs)
     bodies: tuple[Body, ...] = ()
 
     @property
@@ -693,7 +818,10 @@ class Frames(Strict):
 class FootContact(Strict):
     """The invert under one foot: a unilateral spring-damper (walking.md section 6)."""
 
+    #: the invert's stiffness under one foot: the rig's contact, the sequencer's force-loop
+    #: gain
     stiffness_n_m: Annotated[Finite, Field(gt=0, le=1e11)] = 2e8
+    #: the contact's damping ratio on the foot's own mode
     damping_ratio: Annotated[Finite, Field(ge=0, le=10)] = 0.7
 
 
@@ -744,8 +872,10 @@ class Walking(Strict):
     resume_height_tolerance_mm: Annotated[Finite, Field(gt=0, le=100)] = 1.0
     #: resume check: leg forces within this of the values at the stop (of the leg's share)
     resume_force_tolerance_percent: Annotated[Finite, Field(gt=0, le=100)] = 10.0
-    #: force loop (touch-down, preload, transfer): LADRC bandwidths on the cap-side force
+    #: force loop (touch-down, preload, transfer): the LADRC's crossover on the cap-side
+    #: force
     force_wc_rad_s: Annotated[Finite, Field(gt=0, le=1000)] = 4.0
+    #: and its observer's bandwidth
     force_wo_rad_s: Annotated[Finite, Field(gt=0, le=1000)] = 16.0
     #: the twist-mode controller of a frame standing in position control (travel,
     #: the other frame's lowering and preload): the crossover of its force loop on the
@@ -793,9 +923,13 @@ class PlacementWeights(Strict):
     gap's distance from its target, and the angles from the design (as mm at the part's
     half-length). Dimensionless; only their ratios matter."""
 
+    #: weight of the joint step at the face corners
     misalignment: Annotated[Finite, Field(ge=0, le=1e6)] = 1.0
+    #: weight of the centreline deviation
     centreline_deviation: Annotated[Finite, Field(ge=0, le=1e6)] = 1.0
+    #: weight of the gap's distance from its target
     gap: Annotated[Finite, Field(ge=0, le=1e6)] = 1.0
+    #: weight of the angles from the design (as mm at the part's half-length)
     angle: Annotated[Finite, Field(ge=0, le=1e6)] = 1.0
 
 
@@ -811,6 +945,7 @@ class Placement(Strict):
     #: steering back: the new part's deviation from the design differs from the
     #: previous part's by at most this per ring (each of y, z; each angle)
     max_correction_per_ring_mm: Annotated[Finite, Field(gt=0, le=100)] = 2.0
+    #: the same bound for each angle
     max_correction_per_ring_deg: Annotated[Finite, Field(gt=0, le=10)] = 0.05
     weights: PlacementWeights = PlacementWeights()
     #: a survey fit whose RMS point residual is larger is refused

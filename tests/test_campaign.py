@@ -367,13 +367,17 @@ def test_a_histogram_of_values_far_below_their_limit_shows_its_bar() -> None:
 
 
 def test_walk_and_ring_cycle_runs_are_judged_by_their_goals(tmp_path: Path) -> None:
-    from wara import walk
     from wara.campaign.run import RunOutcome, row_of
+    from wara.goals import step_time_limit_s
 
     c = load_campaign(write_spec(tmp_path, _spec(run={"kind": "walk", "steps": 2})))
-    assert c.limits["max_leg_force_ratio"] == walk.FORCE_RATIO == 1.10
-    assert c.limits["min_stability_margin_m"] == walk.MIN_MARGIN_M == 0.25
+    walking = c.project.walking
+    assert walking is not None
+    assert c.limits["max_leg_force_ratio"] == walking.overload_percent / 100 == 1.10
+    assert c.limits["min_stability_margin_m"] == walking.min_stability_margin_m == 0.25
     assert c.limits["distance_error_mm"] == pytest.approx(5.0)
+    step_s = step_time_limit_s(c.project)  # the planned step and its touch-downs
+    assert c.limits["max_step_duration_s"] == step_s and 118.0 < step_s < 125.0
     assert "target0_roll_deg" not in c.draw(0).params  # a walk draws no targets
     figures = {
         "distance_error_mm": 0.7,
@@ -382,10 +386,10 @@ def test_walk_and_ring_cycle_runs_are_judged_by_their_goals(tmp_path: Path) -> N
         "max_transfer_attitude_change_deg": 0.005,
         "max_leg_force_ratio": 1.075,
         "min_stability_margin_m": 0.874,
-        "max_step_duration_s": 118.0,
+        "max_step_duration_s": step_s - 2.0,
     }
     row = row_of(c, c.draw(0), RunOutcome(dict(figures), done=True), wall_s=1.0, worker="w")
-    assert row["passed"] and row["margin"] == pytest.approx(1.0 - 118.0 / 120.0)  # the time
+    assert row["passed"] and row["margin"] == pytest.approx(2.0 / step_s)  # the time
     # the stability margin is a lower bound: below it fails, named with "<"
     low = row_of(
         c, c.draw(0), RunOutcome({**figures, "min_stability_margin_m": 0.2}, done=True),

@@ -1,19 +1,22 @@
 """The slide axes' move to a planned target, closed over the CAN wire with the HIL
 simulator in lockstep: the part reaches the target's yaw, lateral position and gap on the
-simulator's truth (hil_sim.placement). The loop is wara.placement_run's, which runs the
-controllers directly, not inside the service core (it has no placement mode yet)."""
+simulator's truth (hil_sim.placement). ``wara place run`` (wara.place) asks the service
+for the placement (its modes and interlocks in the loop) and judges the truth."""
 
 from __future__ import annotations
+
+import json
+from pathlib import Path
 
 import numpy as np
 import pytest
 
-from config import ProjectConfig, units
+from config import ProjectConfig, load_project, units
 from hil_sim.placement import pose_from_home, slide_state
 from ipc_app.model.placement import Pose
-from tests.cli_helpers import run_main
+from tests.cli_helpers import run_wara
 from tests.hil_helpers import make_bench
-from wara.placement_run import run_placement_lockstep
+from wara.place import run_place
 
 
 def test_truth_chain_of_the_slide_stage(project: ProjectConfig) -> None:
@@ -83,7 +86,7 @@ def test_a_placement_move_reaches_the_planned_target_on_the_truth(
     back by 2 mm; attitude, height, yaw, lateral and gap reach it on the simulator's
     truth within the simulation goals."""
     dev = Pose(y=units.mm(6.0), z=units.mm(-6.0), yaw=units.deg(0.03))
-    r = run_placement_lockstep(project, 5, dev)
+    r = run_place(None, 5, dev, cfg=project)
     assert r["passed"], r.get("goals")
     e = r["error_from_target"]
     # the goal is 1 mm; the slide's lever-arm correction puts it within micrometres
@@ -95,6 +98,35 @@ def test_a_placement_move_reaches_the_planned_target_on_the_truth(
     assert all(v["passed"] is not False for v in r["table4_truth"].values())
 
 
+@pytest.mark.slow
+def test_the_place_run_goes_through_the_services_modes_and_interlocks(tmp_path: Path) -> None:
+    """``wara place run`` asks the service for the placement: its run record has the
+    placement's events, and a position reading of upper_1 that jumps by 5 mm in the
+    attitude phase trips the sync interlock (latched, the valves closed); the run fails
+    naming it, with the figures of the truth where the move stopped."""
+    from config.hil_scenario import HilScenario
+    from ipc_app.service.core import ServiceCore
+    from ipc_app.service.interlocks import Interlock
+    from ipc_app.service.record import RunRecorder
+
+    jump = {"kind": "sensor", "cylinder": "upper_1", "mode": "jump", "offset": 5.0,
+            "start_s": 1.0, "end_s": 10.0}  # fmt: skip
+    sc = HilScenario.model_validate({"events": [jump]})
+    with RunRecorder(tmp_path / "run", ServiceCore.record_columns(load_project(None))) as rec:
+        r = run_place(None, 5, Pose(y=units.mm(6.0), z=units.mm(-6.0)), scenario=sc, record=rec)
+    assert not r["passed"] and r["refused"] is None and r["final_mode"] == "ABORTED"
+    assert r["missed"] == [f"service ABORTED: {r['fault_reasons'][0]}"]
+    assert r["fault_reasons"][0].startswith("sync error: upper")
+    lines = (tmp_path / "run" / "events.jsonl").read_text(encoding="utf-8").splitlines()
+    events = [json.loads(line) for line in lines if line.strip()]
+    kinds = [e["kind"] for e in events]
+    assert {"place", "place_phase", "fault"} <= set(kinds) and "place_done" not in kinds
+    (fault,) = [e for e in events if e["kind"] == "fault"]
+    assert fault["interlock"] == str(Interlock.SYNC_ERROR) and 1.0 <= fault["t_s"] <= 1.1
+
+
 def test_place_run_refuses_an_unreachable_target() -> None:
-    code, out, _ = run_main(["place", "run", "--lockstep", "--previous-deviation", "9,0,0,0,0"])
+    # a child process: the run sets up the service's logging (structlog) for the process
+    proc = run_wara(["place", "run", "--lockstep", "--previous-deviation", "9,0,0,0,0"])
+    code, out = proc.returncode, proc.stdout
     assert code == 3 and "centreline_deviation_x_mm" in out

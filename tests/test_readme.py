@@ -116,20 +116,25 @@ def test_the_two_commands_are_in_the_readme_as_ci_runs_them() -> None:
     assert test_command in code
 
 
-def test_every_relative_link_resolves() -> None:
-    text = _text()
-    links = _LINK.findall(text)
-    assert links
+def bad_links(page: Path, links: list[str]) -> list[str]:
+    """The relative links of ``page`` that name no file, or no heading of it."""
     bad = []
     for target in links:
         if re.match(r"[a-z][a-z0-9+.-]*:", target):  # http:, https:, mailto:
             continue
         path, _, anchor = target.partition("#")
-        file = (README.parent / path).resolve() if path else README
+        file = (page.parent / path).resolve() if path else page
         if not file.exists():
             bad.append(f"{target}: no such file")
         elif anchor and (file.suffix != ".md" or anchor not in _anchors(file)):
             bad.append(f"{target}: no heading with that anchor")
+    return bad
+
+
+def test_every_relative_link_resolves() -> None:
+    links = _LINK.findall(_text())
+    assert links
+    bad = bad_links(README, links)
     assert not bad, bad
 
 

@@ -1,4 +1,4 @@
-"""A transfer's control and checks (ipc_app/control/walk.py, docs/walking.md): the
+"""A transfer's control and checks (ipc_app/control/walk/, docs/walking.md): the
 releasing legs' position loops are told the decompression of their oil columns, the
 receiving legs are judged against the plan's line to their standing share."""
 
@@ -36,7 +36,7 @@ def test_the_releasing_legs_rates_keep_the_body_in_equilibrium_without_twist(key
     receiving, releasing = (SUB, MAIN) if key == "4" else (MAIN, SUB)
     f = seq.forces_n(p)
     ramp = np.zeros(8)
-    ramp[list(receiving)] = (run.target_f - f)[list(receiving)] / run.duration_s
+    ramp[list(receiving)] = (run.target_force_n - f)[list(receiving)] / run.duration_s
     rate = run.release_rate_n_s
     assert np.all(rate[list(receiving)] == 0.0)
     pts = seq.machine.legs_xy(seq.x_s(x))
@@ -86,32 +86,32 @@ def test_a_receiving_leg_is_judged_against_the_plans_line_to_its_standing_share(
     run = seq.run
     assert run is not None
     p0 = run.phase.leg_forces_n[0]
-    assert np.allclose(run.plan_start_f, p0)
-    run.tau = 0.5 * run.duration_s
+    assert np.allclose(run.plan_start_n, p0)
+    run.clock_s = 0.5 * run.duration_s
     seq.update(2.0, x, p, set(range(seq.n)))
-    line = p0 + 0.5 * (run.target_f - p0)
+    line = p0 + 0.5 * (run.target_force_n - p0)
     share8 = seq._share8(float(run.phase.x_s_m[0]))
     for j in MAIN:
         assert seq.figures.expected_n[j] == pytest.approx(max(line[j], share8[j]), rel=1e-12)
     # the plan's own samples end short of the share, where the releasing legs are at
     # unloaded_percent: the line goes on with the ramp, to the share itself
     end = run.phase.leg_forces_n[-1]
-    assert np.all(end[list(MAIN)] < run.target_f[list(MAIN)])
+    assert np.all(end[list(MAIN)] < run.target_force_n[list(MAIN)])
 
 
 def test_after_a_resume_the_line_goes_on_from_where_it_stood() -> None:
     seq, x, p = in_transfer("7c")
     run = seq.run
     assert run is not None
-    p0 = run.plan_start_f.copy()
-    run.tau = 0.5 * run.duration_s
+    p0 = run.plan_start_n.copy()
+    run.clock_s = 0.5 * run.duration_s
     p[seq.legs[MAIN[0]], 0] = 6e6
     seq.resume(x, p)
-    assert run.tau == 0.0
-    assert np.allclose(run.plan_start_f, p0 + 0.5 * (run.target_f - p0))
+    assert run.clock_s == 0.0
+    assert np.allclose(run.plan_start_n, p0 + 0.5 * (run.target_force_n - p0))
     f = seq.forces_n(p)
     ramp = np.zeros(8)
-    ramp[list(MAIN)] = (run.target_f - f)[list(MAIN)] / run.duration_s
+    ramp[list(MAIN)] = (run.target_force_n - f)[list(MAIN)] / run.duration_s
     pts = seq.machine.legs_xy(seq.x_s(x))
     a = np.vstack([np.ones(8), pts[:, 1], -pts[:, 0]])
     assert np.abs(a @ (ramp + run.release_rate_n_s)).max() < 1e-3
@@ -128,24 +128,24 @@ def test_the_releasing_references_follow_the_plans_release_not_the_measured_forc
     run = seq.run
     assert run is not None
     releasing = MAIN if key == "4" else SUB
-    run.tau = 0.4 * run.duration_s
+    run.clock_s = 0.4 * run.duration_s
     p_swing = p.copy()
     p_swing[seq.legs[releasing[0]], 0] = 4e6  # that leg's force measured 20 % lower
     for pp in (p, p_swing):
         seq.update(2.0, x, pp, set(range(seq.n)))
         refs = seq.last_refs
-        tau = run.tau - PERIOD_S  # the clock went on after the references were set
+        tau = run.clock_s - PERIOD_S  # the clock went on after the references were set
         for j in releasing:
             i = seq.legs[j]
             follow = run.release_rate_n_s[j] * tau / seq.k_contact
             assert refs[i] == pytest.approx(x[i] + follow, abs=1e-12)
-        run.tau = 0.4 * run.duration_s
+        run.clock_s = 0.4 * run.duration_s
     seq.resume(x, p_swing)
-    assert np.allclose(run.release_from_f, seq.forces_n(p_swing))
+    assert np.allclose(run.release_from_n, seq.forces_n(p_swing))
     seq.update(3.0, x, p_swing, set(range(seq.n)))
     rel = list(releasing)
-    want = run.release_from_f[rel] - run.start_f[rel]
-    want = (want + run.release_rate_n_s[rel] * (run.tau - PERIOD_S)) / seq.k_contact
+    want = run.release_from_n[rel] - run.start_force_n[rel]
+    want = (want + run.release_rate_n_s[rel] * (run.clock_s - PERIOD_S)) / seq.k_contact
     want -= TWIST * float(TWIST @ want) / 4  # not in the twist mode
     assert np.allclose(
         seq.last_refs[[seq.legs[j] for j in rel]],

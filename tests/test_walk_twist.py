@@ -1,4 +1,4 @@
-"""The walk's twist-mode controller (ipc_app/control/walk.py, docs/walking.md): a frame
+"""The walk's twist-mode controller (ipc_app/control/walk/, docs/walking.md): a frame
 standing in position control has its commands set modally, the twist's share by a force
 loop whose crossover ``walking.twist_bandwidth_rad_s`` sets, the rest by the position
 loops, which do not see the twist."""
@@ -181,13 +181,13 @@ def test_a_force_ramp_restarts_from_the_forces_at_the_resume() -> None:
     seq._begin(k, 1.0, x, p)
     run = seq.run
     assert run is not None and run.phase.key == "7c"
-    run.tau = 0.5 * run.duration_s  # halfway along the ramp when it stopped
+    run.clock_s = 0.5 * run.duration_s  # halfway along the ramp when it stopped
     p[seq.legs[MAIN[0]], 0] = 6e6  # main_leg_1 took some load while stopped
     seq.resume(x, p)
     f = seq.forces_n(p)
-    assert run.tau == 0.0
-    assert np.allclose(run.start_f[list(MAIN)], f[list(MAIN)])
-    delta = max(abs(run.target_f[j] - f[j]) for j in MAIN)
+    assert run.clock_s == 0.0
+    assert np.allclose(run.start_force_n[list(MAIN)], f[list(MAIN)])
+    delta = max(abs(run.target_force_n[j] - f[j]) for j in MAIN)
     assert run.duration_s == pytest.approx(delta / seq.walk.force_ramp_n_s)
 
 
@@ -197,11 +197,12 @@ def test_a_legs_friction_estimate_is_linear_below_half_a_mm_per_s(speed_mm_s: fl
     Coulomb part full from 0.5 mm/s, linear below (near standstill its sign is not
     known), plus the viscous part at the measured speed."""
     seq = sequencer()
-    n = seq._x_hist.shape[0]
+    rods = seq.rod_friction
+    n = rods.positions_m.shape[0]
     v = speed_mm_s * 1e-3
-    seq._x_hist[:] = (np.arange(n) * v * PERIOD_S)[:, None]  # each leg extending at v
-    seq._t_hist = [k * PERIOD_S for k in range(n)]
-    seq._x_k = 0  # the oldest sample next: row 0
+    rods.positions_m[:] = (np.arange(n) * v * PERIOD_S)[:, None]  # each leg extending at v
+    rods.times_s = [k * PERIOD_S for k in range(n)]
+    rods.next_row = 0  # the oldest sample next: row 0
     coulomb = seq.coulomb_n * min(1.0, speed_mm_s / 0.5)
     assert seq.friction_n() == pytest.approx(coulomb + seq.viscous_n_s_m * v, rel=1e-9)
 
@@ -212,14 +213,14 @@ def test_a_legs_speed_across_a_stop_is_over_the_samples_times() -> None:
     it (the window taken as one cycle per sample: 10-20 kN of viscous friction on a
     standing leg in campaign run 48, an overload)."""
     seq = sequencer()
-    n = seq._x_hist.shape[0]
+    n = seq.rod_friction.positions_m.shape[0]
     v = 0.2e-3
     times = [k * PERIOD_S for k in range(n)]
     times[1:] = [t + 0.140 for t in times[1:]]  # the stop between the first two samples
-    seq._t_hist = times
-    seq._x_hist[:] = (np.array(times) * v)[:, None]
-    seq._x_k = 0
+    seq.rod_friction.times_s = times
+    seq.rod_friction.positions_m[:] = (np.array(times) * v)[:, None]
+    seq.rod_friction.next_row = 0
     coulomb = seq.coulomb_n * min(1.0, 0.2 / 0.5)
     assert seq.friction_n() == pytest.approx(coulomb + seq.viscous_n_s_m * v, rel=1e-9)
-    seq._t_hist = [0.0] * n  # no time between the samples (the start): at rest
+    seq.rod_friction.times_s = [0.0] * n  # no time between the samples (the start): at rest
     assert not np.any(seq.friction_n())

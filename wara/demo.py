@@ -26,13 +26,8 @@ import numpy as np
 from config import load_project
 from ipc_app.model.placement import Pose, sheet_deviation
 from ipc_app.service.modes import Mode
-from wara.examples import (
-    ATTITUDE_TOL_DEG,
-    EXAMPLES,
-    SYNC_TOL_MM,
-    TWIST_TOL_MM,
-    ExampleResult,
-)
+from wara.examples import EXAMPLES, ExampleResult
+from wara.goals import ATTITUDE_GOALS, SYNC_TOL_MM, limits
 from wara.harness import Harness, Trace, ride_through
 
 __all__ = ["ride_through", "run_demo", "run_ring_demo"]
@@ -82,11 +77,7 @@ def run_demo(
         "error": error,
         "examples": [asdict(r) for r in results],
         **figures,
-        "tolerances": {
-            "attitude_error_deg": ATTITUDE_TOL_DEG,
-            "max_twist_mm": TWIST_TOL_MM,
-            "sync_error_mm": SYNC_TOL_MM,
-        },
+        "tolerances": limits(ATTITUDE_GOALS),
         "passed": error is None
         and len(results) == len(examples)
         and all(r.passed for r in results),
@@ -173,15 +164,9 @@ def render_ring_table(out: dict[str, Any]) -> str:
 
 
 def ring_failure_reason(out: dict[str, Any]) -> str:
-    """One line: why a ring demo did not pass (the cycle's error, else the first ring
-    that missed a goal, with the goals it missed)."""
-    if out.get("error"):
-        return str(out["error"])
-    for r in out.get("rings", []):
-        if not r.get("passed"):
-            missed = [k for k, v in r.get("goals", {}).items() if not v]
-            return f"ring {r['ring']}: missed " + ", ".join(missed)
-    return "not every ring ran"
+    """One line: why a ring demo did not pass (the cycle's error, else each ring's
+    missed goals)."""
+    return "; ".join(out.get("missed") or ["not every ring ran"])
 
 
 def plot_trace(trace: Trace, out_dir: Path) -> list[Path]:

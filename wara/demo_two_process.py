@@ -64,15 +64,8 @@ from config.schema import ProjectConfig
 from ipc_app.service.core import ServiceCore
 from ipc_app.service.ctl import CtlError, request
 from plc_bridge.busload import bus_load
-from wara.examples import (
-    ATTITUDE_TOL_DEG,
-    EXAMPLES,
-    HOLD_MEASURE_S,
-    SYNC_TOL_MM,
-    TWIST_TOL_MM,
-    ExampleResult,
-    judge_example,
-)
+from wara.examples import EXAMPLES, HOLD_MEASURE_S, ExampleResult, judge_example
+from wara.goals import ATTITUDE_GOALS, limits
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -508,10 +501,7 @@ def _judge(st: dict[str, Any], res: ExampleResult) -> ExampleResult:
     achieved = m.get("achieved_deg")
     if achieved is not None:
         res.set_achieved(float(achieved[0]), float(achieved[1]))
-    res.max_twist_mm = float(m.get("max_twist_mm", math.nan))
-    res.sync_error_mm = float(m.get("hold_sync_error_mm", math.nan))
-    res.max_sync_error_mm = float(m.get("max_sync_error_mm", math.nan))
-    res.duration_s = float(m.get("duration_s", math.nan))
+    res.take_motion(m)
     mode = st.get("mode")
     problem = ""
     if mode != "COMPLETE":
@@ -704,11 +694,7 @@ def run_inside_netns(
         "exit_codes": codes,
         "bus_load_percent": bus_load(cfg, active).load_percent,
         "simulator_realtime_factor": _sim_realtime_factor(sim.log_path.read_text(errors="replace")),
-        "tolerances": {
-            "attitude_error_deg": ATTITUDE_TOL_DEG,
-            "max_twist_mm": TWIST_TOL_MM,
-            "sync_error_mm": SYNC_TOL_MM,
-        },
+        "tolerances": limits(ATTITUDE_GOALS),
         "passed": examples_ok and loop_ok,
     }
 

@@ -34,7 +34,10 @@ import numpy as np
 from config import units
 from config.hil_scenario import HilScenario
 from config.schema import ProjectConfig, Realtime
+from hil_sim.placement import pose_from_home
 from hil_sim.simulator import HilSimulator
+from ipc_app.model.placement import Pose, compose
+from ipc_app.planner.placement import home_pose
 from ipc_app.service.core import ServiceCore
 from ipc_app.service.loop import (
     SWITCH_INTERVAL_S,
@@ -387,6 +390,11 @@ class Harness:
             "sim_time_s": round(self.sim.t_s, 3),
         }
 
+    def part_pose(self, ring: int) -> Pose:
+        """The part's pose on the simulator's truth, in ring ``ring``'s tunnel frame."""
+        r, t = pose_from_home(self.cfg, self.sim.rig)
+        return compose(home_pose(self.cfg, ring), Pose.from_matrix(r, t))
+
     def faulted(self) -> bool:
         return self.core.modes.mode is Mode.ABORTED
 
@@ -418,7 +426,8 @@ class Harness:
         """One adjustment to (roll, pitch) deg as ``wara ctl adjust`` asks for it, held
         :attr:`ServiceCore.HOLD_SETTLE_S` + :data:`HOLD_MEASURE_S`, then judged
         (:func:`~wara.examples.judge_example`): the achieved attitude is the simulator's
-        truth, the twist and sync errors are what the service measured."""
+        truth, the twist and sync errors are what the service measured (its status'
+        ``motion``, as the two-process demo reads it)."""
         res = ExampleResult(roll_deg, pitch_deg)
         out = self.core.request_adjust(roll_deg, pitch_deg)
         if not out.get("ok"):
@@ -429,15 +438,11 @@ class Harness:
         if not self.wait_for(Mode.COMPLETE, 300.0):
             return judge_example(res, problem=f"did not finish: {self.fault_note()}")
         self.advance(self.core.HOLD_SETTLE_S + HOLD_MEASURE_S)
-        m = self.core.motion
         truth = self.sim.truth()
         res.set_achieved(
             units.to_deg(truth.workpiece_roll_rad), units.to_deg(truth.workpiece_pitch_rad)
         )
-        res.max_twist_mm = units.to_mm(m.max_twist_m)
-        res.sync_error_mm = units.to_mm(m.hold_sync_error_m)
-        res.max_sync_error_mm = units.to_mm(m.max_sync_error_m)
-        res.duration_s = m.duration_s
+        res.take_motion(self.core.snapshot()["motion"])  # the service's status
         holding = self.core.modes.mode == Mode.COMPLETE
         return judge_example(res, problem="" if holding else self.fault_note())
 

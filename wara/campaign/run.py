@@ -34,6 +34,7 @@ from wara.campaign.spec import (
     set_path,
 )
 from wara.examples import ExampleResult
+from wara.goals import Goal, judge, ring_figures, step_figures
 from wara.harness import Harness
 
 #: Columns of a row that are not the same from one execution of a run to the next.
@@ -190,18 +191,10 @@ def _walk(
     figures: dict[str, float] = dict.fromkeys(FIGURES_OF["walk"], math.nan)
     if done:
         step_m = cfg.walking.step_length_m if cfg.walking is not None else 0.0
-        figures["distance_error_mm"] = max(
-            1000.0 * abs(abs(s["distance_m"]) - step_m) for s in steps
-        )
-        for name in (
-            "max_leg_sync_error_mm",
-            "max_travel_sync_error_mm",
-            "max_transfer_attitude_change_deg",
-            "max_leg_force_ratio",
-        ):
-            figures[name] = max(float(s[name]) for s in steps)
-        figures["min_stability_margin_m"] = min(float(s["min_stability_margin_m"]) for s in steps)
-        figures["max_step_duration_s"] = max(float(s["duration_s"]) for s in steps)
+        per_step = [step_figures(s, step_m) for s in steps]
+        for name in figures:
+            worst = min if name in HIGHER_IS_BETTER else max
+            figures[name] = worst(f[name] for f in per_step)
     return RunOutcome(
         figures,
         done=done and out.get("final_mode") == str(Mode.COMPLETE),
@@ -237,24 +230,9 @@ def _ring_cycle(
     done = len(rows) == run.rings and out.get("error") is None
     figures: dict[str, float] = dict.fromkeys(FIGURES_OF["ring_cycle"], math.nan)
     if done:
-        for name in (
-            "vertical_misalignment_mm",
-            "horizontal_misalignment_mm",
-            "gap_mm",
-            "centreline_deviation_x_mm",
-            "centreline_deviation_y_mm",
-            "gap_error_mm",
-            "cycle_time_s",
-        ):
-            figures[name] = max(abs(float(r[name])) for r in rows)
-        figures["position_error_mm"] = max(
-            abs(float(r["error_from_target"][k])) for r in rows for k in ("x_mm", "y_mm", "z_mm")
-        )
-        figures["angle_error_deg"] = max(
-            abs(float(r["error_from_target"][k]))
-            for r in rows
-            for k in ("roll_deg", "pitch_deg", "yaw_deg")
-        )
+        per_ring = [ring_figures(r) for r in rows]
+        for name in figures:
+            figures[name] = max(f[name] for f in per_ring)
     return RunOutcome(
         figures,
         done=done,
@@ -275,11 +253,8 @@ def row_of(
     ``note``, ``fault_reasons``, ``final_mode``, ``sim_time_s``, and the volatile
     ``wall_s`` and ``worker``."""
     figures = outcome.figures
-    over = [
-        f"{name} {figures[name]:.4g} {'<' if name in HIGHER_IS_BETTER else '>'} {limit:g}"
-        for name, limit in c.limits.items()
-        if not figure_margin(name, figures[name], limit) >= 0.0
-    ]
+    goals = (Goal(name, limit, "the campaign's limits") for name, limit in c.limits.items())
+    over = [j.note for j in judge(goals, figures).missed]
     margin = -1.0
     if outcome.done:
         margin = min(figure_margin(name, figures[name], limit) for name, limit in c.limits.items())

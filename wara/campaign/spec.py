@@ -26,11 +26,12 @@ from typing import Annotated, Any, Literal
 import numpy as np
 from pydantic import Discriminator, Field, Tag, model_validator
 
-from config import ConfigError, load_project, units
+from config import ConfigError, load_project
 from config.hil_scenario import EVENT_KINDS, HilScenario
 from config.loader import default_project_path, read_yaml, validate_data
 from config.schema import Finite, ProjectConfig, Strict
-from wara.examples import ATTITUDE_TOL_DEG, SYNC_TOL_MM, TWIST_TOL_MM
+from ipc_app.service.cycle import RECORD_KEYS
+from wara.goals import ATTITUDE_GOALS, HIGHER_IS_BETTER, limits, ring_goals, walk_step_goals
 
 #: Per-run figures a requirement may limit, by run kind: the worst over the run's
 #: targets, steps or rings. Lower is better, except those of :data:`HIGHER_IS_BETTER`.
@@ -51,28 +52,18 @@ FIGURES_OF: dict[str, tuple[str, ...]] = {
         "max_step_duration_s",
     ),
     "ring_cycle": (
-        "vertical_misalignment_mm",
-        "horizontal_misalignment_mm",
-        "gap_mm",
-        "centreline_deviation_x_mm",
-        "centreline_deviation_y_mm",
+        *RECORD_KEYS,  # Table 4, absolute values (the acceptance record's keys)
         "position_error_mm",
         "angle_error_deg",
         "gap_error_mm",
         "cycle_time_s",
     ),
 }
-#: Figures whose limit is a lower bound (a run passes at or above it).
-HIGHER_IS_BETTER = frozenset({"min_stability_margin_m"})
 #: The attitude targets' figures (the demo's examples).
 FIGURES = FIGURES_OF["attitude_targets"]
 
 #: The demo's tolerances: the default limits of attitude targets.
-DEMO_LIMITS: dict[str, float] = {
-    "attitude_error_deg": ATTITUDE_TOL_DEG,
-    "max_twist_mm": TWIST_TOL_MM,
-    "sync_error_mm": SYNC_TOL_MM,
-}
+DEMO_LIMITS: dict[str, float] = limits(ATTITUDE_GOALS)
 
 
 def figure_margin(name: str, value: float, limit: float) -> float:
@@ -371,40 +362,15 @@ class CampaignSpec(Strict):
 
 
 def default_limits(kind: str, project: ProjectConfig) -> dict[str, float]:
-    """The goals a run of ``kind`` is judged against when the spec sets no limits: the
-    demo's tolerances (attitude targets), ``wara walk``'s goals, ``wara cycle``'s (Table
-    4 of the project's ``acceptance``, the simulation goals, ``cycle.max_cycle_time_min``)."""
+    """The goals a run of ``kind`` is judged against when the spec sets no limits, read
+    from ``project`` (:mod:`wara.goals`): the attitude examples' goals, a walk's step
+    goals (``wara walk``'s), a ring cycle's (``wara cycle``'s: Table 4 of the project's
+    ``acceptance``, the placement goals, ``cycle.max_cycle_time_min``)."""
     if kind == "attitude_targets":
         return dict(DEMO_LIMITS)
     if kind == "walk":
-        from wara import walk
-
-        return {
-            "distance_error_mm": units.to_mm(walk.STEP_LENGTH_TOL_M),
-            "max_leg_sync_error_mm": walk.LEG_SYNC_MM,
-            "max_travel_sync_error_mm": walk.TRAVEL_SYNC_MM,
-            "max_transfer_attitude_change_deg": walk.ATTITUDE_CHANGE_DEG,
-            "max_leg_force_ratio": walk.FORCE_RATIO,
-            "min_stability_margin_m": walk.MIN_MARGIN_M,
-            "max_step_duration_s": walk.STEP_S,
-        }
-    from wara.placement_run import GOAL_DEG, GOAL_MM
-
-    acc = project.acceptance
-    cyc = project.cycle
-    out = {
-        "vertical_misalignment_mm": acc.vertical_misalignment_mm,
-        "horizontal_misalignment_mm": acc.horizontal_misalignment_mm,
-        "gap_mm": acc.max_gap_mm,
-        "centreline_deviation_x_mm": acc.centreline_deviation_x_mm,
-        "centreline_deviation_y_mm": acc.centreline_deviation_y_mm,
-        "position_error_mm": GOAL_MM,
-        "angle_error_deg": GOAL_DEG,
-        "gap_error_mm": GOAL_MM,
-    }
-    if cyc is not None:
-        out["cycle_time_s"] = 60.0 * cyc.max_cycle_time_min
-    return out
+        return limits(walk_step_goals(project))
+    return limits(ring_goals(project))
 
 
 # --------------------------------------------------------------------------- loading

@@ -27,6 +27,7 @@ BENCHES: dict[str, str] = {
     "opcua": "wara.benches.opcua:run",
     "harness": "wara.benches.harness:run",
     "wire": "wara.benches.wire:run",
+    "figures": "wara.benches.figures:run",
 }
 
 #: the benches that take ``--baseline DIR`` (this checkout against DIR's, in one run)
@@ -65,7 +66,27 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--realtime",
         action="store_true",
-        help="demo: the ring cycles on the wall clock (wara demo --realtime)",
+        help="demo: the ring cycles on the wall clock (wara demo --realtime); "
+        "figures: also the figures measured on the wall clock",
+    )
+    p.add_argument(
+        "--only",
+        default=None,
+        metavar="NAME,...",
+        help="figures: measure these figures alone (the others keep their last values)",
+    )
+    p.add_argument(
+        "--out",
+        default=None,
+        metavar="PAGE",
+        help="figures: the page to write (default docs/figures.md; its store beside it)",
+    )
+    p.add_argument(
+        "--readme",
+        default=None,
+        metavar="PATH",
+        help="figures: the README whose headline table to write (default: the one above "
+        "the page's directory; '-': none)",
     )
     # Hidden: the re-execution inside the namespace (opcua).
     p.add_argument("--inside-netns", default=None, help=argparse.SUPPRESS)
@@ -76,8 +97,15 @@ def _run(args: argparse.Namespace) -> int:
     from wara.cli import UsageError
 
     for opt in ("cpu_hog", "attitude", "realtime"):
-        if args.name != "demo" and getattr(args, opt):
+        if (
+            args.name != "demo"
+            and getattr(args, opt)
+            and (args.name, opt) != ("figures", "realtime")
+        ):
             raise UsageError(f"--{opt.replace('_', '-')} goes with `wara bench demo`")
+    for opt in ("only", "out", "readme"):
+        if args.name != "figures" and getattr(args, opt) is not None:
+            raise UsageError(f"--{opt} goes with `wara bench figures`")
     if args.attitude and args.realtime:
         raise UsageError(
             "--realtime goes with the ring cycles (the attitude examples run in real time)"

@@ -91,7 +91,6 @@ def run(args: argparse.Namespace) -> int:
         print(f"wara cycle: refused: {out['refused']}", file=sys.stderr)
         return EXIT_INFEASIBLE
     if not out["passed"]:
-        why = out["error"] or "a goal missed"
-        print(f"wara cycle: FAILED: {why}", file=sys.stderr)
+        print(f"wara cycle: FAILED: {'; '.join(out['missed'])}", file=sys.stderr)
         return EXIT_FAILED
     return EXIT_OK

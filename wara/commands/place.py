@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 from typing import Any
 
 from acceptance.store import AcceptanceStore, StoreError, default_db_path
@@ -212,25 +213,37 @@ def render(p: PlacementPlan) -> str:
 
 
 def run_move(args: argparse.Namespace) -> int:
-    from wara.placement_run import run_placement_lockstep  # the simulator: only here
+    from wara.place import run_place  # the simulator: only here
 
     cfg = _placement_config(args.config)
     if not 2 <= args.ring <= 99_999:
         raise UsageError(f"--ring must be within 2..99999, got {args.ring}")
     dev = Pose() if args.previous_deviation is None else parse_deviation(args.previous_deviation)
-    result = run_placement_lockstep(cfg, args.ring, dev)
+    from ipc_app.service.logs import configure_logging
+
+    # the service's log to stderr as JSON lines (warnings and faults), never into stdout
+    logs = configure_logging("WARNING")
+    try:
+        result = run_place(args.config, args.ring, dev, cfg=cfg)
+    finally:
+        logs.stop()
     if args.json:
         print(json.dumps(result, indent=2))
     else:
         print(render_move(result))
-    if not result["plan"]["feasible"]:
+    if result["refused"] is not None:
         return EXIT_INFEASIBLE
-    return EXIT_OK if result["passed"] else EXIT_FAILED
+    if not result["passed"]:
+        print(f"wara place run: FAILED: {'; '.join(result.get('missed') or [])}", file=sys.stderr)
+        return EXIT_FAILED
+    return EXIT_OK
 
 
 def render_move(r: dict[str, Any]) -> str:
     if "goals" not in r:
-        return "REFUSED: " + "; ".join(r.get("reasons", []))
+        return ("REFUSED: " if r["refused"] else "FAILED: ") + "; ".join(
+            r.get("reasons") or [str(r.get("error"))]
+        )
     e = r["error_from_target"]
     lines = [
         f"ring {r['ring']}: {'PASSED' if r['passed'] else 'FAILED'} "
@@ -239,10 +252,14 @@ def render_move(r: dict[str, Any]) -> str:
         + ", ".join(f"{k} {v:+.4f}" for k, v in e.items()),
         f"gap error {r['gap_error_mm']:+.4f} mm; largest sync error "
         f"{r['max_sync_error_mm']:.3f} mm",
-        "goals: " + ", ".join(f"{k} {'ok' if v else 'MISSED'}" for k, v in r["goals"].items()),
         "",
-        f"{'Table 4 item (truth)':<28} {'value':>10} {'limit':>8}",
+        f"{'goal':<28} {'value':>10} {'limit':>8}  verdict",
     ]
+    for key, g in r["goals"].items():
+        lines.append(
+            f"{key:<28} {g['value']:>10.4f} {g['limit']:>8g}  {'ok' if g['met'] else 'MISSED'}"
+        )
+    lines += ["", f"{'Table 4 item (truth)':<28} {'value':>10} {'limit':>8}"]
     for key, item in r["table4_truth"].items():
         lim = "-" if item["limit"] is None else f"{item['limit']:g}"
         lines.append(f"{key:<28} {item['value']:>10.3f} {lim:>8}")

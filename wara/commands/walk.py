@@ -139,8 +139,7 @@ def run_walk_cmd(args: argparse.Namespace) -> int:
         print(f"wara walk: refused: {out['error']}", file=sys.stderr)
         return EXIT_INFEASIBLE
     if not out["passed"]:
-        why = "; ".join(out["fault_reasons"]) or out.get("error") or "a goal missed"
-        print(f"wara walk: FAILED: service {out['final_mode']}: {why}", file=sys.stderr)
+        print(f"wara walk: FAILED: {'; '.join(out['missed'])}", file=sys.stderr)
         return EXIT_FAILED
     return EXIT_OK
 

@@ -40,7 +40,7 @@ from config.loader import validate_data
 from config.schema import ProjectConfig
 from ipc_app.service.modes import Mode
 from ipc_app.service.worker import PlannerWorker
-from wara.examples import SYNC_TOL_MM
+from wara.goals import SYNC_TOL_MM
 from wara.harness import Harness
 from wara.studies import DEFAULT_DELAYS_MS, REQUIRED_MS
 

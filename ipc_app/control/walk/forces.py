@@ -1,0 +1,203 @@
+"""The walk's force estimates (docs/walking.md, "Expected shares" and "One instant for
+the checks"): what each leg puts on the body, from pressures sampled at different
+instants, less its rod's friction; and the body's equilibrium the expected shares and
+the releasing legs' rates come from.
+
+- :class:`RodFriction`: each leg's rod friction from its measured motion.
+- :class:`LegForceSamples`: the legs' forces taken at one instant.
+- :func:`equilibrium_matrix`, :func:`min_norm_forces` and :class:`HeldLegShares`: the
+  body's equilibrium (heave, roll, pitch) on the eight legs, the minimum-norm forces of
+  some legs that give a load, a held leg's share of what the others leave.
+
+Constant work per cycle: eight legs, on plain floats where numpy's overhead would
+dominate (the results are those numpy would give, element by element).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from ipc_app.model.support import WalkingMachine
+
+FloatArray = NDArray[np.float64]
+
+
+class RodFriction:
+    """Each leg's rod friction (8,), N, opposing its measured motion (extending
+    positive): its plant's Coulomb friction (full above :attr:`COULOMB_SPEED_M_S`) and
+    viscous damping (``config.derived.viscous_damping_n_s_m``) at the rod's speed over
+    :attr:`MOTION_WINDOW_S`. The pressures carry it on top of what the leg puts on the
+    body."""
+
+    #: a lowering rod's speed is taken over this window (the pressures' 50 ms cycle), s
+    MOTION_WINDOW_S = 0.05
+    #: a rod's Coulomb friction is taken full above this speed, linear below, m/s: near
+    #: standstill its sign is not known (the speed over :attr:`MOTION_WINDOW_S` of 1 um
+    #: positions, a rod stopping or reversing within the window; the rig's friction is
+    #: smooth over some 0.3-0.5 mm/s, docs/hil.md); with 0.1 mm/s the estimate of a
+    #: standing leg's force swung by the whole 2 kN as its measured speed crossed zero
+    COULOMB_SPEED_M_S = 5e-4
+
+    def __init__(self, coulomb_n: FloatArray, viscous_n_s_m: FloatArray, period_s: float) -> None:
+        #: each leg's Coulomb friction, N, and viscous damping, N s/m
+        self.coulomb_n = coulomb_n
+        self.viscous_n_s_m = viscous_n_s_m
+        self._friction = list(zip(coulomb_n.tolist(), viscous_n_s_m.tolist(), strict=True))
+        rows = max(2, round(self.MOTION_WINDOW_S / period_s) + 1)
+        #: the legs' last rod positions over :attr:`MOTION_WINDOW_S` (a ring), m, the
+        #: machine time of each row, s, and the row the next cycle writes
+        self.positions_m = np.zeros((rows, 8))
+        self.times_s = [0.0] * rows
+        self.next_row = 0
+
+    def restart(self, now_s: float, leg_positions_m: FloatArray) -> None:
+        """Every row at the legs' positions now: at rest."""
+        self.positions_m[:] = leg_positions_m
+        self.times_s = [now_s] * len(self.times_s)
+
+    def record(self, now_s: float, leg_positions_m: FloatArray) -> None:
+        """This cycle's rod positions of the eight legs."""
+        row = self.next_row % self.positions_m.shape[0]
+        self.positions_m[row] = leg_positions_m
+        self.times_s[row] = now_s
+        self.next_row += 1
+
+    def friction_n(self) -> FloatArray:
+        """Each leg's rod friction now (8,), N.
+
+        The speed is over the samples' own times: across a stop (a suspension, a hold)
+        the window's oldest sample is from before it, and taken as one window old it
+        read a standing leg's creep as several times as fast (10-20 kN of viscous
+        friction after a 140 ms suspension, an overload)."""
+        n = self.positions_m.shape[0]
+        k_new, k_old = (self.next_row - 1) % n, self.next_row % n
+        newest = self.positions_m[k_new].tolist()
+        oldest = self.positions_m[k_old].tolist()
+        span_s = self.times_s[k_new] - self.times_s[k_old]
+        c_speed = self.COULOMB_SPEED_M_S
+        out = [0.0] * 8
+        if not span_s > 0.0:
+            return np.array(out)
+        for j, (coulomb, viscous) in enumerate(self._friction):
+            v = (newest[j] - oldest[j]) / span_s
+            c = v / c_speed
+            c = -1.0 if c < -1.0 else (1.0 if c > 1.0 else c)
+            out[j] = coulomb * c + viscous * v
+        return np.array(out)
+
+
+class LegForceSamples:
+    """The legs' last two pressure samples, to take their forces at one instant.
+
+    The PLC samples each cylinder's pressures at its fast cycle (50 ms), the frames of
+    different cylinders at different instants; while feet touch down or take load the
+    forces change by up to some 10 kN within that cycle, and a standing leg's force from
+    one instant judged against a share computed from the others' forces of another is
+    off by as much (seen: 113 % of the share in the touch-down of M while S stands,
+    every leg within 2 % of its share in the simulator's truth). So each leg's force is
+    taken at the instant of the oldest latest sample: a leg sampled since is
+    interpolated between its last two samples."""
+
+    def __init__(self, legs: list[int]) -> None:
+        #: each leg's ``can_index`` (where its sample's age is)
+        self.legs = legs
+        #: each leg's last two samples: cap-side force, N, and sample time, s
+        self._f_last = [0.0] * 8
+        self._f_prev = [0.0] * 8
+        self._t_last = [-math.inf] * 8
+        self._t_prev = [-math.inf] * 8
+
+    def aligned_n(self, now_s: float, force_n: FloatArray, age_s: FloatArray | None) -> FloatArray:
+        """The legs' cap-side forces (8,) at one instant, N, from this cycle's
+        ``force_n`` and each cylinder's sample age (19,), s (None: all of ``now_s``)."""
+        if age_s is None:
+            return force_n
+        ages = np.asarray(age_s, dtype=float).tolist()
+        fs = force_n.tolist()
+        t_last, t_prev = self._t_last, self._t_prev
+        f_last, f_prev = self._f_last, self._f_prev
+        for j, i in enumerate(self.legs):
+            t = now_s - ages[i]
+            if not math.isfinite(t):
+                continue
+            if t > t_last[j] + 1e-9:
+                f_prev[j], t_prev[j] = f_last[j], t_last[j]
+                t_last[j] = t
+            f_last[j] = fs[j]
+        known = [t for t in t_last if math.isfinite(t)]
+        if not known:
+            return force_n
+        t_c = min(known)
+        for j in range(8):
+            t1, t0 = t_last[j], t_prev[j]
+            if math.isfinite(t0) and t1 > t_c and t1 > t0:
+                w = min(1.0, max(0.0, (t_c - t0) / (t1 - t0)))
+                fs[j] = f_prev[j] + w * (f_last[j] - f_prev[j])
+        return np.array(fs)
+
+
+def equilibrium_matrix(machine: WalkingMachine, x_s: float) -> FloatArray:
+    """(3, 8): what each leg's vertical force adds to the body's vertical force and to
+    its moments about x and y (its position's y and -x), S at ``x_s``."""
+    a = np.empty((3, 8))
+    a[0] = 1.0
+    # WalkingMachine.legs_xy(x_s) written out: S's legs shifted by (x_s, 0)
+    a[1, :4] = machine.main_legs_xy[:, 1]
+    a[1, 4:] = machine.sub_legs_xy[:, 1] + 0.0
+    a[2, :4] = -machine.main_legs_xy[:, 0]
+    a[2, 4:] = -(machine.sub_legs_xy[:, 0] + x_s)
+    return a
+
+
+def min_norm_forces(a: FloatArray, legs: list[int], rhs: FloatArray) -> FloatArray:
+    """The minimum-norm forces of ``legs`` whose sum through ``a`` is ``rhs``."""
+    a_r = a[:, legs]
+    return a_r.T @ np.linalg.solve(a_r @ a_r.T, rhs)
+
+
+class HeldLegShares:
+    """Expected forces: a leg held in position carries its minimum-norm share of what
+    the other legs leave of the load (the body's equilibrium with their forces on it);
+    the others the plan's force.
+
+    What depends on the legs' positions and the load alone is kept while they stay
+    (every cycle of a phase but a travel); :meth:`clear` when the machine changes."""
+
+    def __init__(self) -> None:
+        self._parts: tuple[Any, ...] | None = None
+
+    def clear(self) -> None:
+        self._parts = None
+
+    def expected_n(
+        self,
+        machine: WalkingMachine,
+        x_s: float,
+        eight_leg_share_n: FloatArray,
+        contact_n: FloatArray,
+        plan_n: FloatArray,
+        held: list[int],
+    ) -> FloatArray:
+        """``plan_n`` with the ``held`` legs' entries their share of the load
+        (``eight_leg_share_n``'s, any equilibrium gives it) less what the other legs'
+        ``contact_n`` carry, S at ``x_s``."""
+        key = (x_s, tuple(held))
+        c = self._parts
+        if c is None or c[0] != key or c[1] is not eight_leg_share_n:
+            others = [j for j in range(8) if j not in held]
+            a = equilibrium_matrix(machine, x_s)
+            a_r = a[:, held]
+            # (key, the share, the load, others, a's columns of the others, of the held
+            # legs, and the held legs' normal matrix)
+            c = (key, eight_leg_share_n, a @ eight_leg_share_n, others, a[:, others], a_r,
+                 a_r @ a_r.T)  # fmt: skip
+            self._parts = c
+        _key, _share, load, others, a_o, a_r, normal = c
+        rest = load - a_o @ contact_n[others]
+        out = plan_n.copy()
+        out[held] = a_r.T @ np.linalg.solve(normal, rest)  # min_norm_forces, its parts kept
+        return out

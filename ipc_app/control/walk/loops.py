@@ -1,0 +1,282 @@
+"""The walk's loops and what they measure: :class:`WalkLoops`, the base of
+:class:`~ipc_app.control.walk.sequencer.WalkSequencer`, which drives them phase by phase.
+
+- **Position control with synchronization** for the legs that lift or lower and for the
+  travel pair: one LADRC per walk cylinder (``control.ladrc``, the attitude loops'
+  tuning and feed-forward), coupled in its moving group by the dual-error feedback of
+  :class:`~ipc_app.control.sync.SyncGroup` (the sequencer's, with the group's band).
+- **Force (pressure) control** for the legs in touch-down, preload and transfer: the
+  same LADRC on the cap-side force ``p_A A_A - p_B A_B``; ``b0`` is the position ``b0``
+  times the leg's stiffness against the invert (oil column in series with the
+  contact), bandwidths ``walking.force_wc_rad_s`` and ``force_wo_rad_s``.
+- **The twist mode** of a frame standing in position control: a force loop on its legs'
+  twist sets that mode's share of their valve commands (:meth:`WalkLoops._twist_control`).
+- **The hold** of every other walk cylinder (:meth:`WalkLoops._hold`): in the active
+  group with its LADRC; outside it (frames at the slow cycle) with a slow proportional
+  hold (:attr:`WalkLoops.SLOW_HOLD_RAD_S`).
+- **The machine's statics and the legs' forces** as the checks see them: shares and
+  margins from the measured upper platform (the workpiece's COG), the legs' forces at
+  one instant less their rods' friction (:mod:`ipc_app.control.walk.forces`).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import NDArray
+
+from config.derived import hydraulic_stiffness_n_m, viscous_damping_n_s_m
+from config.schema import ProjectConfig
+from ipc_app.control.ladrc import LADRC
+from ipc_app.control.plant_gain import cylinder_b0
+from ipc_app.control.walk.forces import HeldLegShares, LegForceSamples, RodFriction
+from ipc_app.control.walk.phases import MAIN, PHASES, SUB, PhaseKind, PhaseRun
+from ipc_app.model.kinematics import fit_layer
+from ipc_app.model.support import (
+    WalkingMachine,
+    cap_side_forces_n,
+    cog_projection,
+    stability_margin,
+    support_forces,
+)
+from ipc_app.planner.walk import Phase, WalkPlan
+
+FloatArray = NDArray[np.float64]
+
+#: the twist mode of four legs at (s_i a, t_i b): legs 1 and 3 against 2 and 4
+TWIST = np.array((1.0, -1.0, 1.0, -1.0))
+
+
+def twist_part(values: FloatArray) -> FloatArray:
+    """The twist mode's part of four legs' ``values`` (:data:`TWIST`)."""
+    return TWIST * float(TWIST @ values) / 4
+
+
+class WalkLoops:
+    """The walk cylinders' loops, the machine's statics and the legs' force estimates
+    of one walk plan; see the module docstring."""
+
+    #: slow hold of a walk cylinder outside the active group: command = gain * error / b0
+    SLOW_HOLD_RAD_S = 1.0
+
+    def __init__(self, cfg: ProjectConfig, period_s: float, plan: WalkPlan) -> None:
+        if cfg.walking is None or cfg.frames is None:
+            raise ValueError("the project has no frames and walking sections: it cannot walk")
+        self.cfg = cfg
+        self.walk = cfg.walking
+        self.period_s = period_s
+        self.plan = plan
+        #: the present phase (None: before the first)
+        self.run: PhaseRun | None = None
+        self.n = len(cfg.cylinders)
+        self.leg_ids = plan.leg_ids
+        self.legs = [cfg.cylinder(c).can_index for c in self.leg_ids]
+        travel = [c for c in cfg.cylinders_by_can_index if c.role == "travel"]
+        self.travel = [c.can_index for c in travel]
+        self.upper = [cfg.cylinder(c).can_index for c in cfg.layers.upper.cylinders]
+        self.walk_cylinders = self.legs + self.travel + self.upper
+        by_index = cfg.cylinders_by_can_index
+        self.half = np.array([c.stroke_m / 2 for c in by_index])
+        #: the travel pair's extension with S centred under M (``e_0``), m
+        self.centred_stroke_m = travel[0].stroke_m / 2
+        self.cap_area_m2 = np.array([c.cap_area_m2 for c in by_index])
+        self.rod_area_m2 = np.array([c.rod_area_m2 for c in by_index])
+        ctl = cfg.control
+        self.feedforward = ctl.ladrc.reference_feedforward
+        self.b0 = np.zeros(self.n)
+        self.pos: dict[int, LADRC] = {}
+        for i in self.walk_cylinders:
+            cyl = by_index[i]
+            self.b0[i] = cylinder_b0(cyl, cfg.hydraulics, order=ctl.ladrc.order)
+            self.pos[i] = LADRC.from_config(ctl.ladrc, float(self.b0[i]), period_s)
+        self.k_contact = self.walk.contact.stiffness_n_m
+        #: each leg's rod friction (its plant's): Coulomb, N, and viscous, N s/m
+        plants = [(by_index[i], cfg.plant_of(by_index[i])) for i in self.legs]
+        self.coulomb_n = np.array([pl.coulomb_friction_n for _c, pl in plants])
+        self.viscous_n_s_m = np.array(
+            [viscous_damping_n_s_m(c, pl, cfg.hydraulics) for c, pl in plants]
+        )
+        self.rod_friction = RodFriction(self.coulomb_n, self.viscous_n_s_m, period_s)
+        self.force_samples = LegForceSamples(self.legs)
+        self.force: dict[int, LADRC] = {}
+        for i in self.legs:
+            cyl = by_index[i]
+            k_h = hydraulic_stiffness_n_m(cyl, cfg.plant_of(cyl), cfg.hydraulics)
+            k = 1.0 / (1.0 / k_h + 1.0 / self.k_contact)
+            b0 = cylinder_b0(cyl, cfg.hydraulics, order=1) * k
+            self.force[i] = LADRC(
+                1, b0, self.walk.force_wc_rad_s, self.walk.force_wo_rad_s, period_s,
+                rate_limit=ctl.ladrc.rate_limit_per_s,
+            )  # fmt: skip
+        #: the legs (``can_index``) in force control
+        self.force_mode: set[int] = set()
+        #: the twist-mode controller of a standing frame: a force loop on its legs'
+        #: twist, the mode's share of their valve commands (:meth:`_twist_control`)
+        b0_f = float(np.mean([self.force[self.legs[j]].b0 for j in SUB]))
+        self.twist = LADRC(
+            1, b0_f, self.walk.twist_bandwidth_rad_s, self.walk.twist_observer_rad_s, period_s,
+            rate_limit=ctl.ladrc.rate_limit_per_s,
+        )  # fmt: skip
+        self._twist_frame_now: tuple[int, ...] = ()
+        self._twist_started = False
+        self.machine = WalkingMachine(cfg, unloaded=plan.unloaded, standing=plan.standing)
+        #: the eight-leg shares by S's position, per mm (emptied at each phase's start)
+        self._share_cache: dict[int, tuple[float, FloatArray]] = {}
+        self.held_shares = HeldLegShares()
+
+    def _key_now(self) -> str:
+        """The present phase's key (before the first: the plan's first phase's)."""
+        return self.run.phase.key if self.run is not None else self.plan.phases[0].key
+
+    # ----------------------------------------------------------------- the machine
+
+    def forces_n(self, p: FloatArray) -> FloatArray:
+        """Cap-side force of each leg (8,), N: ``p_A A_A - p_B A_B``."""
+        idx = self.legs
+        return cap_side_forces_n(p[idx], self.cap_area_m2[idx], self.rod_area_m2[idx])
+
+    def x_s(self, x: FloatArray) -> float:
+        """S's position along the rails, measured: the travel pair's mean less ``e_0``
+        (summed in order and divided, as ``np.mean`` of so few values does)."""
+        total = 0.0
+        for i in self.travel:
+            total += float(x[i])
+        return total / len(self.travel) - self.centred_stroke_m
+
+    def set_upper(self, x: FloatArray) -> None:
+        """The upper platform's attitude fixes the workpiece's COG: from its rods."""
+        up = self.cfg.layers.upper
+        fit = fit_layer(x[self.upper] - self.half[self.upper], up.a_m, up.b_m)
+        self.machine = WalkingMachine(
+            self.cfg, float(fit.roll), float(fit.pitch), self.plan.unloaded, self.plan.standing
+        )
+        self.held_shares.clear()
+
+    def share(self, x_s: float, legs: tuple[int, ...]) -> FloatArray:
+        """Expected forces (8,) with ``legs`` standing (minimum norm), N."""
+        out = np.zeros(8)
+        pts = self.machine.legs_xy(x_s)[list(legs)]
+        out[list(legs)] = support_forces(
+            pts, self.machine.mass_kg, self.machine.cog(x_s), self.machine.g_base
+        )
+        return out
+
+    def _share8(self, x_s: float) -> FloatArray:
+        """The eight-leg share (8,) with S at ``x_s``, N (kept per mm within a phase)."""
+        key = round(x_s * 1e3)
+        hit = self._share_cache.get(key)
+        if hit is None:
+            hit = (x_s, self.share(x_s, MAIN + SUB))
+            self._share_cache[key] = hit
+        return hit[1]
+
+    def margin(self, x_s: float, legs: tuple[int, ...]) -> float:
+        """The static stability margin with ``legs`` standing, S at ``x_s``, m."""
+        point = cog_projection(self.machine.cog(x_s), self.machine.g_base)
+        return stability_margin(self.machine.legs_xy(x_s)[list(legs)], point)
+
+    @staticmethod
+    def _frame(ids: tuple[str, ...], leg_ids: tuple[str, ...]) -> tuple[int, ...]:
+        return tuple(leg_ids.index(c) for c in ids if c in leg_ids)
+
+    def friction_n(self) -> FloatArray:
+        """Each leg's rod friction now (8,), N (:class:`~.forces.RodFriction`)."""
+        return self.rod_friction.friction_n()
+
+    def aligned_forces_n(self, now: float, f: FloatArray, age_s: FloatArray | None) -> FloatArray:
+        """The legs' cap-side forces (8,) at one instant, N, for the checks
+        (:class:`~.forces.LegForceSamples`)."""
+        return self.force_samples.aligned_n(now, f, age_s)
+
+    # ----------------------------------------------------------------- the hold
+
+    def _hold(
+        self,
+        u: FloatArray,
+        refs: FloatArray,
+        rates: FloatArray,
+        x: FloatArray,
+        active: set[int],
+        skip: set[int] | None = None,
+        known: dict[int, float] | None = None,
+    ) -> None:
+        """Position control of every walk cylinder not in force control: LADRC in the
+        active group, the slow proportional hold outside it. ``known``: a rod speed the
+        loop is told of (its oil column's decompression, m/s)."""
+        for i in self.walk_cylinders:
+            if skip and i in skip:
+                continue
+            if i in active:
+                d = known.get(i, 0.0) if known else 0.0
+                u[i] = self.pos[i].update(float(refs[i]), float(x[i]), float(rates[i]), d)
+            else:
+                e = float(refs[i] - x[i])
+                u[i] = max(-1.0, min(1.0, self.SLOW_HOLD_RAD_S * e / self.b0[i]))
+                self.pos[i].reset(float(x[i]), u[i])
+
+    # ----------------------------------------------------------------- the twist mode
+
+    def _twist_frame(self, ph: Phase) -> tuple[int, ...]:
+        """The frame whose twist mode is controlled in phase ``ph``: the one that stands
+        in position control while the travel pair moves (alone on the invert) or while
+        the other frame lowers and preloads; none in a lift or a transfer."""
+        role = PHASES[ph.key]
+        return role.standing if role.kind.holds_twist else ()
+
+    def _twist_position(
+        self, refs: FloatArray, x: FloatArray, frame: tuple[int, ...], active: set[int]
+    ) -> tuple[int, ...]:
+        """The frame whose twist this cycle's :meth:`_twist_control` sets (``()``: none):
+        ``frame`` when its four legs stand in position control in the active group. Its
+        position references take the measured rods' twist: its position loops see no
+        error in that mode (the twist loop's, in force)."""
+        if frame != self._twist_frame_now:
+            self._twist_frame_now = frame
+            self._twist_started = False
+        idx = [self.legs[j] for j in frame]
+        if len(frame) != 4 or any(i in self.force_mode or i not in active for i in idx):
+            self._twist_started = False
+            return ()
+        refs[idx] += twist_part(x[idx] - refs[idx])
+        return frame
+
+    def _twist_control(
+        self, u: FloatArray, f: FloatArray, plan_f: FloatArray, frame: tuple[int, ...]
+    ) -> None:
+        """The twist-mode controller of a frame standing in position control.
+
+        Four legs standing on four feet are statically indeterminate: three of their
+        four force patterns (heave, roll, pitch) follow from the body's equilibrium, the
+        fourth, the twist (legs 1 and 3 against 2 and 4, ``T = (F1 - F2 + F3 - F4) / 4``,
+        self-equilibrated on the rectangle), only from the legs' heights, where the body
+        does not move: the oil columns and the feet's contacts in series take all of it
+        (30 um of twist in the rods is 6 kN in the feet), and a position loop tuned on the
+        free rod has a quarter of its gain there. So the frame's commands are modal: the
+        position loops (blind to the twist, :meth:`_twist_position`) set heave, roll and
+        pitch, and the twist's share of the four commands is a first-order LADRC on ``T``
+        of the legs' forces (``f``, the checks' forces on the body) against the plan's
+        (``plan_f``; minimum norm: none), with the force loops' ``b0`` (the legs'
+        stiffness in series with the contact), crossover ``walking.twist_bandwidth_rad_s``
+        and observer bandwidth ``walking.twist_observer_rad_s`` while the travel pair
+        moves and ``walking.twist_observer_touchdown_rad_s`` while the other frame lowers
+        and preloads (switched with the state kept). Each position loop's observer is
+        told the command applied (:meth:`LADRC.apply`). The state carries over from one
+        phase to the next while the same frame stays controlled."""
+        if len(frame) != 4:
+            return
+        self.twist.set_observer(
+            self.walk.twist_observer_rad_s
+            if PHASES[self._key_now()].kind is PhaseKind.TRAVEL
+            else self.walk.twist_observer_touchdown_rad_s
+        )
+        idx = [self.legs[j] for j in frame]
+        twist_now_n = float(TWIST @ f[list(frame)]) / 4
+        twist_ref_n = float(TWIST @ plan_f[list(frame)]) / 4
+        u_pos = u[idx]
+        u_twist_pos = float(TWIST @ u_pos) / 4
+        if not self._twist_started:
+            self.twist.reset(twist_now_n, u_twist_pos)
+            self._twist_started = True
+        u_twist = self.twist.update(twist_ref_n, twist_now_n)
+        u_all = u_pos + TWIST * (u_twist - u_twist_pos)
+        for k, i in enumerate(idx):
+            u[i] = self.pos[i].apply(float(u_all[k]))
