@@ -71,6 +71,11 @@ class Cycle(Strict):
     survey_noise_mm: Annotated[Finite, Field(ge=0, le=10)] = 1.0
     #: a ring cycle's machine time, the fixing hold excluded, is judged against this
     max_cycle_time_min: Annotated[Finite, Field(gt=0, le=600)] = 15.0
+    #: a motion of the ring cycle (a walk, the placement, the release) not ended this
+    #: long after it was asked for, holds and ride-throughs included, is stuck: the
+    #: cycle ends in its phase, the machine stopped (a backstop: each motion's own
+    #: interlocks end one that goes wrong much sooner)
+    max_motion_min: Annotated[Finite, Field(gt=0, le=600)] = 60.0
     #: the release: the upper layer's four cylinders lower together at this speed ...
     release_speed_mm_s: Annotated[Finite, Field(gt=0, le=20)] = 1.0
     #: ... until every upper cylinder's load pressure (rod force over cap area) is within
@@ -86,6 +91,10 @@ class Cycle(Strict):
     @property
     def survey_noise_m(self) -> float:
         return units.mm(self.survey_noise_mm)
+
+    @property
+    def max_motion_s(self) -> float:
+        return 60.0 * self.max_motion_min
 
     @property
     def release_speed_m_s(self) -> float:

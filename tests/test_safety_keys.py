@@ -139,9 +139,9 @@ def max_suspend(cfg: ProjectConfig) -> Any:
         core.modes.boot_complete()
         core.modes.request_adjust(1.0, 0.0)
         core.modes.plan_ready()
-        core._ride_through(0.0, ["stale"], machine_inputs(cfg, t=0.0))
+        core.motions.ride_through(0.0, ["stale"], machine_inputs(cfg, t=0.0))
         assert core.modes.mode is Mode.SUSPENDED
-        core._ride_through(0.2, ["stale"], machine_inputs(cfg, t=0.2))
+        core.motions.ride_through(0.2, ["stale"], machine_inputs(cfg, t=0.2))
         return core.modes.mode, core.modes.fault_interlocks
     finally:
         core.link.close()

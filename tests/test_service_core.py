@@ -31,6 +31,7 @@ from ipc_app.service.interlocks import (
 )
 from ipc_app.service.machine_io import Handshake
 from ipc_app.service.modes import Mode
+from ipc_app.service.motions.attitude import AdjustMotion, JogMotion
 from ipc_app.service.worker import PlannerWorker, PlanResult
 from plc_bridge.link import (
     ControlWord,
@@ -332,7 +333,8 @@ def _update(core: ServiceCore, inp: Any) -> tuple[ControlWord, ...]:
 
 def _holding(core: ServiceCore, cfg: ProjectConfig, t: float) -> None:
     assert core.modes.request_adjust(1.0, 0.0).accepted and core.modes.plan_ready().accepted
-    core.attitude.engage(_mid(cfg), t, None)  # no trajectory: done at once
+    # no trajectory: done at once
+    core.motions.take(AdjustMotion(core.attitude, None, (1.0, 0.0), None), machine_inputs(cfg, t=t))
     _update(core, machine_inputs(cfg, t=t))
     assert core.modes.mode is Mode.COMPLETE
 
@@ -479,7 +481,10 @@ def test_jog_moves_one_cylinder_at_the_configured_speed_in_manual_only(
     assert core.modes.mode is Mode.IDLE  # PRODUCTION: refused
     assert core.request_unit_mode("MANUAL")["accepted"]
     for bad, dist, why in (("pump_1", 2.0, "not an attitude cylinder"), (cid, 5000.0, "outside")):
-        out = core._do_jog(machine_inputs(project, t=0.2), bad, dist)
+        ticket = core.request_motion(JogMotion, (bad, dist))
+        _update(core, machine_inputs(project, t=0.2))
+        assert ticket.reply is not None
+        out = ticket.reply.to_dict()
         assert out["ok"] is False and why in out["error"]
         assert core.modes.mode is Mode.IDLE
     x0 = _mid(project)
@@ -511,7 +516,7 @@ def test_hold_stops_the_motion_and_unhold_goes_on_where_it_stopped(
     words = _update(core, machine_inputs(project, t=1.01))
     assert core.modes.mode is Mode.HELD and not words[-1].enable
     assert words[-1].state == 11  # PackML Held on the wire
-    stop = core._stop_ref
+    stop = core.motions.stop_ref
     assert stop is not None
     x = stop.copy()
     x[core.active[0]] += 2 * core.limits.max_sync_m  # moved while held: refused

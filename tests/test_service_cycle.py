@@ -172,6 +172,36 @@ def test_a_part_not_fixed_stops_the_release_with_its_interlock(tmp_path: Path) -
 
 
 @pytest.mark.slow
+def test_a_motion_not_ended_in_max_motion_min_ends_the_cycle(tmp_path: Path) -> None:
+    """``cycle.max_motion_min`` bounds each motion the cycle asks for: 0.1 min lets the
+    placement (some 5 s here) through and ends the release (some 8 s) when it runs
+    out: the cycle ends in ``release`` naming the limit, the machine stopped."""
+    cfg = load_project(None)
+    assert cfg.cycle is not None
+    short = cfg.model_copy(update={"cycle": cfg.cycle.model_copy(update={"max_motion_min": 0.1})})
+    h = Harness(short, None, mode="lockstep")
+    try:
+        h.start()
+        assert h.wait_for(Mode.IDLE, 20.0), h.fault_note()
+        previous = previous_from_deviation(short, 2, Pose())
+        assert h.core.request_cycle(2, previous, _Records(), drive=False, walk_steps=0)["ok"]
+        cyc = h.core.ring_cycle
+        assert cyc is not None
+        _run_until(h, cyc, "fixing")
+        h.sim.bolt_part()
+        assert h.core.confirm_fixed("operator A")["ok"]
+        t_end = h.sim.t_s + 20.0
+        while cyc.active and h.sim.t_s < t_end:
+            cyc.tick()
+            h.advance(h.period)
+        assert cyc.stopped_in_phase == "release" and cyc.error == "release did not end within 6 s"
+        h.advance(h.period)
+        assert h.core.modes.mode == Mode.IDLE and not h.core.modes.valves_enabled
+    finally:
+        h.close()
+
+
+@pytest.mark.slow
 def test_a_stop_in_fixing_ends_the_cycle_holding_safely(tmp_path: Path) -> None:
     """``wara ctl stop`` while the part waits for its bolts: the valves close, the
     cycle ends in ``fixing`` (named), nothing is recorded, a confirmation is refused."""

@@ -233,6 +233,7 @@ _EVENTS: dict[str, Any] = {
     "walk": lambda m: m.walk("3 step(s) of 2.000 m"),
     "place": lambda m: m.place("ring 5"),
     "release": lambda m: m.release("ring 5"),
+    "home": lambda m: m.start_motion("home", "each attitude layer to mid-stroke, level"),
     "motion_done": lambda m: m.motion_done(),
     "hold": lambda m: m.hold(),
     "unhold": lambda m: m.unhold(),

@@ -218,7 +218,7 @@ def test_wara_ctl_status_text_shows_the_ride_through(
     ctl = CtlServer(service_handlers(lambda: core, lambda: ctl), short_tmp / "ctl.sock")
     try:
         assert demo.wait_for(Mode.IDLE, 2.0)
-        core.suspends, core.resumes = 3, 2  # as _suspend and _resume count them
+        core.motions.suspends, core.motions.resumes = 3, 2  # as the manager counts them
         demo.advance(demo.period)  # published with the next cycle
         ctl.bind()
         ctl.start()

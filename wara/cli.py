@@ -73,7 +73,7 @@ class _Parser(argparse.ArgumentParser):
 
 def check_walk_steps(steps: int) -> None:
     """``--steps`` of a walk: 1..MAX_WALK_STEPS, the control channel's limit."""
-    from ipc_app.service.ctl import MAX_WALK_STEPS
+    from ipc_app.service.requests import MAX_WALK_STEPS
 
     if not 1 <= steps <= MAX_WALK_STEPS:
         raise UsageError(f"--steps must be within 1..{MAX_WALK_STEPS}, got {steps}")

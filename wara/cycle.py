@@ -47,25 +47,20 @@ from config.hil_scenario import HilScenario
 from config.schema import ProjectConfig
 from ipc_app.model.placement import Pose, deviation, to_ring_frame, tunnel_frame
 from ipc_app.planner.survey import SurveyPoint
-from ipc_app.service.cycle import (
-    MOTION_LIMIT_S,
-    START_LIMIT_S,
-    previous_from_deviation,
-)
+from ipc_app.service.cycle import previous_from_deviation
 from ipc_app.service.modes import Mode
 from ipc_app.service.record import RunRecorder
 from ipc_app.service.worker import PlannerWorker
 from wara.goals import POSITION_TOL_MM, judge, ring_figures, ring_goals
 from wara.harness import Harness
-from wara.place import placed_figures
+from wara.place import motion_limit_s, placed_figures
 from wara.ring_records import StoreRecords
 from wara.walk import walk_scenario
 
-#: A phase not ended within this much machine time: the cycle gives up on it (the
-#: service's own bound on a phase's motion: taken within ``START_LIMIT_S`` of its
-#: request, ended within ``MOTION_LIMIT_S``; here for the phases that wait on the
-#: machine or the operator too).
-PHASE_LIMIT_S = START_LIMIT_S + MOTION_LIMIT_S
+#: The allowance over the project's bound on a motion (``cycle.max_motion_min``) for a
+#: phase that waits on the machine or the operator before its motion, s: past it the
+#: driver gives up on the phase.
+PHASE_ALLOWANCE_S = 5.0
 
 
 class CycleRefused(Exception):
@@ -146,6 +141,7 @@ class _Cycle:
         fixing_since: float | None = None
         settled: Any = None
         waited = 0.0
+        phase_limit_s = motion_limit_s(cfg) + PHASE_ALLOWANCE_S
         part_load_kn: dict[str, float] = {}
         while cyc.active:
             if cyc.phase != self.phase:
@@ -177,8 +173,8 @@ class _Cycle:
                 if not out.get("ok"):
                     raise RuntimeError(f"ring {ring}: {out.get('error')}")
                 continue
-            if waited > PHASE_LIMIT_S:
-                raise RuntimeError(f"ring {ring}'s {cyc.phase} did not end in {PHASE_LIMIT_S:g} s")
+            if waited > phase_limit_s:
+                raise RuntimeError(f"ring {ring}'s {cyc.phase} did not end in {phase_limit_s:g} s")
             self.advance(self.dt)
             waited += self.dt
         self.phase = cyc.stopped_in_phase or cyc.phase

@@ -112,22 +112,29 @@ def run_place(
     out["achieved"] = as_built.to_dict()
     out.update(figures)
     problem = "" if h.core.modes.mode == Mode.COMPLETE else h.fault_note()
-    if status["elapsed_s"] > MOTION_LIMIT_S:
-        problem = f"the placement did not end within {MOTION_LIMIT_S:.0f} s"
+    if status["elapsed_s"] > motion_limit_s(cfg):
+        problem = f"the placement did not end within {motion_limit_s(cfg):.0f} s"
+        problem += " (cycle.max_motion_min)"
     verdict = judge(placement_goals(cfg), placement_figures(figures), problem=problem)
     out.update(verdict.to_dict())
     out["error"] = problem or None
     return _finish(out, h, wall0)
 
 
+def motion_limit_s(cfg: ProjectConfig) -> float:
+    """The bound on a motion's machine time: the project's ``cycle.max_motion_min``, or
+    its default where the project has no ``cycle`` section."""
+    return cfg.cycle.max_motion_s if cfg.cycle is not None else MOTION_LIMIT_S
+
+
 def _follow(h: Harness, on_cycle: Callable[[Harness], None] | None) -> dict[str, Any] | None:
-    """Advance while the placement runs (at most :data:`MOTION_LIMIT_S` of machine time);
+    """Advance while the placement runs (at most ``cycle.max_motion_min`` of machine time);
     its last status (``elapsed_s`` added), None when the service did not take it."""
     dt = h.period if h.mode == "lockstep" else 0.05
     h.advance(dt)  # the loop takes the request
     status = h.core.place_status()
     elapsed = 0.0
-    while status is not None and h.core.modes.mode in MOVING and elapsed <= MOTION_LIMIT_S:
+    while status is not None and h.core.modes.mode in MOVING and elapsed <= motion_limit_s(h.cfg):
         h.advance(dt)
         elapsed += dt
         if on_cycle is not None:

@@ -49,7 +49,8 @@ from ipc_app.opcua import model as m
 from ipc_app.opcua import pki
 from ipc_app.opcua.guard import Guard, GuardedServer
 from ipc_app.opcua.users import CONTROL_ROLES, Users, UsersError, load_users
-from ipc_app.service.ctl import MAX_WALK_STEPS, CtlError, request
+from ipc_app.service.ctl import CtlError, request
+from ipc_app.service.requests import MAX_WALK_STEPS
 
 log = structlog.get_logger("wara.opcua")
 

@@ -40,8 +40,13 @@ Suggested wiring (the loop thread only calls non-blocking methods)::
 Shutdown: ``notifier.stopping()``, ``ctl.stop()``, ``loop.stop()`` (then valves closed),
 ``worker.close()``, ``recorder.stop()``, ``handle.stop()``.
 
-Modules: :mod:`.modes` (operator state machine), :mod:`.loop` (fixed-rate loop, RT
-settings, statistics), :mod:`.worker` (planner process), :mod:`.ctl` (control socket and
-client), :mod:`.record` (run record and reader), :mod:`.logs` (non-blocking JSON logs),
-:mod:`.sdnotify` (systemd notify and watchdog). Deployment: ``deploy/``, docs/deploy.md.
+Modules: :mod:`.core` (the step and the service's requests), :mod:`.motion`,
+:mod:`.manager` and :mod:`.motions` (the motions behind one interface, the active one),
+:mod:`.requests` (every request's limits, the typed reply), :mod:`.cycle` (the ring
+cycle), :mod:`.modes` (operator state machine), :mod:`.interlocks`, :mod:`.machine_io`,
+:mod:`.loop` (fixed-rate loop, RT settings, statistics), :mod:`.worker` (planner
+process), :mod:`.ctl`, :mod:`.ctl_protocol`, :mod:`.ctl_client` (control socket, its
+protocol table, the client), :mod:`.status`, :mod:`.record` (run record and reader),
+:mod:`.logs` (non-blocking JSON logs), :mod:`.sdnotify` (systemd notify and watchdog).
+Deployment: ``deploy/``, docs/deploy.md.
 """

@@ -98,6 +98,7 @@ def service_handlers(
         cycle=lambda r, prev, n, u: _reply(_cycle(core(), records, r, prev, n, u)),
         confirm_fixed=lambda user: _reply(core().confirm_fixed(user)),
         survey=lambda pts, pose: _reply(_survey(core(), pts, pose)),
+        motion=lambda kind, args: _reply(core().start_motion(kind, args, wait_s=wait_s)),
     )
 
 

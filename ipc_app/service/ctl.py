@@ -1,38 +1,9 @@
 """The local control channel: a Unix-domain socket, JSON lines, owner-only.
 
-Protocol: the client writes one JSON object per line, the server answers each with one
-JSON object on one line; a connection may carry several requests (answered in order).
-A last request without its newline is answered when the client half-closes
-(``shutdown(SHUT_WR)``).
-
-=========  ===========================================  =====================================
-command    request                                      reply (besides ``"ok": true``)
-=========  ===========================================  =====================================
-adjust     ``{"cmd": "adjust", "roll_deg": R,           what the service's handler returns,
-           "pitch_deg": P}``                            e.g. ``mode``, ``request_id``
-status     ``{"cmd": "status"}``; with ``"after": N,       the service's status (``mode``, ...,
-           "wait_ms": W``: once ``state_seq`` is no     ``state_seq``: its count of mode
-           longer N, at most W ms (0..1000) later       changes)
-stop       ``{"cmd": "stop"}``                          ``mode``
-reset      ``{"cmd": "reset"}``                         ``mode``
-clear      ``{"cmd": "clear"}``                         ``mode``
-hold       ``{"cmd": "hold"}``                          ``mode``
-unhold     ``{"cmd": "unhold"}``                        ``mode``
-unit_mode  ``{"cmd": "unit_mode", "unit_mode": U}``     ``mode`` (U: PRODUCTION, MAINTENANCE,
-                                                        MANUAL)
-jog        ``{"cmd": "jog", "cylinder": ID,             ``mode``
-           "distance_mm": D}``
-audit      ``{"cmd": "audit", "user": U, "action": A,  nothing: the entry is in the log and
-           "result": R}``                               the run record (the OPC UA server's
-                                                        method calls: who, what, result)
-=========  ===========================================  =====================================
-
-A refused or failed request answers ``{"ok": false, "error": "one line", "code": C}`` with
-``C`` one of ``bad_request`` (not JSON, nested too deeply, unknown command, missing or
-non-finite number, line longer than :data:`MAX_LINE_BYTES`), ``refused`` (the mode
-machine said no, e.g. adjust while ABORTED), ``busy`` (every worker busy with an ``adjust``
-or ``reset``; or no slot for a new client), ``infeasible`` (the planner's ``reasons`` list
-is included) or ``internal`` (a handler raised; logged).
+The protocol (the commands, their arguments and limits, the replies) is
+:mod:`ipc_app.service.ctl_protocol`: one JSON object per line each way; a connection may
+carry several requests (answered in order). A last request without its newline is
+answered when the client half-closes (``shutdown(SHUT_WR)``).
 
 The server (:class:`CtlServer`) is one I/O thread on a selector plus a small fixed pool
 of worker threads; no thread is started per client. ``status`` and ``stop`` are answered
@@ -51,9 +22,9 @@ that connection. Should the thread end nonetheless (a bug), or stall, or the soc
 be removed, :attr:`CtlServer.healthy` turns False and :meth:`CtlServer.health` says why;
 the service treats that as a fault and calls :meth:`CtlServer.restart`.
 
-The handlers (:class:`CtlHandlers`) are injected by the service and run in this module's
-threads, never in the loop thread; they talk to the loop only through thread-safe objects
-(the mode machine, a queue).
+The handlers (:class:`~ipc_app.service.ctl_protocol.CtlHandlers`) are injected by the
+service and run in this module's threads, never in the loop thread; they talk to the loop
+only through thread-safe objects (the mode machine, a queue).
 
 The socket: ``path`` given by the service, else :func:`default_socket_path`
 (``$WARA_CTL_SOCKET``; ``$RUNTIME_DIRECTORY/ctl.sock`` under systemd with
@@ -66,8 +37,8 @@ replaced; a live one is an error (two services would fight over the valves).
 Client: :func:`request` (``wara ctl`` uses it) raises :class:`CtlUnavailable` when no
 service listens; a full listen queue or a ``busy`` answer is retried for a bounded time.
 
-Over 500 lines because the protocol table above, the selector thread, the worker pool
-and the eviction rules are one piece: every limit a rude client meets is here.
+Over 500 lines because the selector thread, the worker pool and the eviction rules are
+one piece: every limit a rude client meets is here.
 """
 
 from __future__ import annotations
@@ -75,380 +46,58 @@ from __future__ import annotations
 import contextlib
 import errno
 import json
-import math
 import os
 import queue
 import selectors
 import socket
 import stat
-import tempfile
 import threading
 import time
 from collections import Counter
-from collections.abc import Callable, Mapping
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import structlog
 
-from config.numbers import check_name, check_text
+from ipc_app.service.ctl_client import (  # the client, for the channel's users
+    MAX_LINE_BYTES,
+    MAX_REPLY_BYTES,
+    SOCKET_NAME,
+    CtlError,
+    CtlUnavailable,
+    default_socket_path,
+    os_reason,
+    request,
+)
+from ipc_app.service.ctl_protocol import (  # the protocol, for the channel's users
+    COMMANDS,
+    INLINE_COMMANDS,
+    TABLE,
+    CtlHandlers,
+    Reply,
+    Request,
+    _error,
+    call,
+    dispatch,
+    parse,
+)
+from ipc_app.service.requests import (  # the limits, for the channel's users
+    MAX_AUDIT_CHARS,
+    MAX_ID_CHARS,
+    MAX_STATUS_WAIT_MS,
+    MAX_SURVEY_POINTS,
+    MAX_WALK_STEPS,
+    check_sheet_deviation,
+)
 
 log = structlog.get_logger("wara.service.ctl")
 
-SOCKET_NAME = "ctl.sock"
-SYSTEM_RUNTIME_DIR = Path("/run/wara")
-MAX_LINE_BYTES = 64 * 1024
-COMMANDS = (
-    "adjust",
-    "status",
-    "stop",
-    "reset",
-    "clear",
-    "hold",
-    "unhold",
-    "unit_mode",
-    "jog",
-    "audit",
-    "walk",
-    "place",
-    "cycle",
-    "confirm_fixed",
-    "survey",
-)
-#: The longest ``result`` an ``audit`` entry may carry.
-MAX_AUDIT_CHARS = 400
-#: The longest cylinder id a ``jog`` request may name.
-MAX_ID_CHARS = 40
-#: Commands answered by the I/O thread itself: quick, and never queued behind others.
-INLINE_COMMANDS = frozenset({"status", "stop"})
-#: Largest reply the client reads (a status is a few KiB).
-MAX_REPLY_BYTES = 16 * MAX_LINE_BYTES
 #: Requests of one connection answered before the other connections get their turn.
 REQUESTS_PER_TURN = 16
 #: The I/O thread wakes at least this often (stop, idle time-outs, the health tick).
 TICK_S = 0.2
-
-Reply = dict[str, Any]
-
-
-#: the most steps one walk request takes
-MAX_WALK_STEPS = 1000
-
-
-class CtlError(Exception):
-    """The control channel could not be used (bad reply, socket in use, ...)."""
-
-
-class CtlUnavailable(CtlError):
-    """No service listens on the socket (not running, wrong path, or no permission)."""
-
-
-def default_socket_path(environ: Mapping[str, str] | None = None) -> Path:
-    """Where the service listens and ``wara ctl`` connects (see the module docstring)."""
-    env = os.environ if environ is None else environ
-    if env.get("WARA_CTL_SOCKET"):
-        return Path(env["WARA_CTL_SOCKET"])
-    if env.get("RUNTIME_DIRECTORY"):
-        return Path(env["RUNTIME_DIRECTORY"].split(":")[0]) / SOCKET_NAME
-    if SYSTEM_RUNTIME_DIR.is_dir():
-        return SYSTEM_RUNTIME_DIR / SOCKET_NAME
-    if env.get("XDG_RUNTIME_DIR"):
-        return Path(env["XDG_RUNTIME_DIR"]) / "wara" / SOCKET_NAME
-    return Path(tempfile.gettempdir()) / f"wara-{os.getuid()}" / SOCKET_NAME
-
-
-@dataclass(frozen=True)
-class CtlHandlers:
-    """What the service does for each command; each returns a JSON-ready dict.
-
-    Return ``{"ok": False, "error": ..., "code": "refused" | "infeasible", ...}`` to
-    refuse; a dict without ``ok`` counts as accepted.
-    """
-
-    adjust: Callable[[float, float], Reply]
-    #: ``status()``, or ``status(after, wait_s)``: once the state count is past ``after``
-    status: Callable[..., Reply]
-    stop: Callable[[], Reply]
-    reset: Callable[[], Reply]
-    #: the PackML commands beyond these four (None: refused as not supported)
-    clear: Callable[[], Reply] | None = None
-    hold: Callable[[], Reply] | None = None
-    unhold: Callable[[], Reply] | None = None
-    unit_mode: Callable[[str], Reply] | None = None
-    jog: Callable[[str, float], Reply] | None = None
-    #: an entry of another front end's audit trail (user, action, result)
-    audit: Callable[[str, str, str], Reply] | None = None
-    #: N steps; the direction (forward, back: checked by the service); unloaded
-    walk: Callable[[int, str, bool], Reply] | None = None
-    #: place ring N's part; the previous part's deviation (y mm, z mm, roll, pitch, yaw deg)
-    place: Callable[[int, tuple[float, ...]], Reply] | None = None
-    #: ring N's cycle: the previous part's deviation (5 numbers, as ``place``) or its
-    #: as-built pose (6: x, y, z mm, roll, pitch, yaw deg), walk steps (None: the
-    #: project's), walk back unloaded
-    cycle: Callable[[int, tuple[float, ...], int | None, bool], Reply] | None = None
-    #: the operator confirms the part is fixed (their name)
-    confirm_fixed: Callable[[str], Reply] | None = None
-    #: the cycle's survey: points (name, face y, face z, x, y, z; m) or a pose (6 numbers)
-    survey: Callable[[tuple[Any, ...] | None, tuple[float, ...] | None], Reply] | None = None
-
-
-def _error(code: str, message: str) -> Reply:
-    return {"ok": False, "error": message, "code": code}
-
-
-def _number(req: Mapping[str, Any], key: str, unit: str = "degrees") -> float:
-    v = req.get(key)
-    if isinstance(v, bool) or not isinstance(v, int | float):
-        raise ValueError(f"{key!r} must be a finite number in {unit}, got {_brief(v)}")
-    try:
-        f = float(v)
-    except OverflowError:
-        f = math.inf
-    if not math.isfinite(f):
-        raise ValueError(f"{key!r} must be a finite number in {unit}, got {_brief(v)}")
-    return f
-
-
-def _name(req: Mapping[str, Any], key: str) -> str:
-    """``req[key]``: a name of 1..MAX_ID_CHARS characters, no control, format or
-    line-break character (:func:`config.numbers.check_name`: it goes into the audit
-    trail as it is)."""
-    return check_name(req.get(key), repr(key), MAX_ID_CHARS)
-
-
-def _brief(v: Any) -> str:
-    """A short description of a client's value for an error message (never its whole
-    repr: it may be 64 KiB or nested a thousand deep)."""
-    if v is None or isinstance(v, bool | float) or (isinstance(v, str) and len(v) <= 40):
-        return repr(v)
-    if isinstance(v, int):
-        return "an integer of more than 40 digits" if v.bit_length() > 132 else repr(v)
-    return f"a {type(v).__name__}" if not isinstance(v, str) else "a long string"
-
-
-@dataclass(frozen=True)
-class Request:
-    """One parsed, checked request: the command and its arguments."""
-
-    cmd: str
-    args: tuple[Any, ...] = ()
-
-
-def parse(line: bytes) -> Request | Reply:
-    """One request line -> a :class:`Request`, or the error reply for a bad one."""
-    try:
-        req = json.loads(line)
-    except RecursionError:
-        return _error("bad_request", "request is nested too deeply")
-    except ValueError as exc:  # JSONDecodeError, UnicodeDecodeError, 4300-digit integers
-        return _error("bad_request", f"request is not JSON: {str(exc)[:200]}")
-    if not isinstance(req, dict):
-        return _error("bad_request", "request must be a JSON object with a 'cmd' key")
-    cmd = req.get("cmd")
-    if not isinstance(cmd, str) or cmd not in COMMANDS:
-        return _error("bad_request", f"unknown command {_brief(cmd)}; expected one of {COMMANDS}")
-    if cmd == "unit_mode":
-        try:
-            return Request(cmd, (_name(req, "unit_mode"),))
-        except ValueError as exc:
-            return _error("bad_request", str(exc))
-    if cmd == "jog":
-        try:
-            return Request(cmd, (_name(req, "cylinder"), _number(req, "distance_mm", "mm")))
-        except ValueError as exc:
-            return _error("bad_request", str(exc))
-    if cmd == "audit":
-        try:
-            result = req.get("result")
-            check_text(result, "'result'", MAX_AUDIT_CHARS)
-            return Request(cmd, (_name(req, "user"), _name(req, "action"), result))
-        except ValueError as exc:
-            return _error("bad_request", str(exc))
-    if cmd == "walk":
-        steps = req.get("steps")
-        if (
-            isinstance(steps, bool)
-            or not isinstance(steps, int)
-            or not 1 <= steps <= MAX_WALK_STEPS
-        ):
-            return _error(
-                "bad_request",
-                f"'steps' must be an integer 1..{MAX_WALK_STEPS}, got {_brief(steps)}",
-            )
-        unloaded = req.get("unloaded", False)
-        if not isinstance(unloaded, bool):
-            why = f"'unloaded' must be true or false, got {_brief(unloaded)}"
-            return _error("bad_request", why)
-        try:  # the directions themselves are the walk planner's (the service checks)
-            direction = _name({"direction": req.get("direction", "forward")}, "direction")
-        except ValueError as exc:
-            return _error("bad_request", str(exc))
-        return Request(cmd, (steps, direction, unloaded))
-    if cmd == "place":
-        ring = req.get("ring")
-        if isinstance(ring, bool) or not isinstance(ring, int) or not 1 <= ring <= 99_999:
-            return _error("bad_request", f"'ring' must be an integer 1..99999, got {_brief(ring)}")
-        dev = req.get("previous_deviation", [0.0] * 5)
-        if not isinstance(dev, list) or len(dev) != 5:
-            return _error(
-                "bad_request",
-                "'previous_deviation' must be five numbers [y_mm, z_mm, roll_deg, pitch_deg, "
-                f"yaw_deg], got {_brief(dev)}",
-            )
-        try:
-            vals = tuple(
-                _number({"v": v}, "v", "mm" if k < 2 else "degrees") for k, v in enumerate(dev)
-            )
-        except ValueError as exc:
-            return _error("bad_request", f"previous_deviation: {exc}")
-        try:
-            check_sheet_deviation(vals, "previous_deviation")
-        except ValueError as exc:
-            return _error("bad_request", str(exc))
-        return Request(cmd, (ring, vals))
-    if cmd in ("cycle", "confirm_fixed", "survey"):
-        try:
-            return _cycle_request(cmd, req)
-        except ValueError as exc:
-            return _error("bad_request", str(exc))
-    if cmd == "status" and ("after" in req or "wait_ms" in req):
-        try:
-            return Request(cmd, _status_wait(req))
-        except ValueError as exc:
-            return _error("bad_request", str(exc))
-    if cmd != "adjust":
-        return Request(cmd)
-    try:
-        roll, pitch = _number(req, "roll_deg"), _number(req, "pitch_deg")
-    except ValueError as exc:
-        return _error("bad_request", str(exc))
-    if abs(roll) >= 90 or abs(pitch) >= 90:
-        return _error("bad_request", "roll_deg and pitch_deg must be within ±90 deg")
-    return Request(cmd, (roll, pitch))
-
-
-#: The longest a status may wait for the next change of state (``wait_ms``).
-MAX_STATUS_WAIT_MS = 1000
-
-
-def _status_wait(req: Mapping[str, Any]) -> tuple[int, float]:
-    """A status that waits: ``after`` (the ``state_seq`` the client has seen) and
-    ``wait_ms``, both given; ``(after, wait_s)``."""
-    after = req.get("after")
-    if isinstance(after, bool) or not isinstance(after, int) or after < 0:
-        raise ValueError(f"'after' must be a count (an integer >= 0), got {_brief(after)}")
-    wait_ms = _number(req, "wait_ms", "ms")
-    if not 0 <= wait_ms <= MAX_STATUS_WAIT_MS:
-        raise ValueError(f"'wait_ms' must be within 0..{MAX_STATUS_WAIT_MS}, got {wait_ms:g}")
-    return after, wait_ms / 1000.0
-
-
-#: The most survey points one request carries (``wara ctl survey`` checks it first).
-MAX_SURVEY_POINTS = 200
-#: A deviation as a survey sheet gives it (``previous_deviation``): at most this far
-#: across the axis (y, z) and turned (roll, pitch, yaw); more is a typo, not a survey.
-MAX_SHEET_DEVIATION_MM, MAX_SHEET_DEVIATION_DEG = 50.0, 10.0
-
-
-def check_sheet_deviation(vals: tuple[float, ...], what: str) -> None:
-    """ValueError unless ``vals`` (y mm, z mm, roll, pitch, yaw deg) is within the bounds."""
-    if (
-        max(abs(vals[0]), abs(vals[1])) > MAX_SHEET_DEVIATION_MM
-        or max(abs(v) for v in vals[2:]) > MAX_SHEET_DEVIATION_DEG
-    ):
-        raise ValueError(
-            f"{what}: at most {MAX_SHEET_DEVIATION_MM:g} mm and {MAX_SHEET_DEVIATION_DEG:g} deg "
-            "(a typo, not a survey)"
-        )
-
-
-def _numbers(v: Any, n: int, what: str) -> tuple[float, ...]:
-    if not isinstance(v, list) or len(v) != n:
-        raise ValueError(f"{what} must be {n} numbers, got {_brief(v)}")
-    return tuple(_number({"v": x}, "v", "mm or degrees") for x in v)
-
-
-def _cycle_request(cmd: str, req: Mapping[str, Any]) -> Request:
-    """``cycle``, ``confirm_fixed`` and ``survey`` (the ring cycle's requests)."""
-    if cmd == "confirm_fixed":
-        return Request(cmd, (_name(req, "user"),))
-    if cmd == "survey":
-        points, pose = req.get("points"), req.get("pose")
-        if (points is None) == (pose is None):
-            raise ValueError("survey: give 'points' or 'pose'")
-        if pose is not None:
-            return Request(cmd, (None, _numbers(pose, 6, "'pose'")))
-        if not isinstance(points, list) or not 1 <= len(points) <= MAX_SURVEY_POINTS:
-            raise ValueError(f"'points' must be a list of 1..{MAX_SURVEY_POINTS} points")
-        out = []
-        for k, p in enumerate(points, start=1):
-            if not isinstance(p, list) or len(p) != 6:
-                raise ValueError(f"point {k}: [name, face_y_m, face_z_m, x_m, y_m, z_m]")
-            name = _name({"name": p[0]}, "name")
-            out.append((name, *_numbers(p[1:], 5, f"point {k}")))
-        return Request(cmd, (tuple(out), None))
-    ring = req.get("ring")
-    if isinstance(ring, bool) or not isinstance(ring, int) or not 2 <= ring <= 99_999:
-        raise ValueError(f"'ring' must be an integer 2..99999, got {_brief(ring)}")
-    dev, pose = req.get("previous_deviation"), req.get("previous_pose")
-    if dev is not None and pose is not None:
-        raise ValueError("give 'previous_deviation' or 'previous_pose', not both")
-    prev = _numbers(pose, 6, "'previous_pose'") if pose is not None else (
-        _numbers(dev if dev is not None else [0.0] * 5, 5, "'previous_deviation'"))  # fmt: skip
-    if pose is None:  # a pose's plausibility needs the project: the service checks it
-        check_sheet_deviation(prev, "'previous_deviation'")
-    steps = req.get("walk_steps")
-    if steps is not None and (
-        isinstance(steps, bool) or not isinstance(steps, int) or not 0 <= steps <= MAX_WALK_STEPS
-    ):
-        raise ValueError(
-            f"'walk_steps' must be an integer 0..{MAX_WALK_STEPS}, got {_brief(steps)}"
-        )
-    unloaded = req.get("walk_back_unloaded", True)
-    if not isinstance(unloaded, bool):
-        raise ValueError(f"'walk_back_unloaded' must be true or false, got {_brief(unloaded)}")
-    return Request(cmd, (ring, prev, steps, unloaded))
-
-
-def call(handlers: CtlHandlers, req: Request) -> Reply:
-    """Run a parsed request's handler; whatever it does, one reply comes back."""
-    try:
-        if req.cmd == "adjust":
-            reply = handlers.adjust(*req.args)
-        elif req.cmd == "status":
-            reply = handlers.status(*req.args)
-        elif req.cmd == "stop":
-            reply = handlers.stop()
-        elif req.cmd == "reset":
-            reply = handlers.reset()
-        else:
-            fn = getattr(handlers, req.cmd)
-            if fn is None:
-                return _error("bad_request", f"{req.cmd} is not supported by this service")
-            reply = fn(*req.args)
-    except ValueError as exc:
-        return _error("bad_request", str(exc))
-    except Exception as exc:
-        log.exception("ctl_handler_failed", cmd=req.cmd)
-        return _error("internal", f"{req.cmd} failed in the service: {type(exc).__name__}: {exc}")
-    if not isinstance(reply, Mapping):
-        log.error("ctl_handler_bad_reply", cmd=req.cmd, reply_type=type(reply).__name__)
-        return _error("internal", f"{req.cmd} failed in the service: no reply")
-    out: Reply = {"ok": True, **reply}
-    if out["ok"] is not True and not isinstance(out.get("error"), str):  # one line, always
-        out["error"] = f"{req.cmd} refused ({out.get('code', 'no reason given')})"
-    return out
-
-
-def dispatch(handlers: CtlHandlers, line: bytes) -> Reply:
-    """One request line -> one reply (the protocol, without the socket)."""
-    req = parse(line)
-    return call(handlers, req) if isinstance(req, Request) else req
-
-
-def _why(exc: OSError) -> str:
-    return exc.strerror or str(exc)
 
 
 def _line(obj: Reply) -> bytes:
@@ -554,7 +203,7 @@ class CtlServer:
         try:
             self._prepare_path()
         except OSError as exc:
-            raise CtlError(f"cannot create control socket {self.path}: {_why(exc)}") from None
+            raise CtlError(f"cannot create control socket {self.path}: {os_reason(exc)}") from None
         sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM | socket.SOCK_CLOEXEC)
         old = os.umask(0o177)
         try:
@@ -565,7 +214,7 @@ class CtlServer:
             st = self.path.stat()
         except OSError as exc:
             sock.close()
-            raise CtlError(f"cannot bind control socket {self.path}: {_why(exc)}") from None
+            raise CtlError(f"cannot bind control socket {self.path}: {os_reason(exc)}") from None
         finally:
             os.umask(old)
         self._sock, self._inode = sock, (st.st_dev, st.st_ino)
@@ -976,84 +625,27 @@ class CtlServer:
             self._wake()
 
 
-def request(
-    cmd: str,
-    *,
-    socket_path: str | Path | None = None,
-    timeout_s: float = 30.0,
-    retry_s: float = 5.0,
-    **args: Any,
-) -> Reply:
-    """Send one command to the service and return its reply (``ok`` tells the outcome).
-
-    A full listen queue (``EAGAIN`` on connect) and a ``busy`` answer are retried, with a
-    growing pause, for up to ``retry_s`` (at most ``timeout_s``).
-
-    Raises :class:`CtlUnavailable` when nobody listens or the socket is not ours to use,
-    :class:`CtlError` for a broken reply.
-    """
-    path = Path(socket_path) if socket_path is not None else default_socket_path()
-    give_up = time.monotonic() + min(retry_s, timeout_s)
-    pause = 0.01
-    while True:
-        reply = _request_once(path, cmd, timeout_s, args)
-        if reply is not None and reply.get("code") != "busy":
-            return reply
-        if time.monotonic() + pause > give_up:
-            if reply is not None:
-                return reply
-            raise CtlUnavailable(
-                f"the W-ARa service at {path} accepts no connection (listen queue full) "
-                f"after {min(retry_s, timeout_s):g} s of retries"
-            )
-        time.sleep(pause)
-        pause = min(2 * pause, 0.2)
-
-
-def _request_once(path: Path, cmd: str, timeout_s: float, args: Mapping[str, Any]) -> Reply | None:
-    """One attempt; None when the listen queue is full (try again)."""
-    # as given (NaN included: the server's checks answer it); replies are strict
-    line = (json.dumps({"cmd": cmd, **args}, default=str) + "\n").encode()
-    if len(line) > MAX_LINE_BYTES:  # the server would refuse it: say so, send nothing
-        raise CtlError(
-            f"the {cmd} request is {len(line)} bytes, over the control channel's "
-            f"limit of {MAX_LINE_BYTES}"
-        )
-    sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
-    sock.settimeout(timeout_s)
-    try:
-        try:
-            sock.connect(str(path))
-        except (FileNotFoundError, ConnectionRefusedError):
-            raise CtlUnavailable(
-                f"no W-ARa service listening on {path} "
-                "(is it running? `systemctl status wara-ipc`; or pass --socket PATH)"
-            ) from None
-        except PermissionError:
-            raise CtlUnavailable(
-                f"no permission to use {path}: it is owner-only; run as the service user "
-                "(e.g. `sudo -u wara wara ctl ...`)"
-            ) from None
-        except BlockingIOError:
-            return None  # the listen queue is full (EAGAIN)
-        except OSError as exc:
-            raise CtlUnavailable(f"cannot connect to {path}: {_why(exc)}") from None
-        try:
-            sock.sendall(line)
-            with sock.makefile("rb") as rfile:
-                raw = rfile.readline(MAX_REPLY_BYTES)
-        except TimeoutError:
-            raise CtlError(f"no reply from the service within {timeout_s:g} s ({path})") from None
-        except OSError as exc:
-            raise CtlError(f"control socket {path} failed: {_why(exc)}") from None
-    finally:
-        sock.close()
-    if not raw:
-        raise CtlError(f"the service at {path} closed the connection without a reply")
-    try:
-        reply = json.loads(raw)
-    except (ValueError, RecursionError):
-        raise CtlError(f"the service at {path} sent a reply that is not JSON") from None
-    if not isinstance(reply, dict) or "ok" not in reply:
-        raise CtlError(f"the service at {path} sent a reply without 'ok'")
-    return reply
+__all__ = [
+    "COMMANDS",
+    "INLINE_COMMANDS",
+    "MAX_AUDIT_CHARS",
+    "MAX_ID_CHARS",
+    "MAX_LINE_BYTES",
+    "MAX_REPLY_BYTES",
+    "MAX_STATUS_WAIT_MS",
+    "MAX_SURVEY_POINTS",
+    "MAX_WALK_STEPS",
+    "SOCKET_NAME",
+    "TABLE",
+    "CtlError",
+    "CtlHandlers",
+    "CtlServer",
+    "CtlUnavailable",
+    "Request",
+    "call",
+    "check_sheet_deviation",
+    "default_socket_path",
+    "dispatch",
+    "parse",
+    "request",
+]

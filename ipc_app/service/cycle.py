@@ -14,26 +14,32 @@ the acceptance store), ``record`` (the ring's Table 4 figures from the surveyed 
 handed to the :class:`RingRecords` sink that writes the acceptance record),
 ``walk_back`` (the same steps back; unloaded unless told).
 
+The cycle drives the service through a small port (:class:`CyclePort`: ask for a motion
+and get its :class:`~ipc_app.service.motion.Ticket`, the modes, the machine time, the
+last inputs, the planner, where its phases and its end are noted); the service is one.
 :meth:`RingCycle.tick` advances it. It is called outside the fixed-rate loop: by the
 service's cycle thread (``wara ctl cycle``), or by the HIL driver between its simulated
 periods (``wara cycle``). The planning (the placement's target, the walks) runs in that
 caller, never in the loop; the loop only takes the requests, as for ``wara ctl walk`` and
-``place``. A stop (``wara ctl stop``), a latched fault, a refused request or a motion
-that does not end in COMPLETE ends the cycle in the phase it was in, with the valves
-closed (:attr:`RingCycle.error`, :attr:`RingCycle.stopped_in_phase`).
+``place``. A stop (``wara ctl stop``), a latched fault, a refused request, a motion
+that does not end in COMPLETE or not within ``cycle.max_motion_min`` ends the cycle in
+the phase it was in, with the valves closed (:attr:`RingCycle.error`,
+:attr:`RingCycle.stopped_in_phase`).
 """
 
 from __future__ import annotations
 
 import threading
+import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any, Protocol
+from typing import Any, Protocol
 
 import numpy as np
+import structlog
 
 from config import units
-from config.schema import ProjectConfig
+from config.schema import Cycle, ProjectConfig
 from ipc_app.control.release import load_pressures_pa, platform_pressures_pa, upper_index
 from ipc_app.model.placement import Pose, design_pose, joint_figures, to_ring_frame
 from ipc_app.planner.placement import PlacementPlan
@@ -44,11 +50,16 @@ from ipc_app.planner.survey import (
     as_built_problems,
     fit_survey,
 )
-from ipc_app.service.modes import Mode
+from ipc_app.service.machine_io import MachineInputs
+from ipc_app.service.modes import Mode, ModeMachine
+from ipc_app.service.motion import Motion, Planner, Ticket
+from ipc_app.service.motions.place import PlaceMotion
+from ipc_app.service.motions.release import ReleaseMotion
+from ipc_app.service.motions.walk import WalkMotion
+from ipc_app.service.requests import Code, Reply, cycle_refusal
 from ipc_app.service.worker import PLAN_TARGET_FN, PlannerCallError
 
-if TYPE_CHECKING:
-    from ipc_app.service.core import ServiceCore
+log = structlog.get_logger("wara.service")
 
 #: The phases of one ring, in order.
 PHASES: tuple[str, ...] = (
@@ -67,10 +78,14 @@ RECORD_KEYS: tuple[str, ...] = (
     "tilt_angle_deg",
     "rotation_angle_deg",
 )
-#: A requested motion not taken by the loop within this much machine time: failed, s.
+
+
+#: ``cycle.max_motion_min``'s default, s: the bound of a ring cycle's motion for a caller
+#: without the project at hand (the service takes the project's, ``cfg.cycle.max_motion_s``)
+MOTION_LIMIT_S = 60.0 * Cycle.model_fields["max_motion_min"].default
+#: The allowance of a HIL driver for the loop to take a motion asked for, s (the service
+#: itself needs none: the motion's ticket is answered in the loop's next cycle)
 START_LIMIT_S = 5.0
-#: A motion phase not ended within this much machine time: failed, s.
-MOTION_LIMIT_S = 3600.0
 
 
 def previous_from_deviation(cfg: ProjectConfig, ring: int, dev: Pose) -> Pose:
@@ -89,15 +104,46 @@ class RingRecords(Protocol):
         ...
 
 
+class CyclePort(Protocol):
+    """What the ring cycle needs of the service (:class:`~ipc_app.service.core.ServiceCore`
+    is one)."""
+
+    cfg: ProjectConfig
+    planner: Planner
+    modes: ModeMachine
+
+    @property
+    def now_s(self) -> float: ...
+    @property
+    def inputs(self) -> MachineInputs | None: ...
+
+    def request_motion(
+        self, kind: type[Motion], args: tuple[Any, ...] = (), *, hmi_seq: int | None = None
+    ) -> Ticket:
+        """``kind``'s motion prepared and handed to the loop."""
+        ...
+
+    def audit(self, user: str, action: str, result: str) -> dict[str, Any]: ...
+    def event(self, kind: str, **fields: Any) -> None:
+        """A run-record event at the machine time."""
+        ...
+
+
 class CycleError(Exception):
     """A phase failed: the cycle ends in it (the machine holds, valves closed)."""
+
+    def __init__(self, msg: str, refused: bool = False) -> None:
+        super().__init__(msg)
+        #: refused before anything moved (an infeasible target or move)
+        self.refused = refused
 
 
 @dataclass
 class RingCycle:
-    """One ring's cycle on ``core``; see the module docstring."""
+    """One ring's cycle on the service ``core`` (its :class:`CyclePort`); see the module
+    docstring."""
 
-    core: ServiceCore
+    core: CyclePort
     ring: int
     #: the previous part's as-built pose in its own ring's T (ring - 1)
     previous: Pose
@@ -127,11 +173,45 @@ class RingCycle:
     _loaded_since: float | None = None
     _since: float = 0.0
     _issued_at: float | None = None
-    _before: Any = None
+    #: the phase's motion, as the service took it
+    _ticket: Ticket | None = None
     _started: bool = False
     #: the cycle thread's ticks and the operator's requests take turns
     _lock: threading.RLock = field(default_factory=threading.RLock)
     _stop_reason: str | None = None
+
+    @classmethod
+    def request(
+        cls,
+        core: CyclePort,
+        ring: int,
+        previous: Pose,
+        records: RingRecords,
+        walk_steps: int | None = None,
+        walk_back_unloaded: bool = True,
+        say: Callable[[str], None] | None = None,
+    ) -> RingCycle | Reply:
+        """Ring ``ring``'s cycle, checked (``walk_steps`` default ``cycle.walk_steps``)
+        and noted in the run record; or why not. The caller starts it."""
+        cfg = core.cfg
+        if cfg.placement is None or cfg.cycle is None:
+            msg = "the project has no placement and cycle sections: it cannot run a cycle"
+            return Reply.bad_request(msg)
+        steps = cfg.cycle.walk_steps if walk_steps is None else walk_steps
+        bad = cycle_refusal(ring, steps)
+        if bad is not None:
+            return bad
+        if core.modes.mode not in (Mode.IDLE, Mode.COMPLETE):
+            why = f"cycle refused: the service is {core.modes.mode} (IDLE or COMPLETE needed)"
+            return Reply.refused(why)
+        core.event(
+            "cycle", ring=ring, previous=previous.to_dict(), walk_steps=steps,
+            walk_back_unloaded=walk_back_unloaded,
+        )  # fmt: skip
+        return cls(
+            core, ring, previous, records, walk_steps=steps,
+            walk_back_unloaded=walk_back_unloaded, say=say or (lambda _s: None),
+        )  # fmt: skip
 
     @property
     def cfg(self) -> ProjectConfig:
@@ -162,15 +242,45 @@ class RingCycle:
         if self.phase:
             self.phase_times_s[self.phase] = now - self._since
         self.phase, self._since, self.waiting_for = phase, now, waiting_for
-        self._issued_at, self._before, self._started = None, None, False
-        self.core.note_cycle(self.ring, phase, waiting_for=waiting_for, **figures)
+        self._issued_at, self._ticket, self._started = None, None, False
+        log.info("cycle phase", ring=self.ring, phase=phase, waiting_for=waiting_for, **figures)
+        self.core.event(
+            "cycle_phase", ring=self.ring, phase=phase, waiting_for=waiting_for, **figures
+        )
         self.say(f"ring {self.ring}: {phase}")
 
-    def _fail(self, msg: str, *, refused: bool = False) -> None:
+    def fail(self, msg: str, *, refused: bool = False) -> None:
+        """The cycle ends in its phase with ``msg`` (the service stops the machine)."""
         self.error, self.refused = msg, refused
         self.stopped_in_phase = self.phase
         self.phase_times_s[self.phase] = self.core.now_s - self._since
-        self.core.end_cycle(self, msg)
+        self._end(msg)
+
+    def _end(self, error: str | None) -> None:
+        """The cycle ended (``error`` None: done): the run record and the log; a failed
+        cycle leaves the machine stopped (valves closed)."""
+        modes = self.core.modes
+        if error is not None and modes.mode in (
+            Mode.STARTING, Mode.EXECUTE, Mode.COMPLETE, Mode.HELD, Mode.SUSPENDED,
+        ):  # fmt: skip
+            modes.stop(f"ring {self.ring}'s cycle ended in {self.phase}: {error}")
+        log.info("cycle end", ring=self.ring, phase=self.phase, error=error)
+        self.core.event(
+            "cycle_end", ring=self.ring, phase=self.phase, error=error,
+            phase_times_s=self.phase_times_s, table4=self.table4,
+        )  # fmt: skip
+
+    def drive(self, tick_s: float) -> None:
+        """Tick until the cycle ends, a tick every ``tick_s`` (the service's cycle
+        thread, never the loop); a tick that raises (a bug) ends the cycle."""
+        while self.active:
+            try:
+                self.tick()
+            except Exception as exc:  # a bug: the cycle ends, the machine stops
+                log.exception("cycle_failed", ring=self.ring, phase=self.phase)
+                self.fail(f"internal: {type(exc).__name__}: {exc}")
+                return
+            time.sleep(tick_s)
 
     def start(self) -> None:
         self._enter("load", waiting_for="a part on the platform (the upper cylinders' pressures)")
@@ -182,7 +292,7 @@ class RingCycle:
         if self._lock.acquire(blocking=False):
             try:
                 if self.active:
-                    self._fail(f"stopped: {reason}")
+                    self.fail(f"stopped: {reason}")
             finally:
                 self._lock.release()
 
@@ -195,7 +305,7 @@ class RingCycle:
         if not self.active:
             return
         if self._stop_reason is not None:
-            self._fail(f"stopped: {self._stop_reason}")
+            self.fail(f"stopped: {self._stop_reason}")
             return
         try:
             for _ in PHASES:  # on through the phases that end at once (bounded)
@@ -204,7 +314,7 @@ class RingCycle:
                 if self.phase == before or not self.active:
                     break
         except CycleError as exc:
-            self._fail(str(exc), refused=getattr(exc, "refused", False))
+            self.fail(str(exc), refused=exc.refused)
 
     def _tick(self) -> None:
         core, mode = self.core, self.core.modes.mode
@@ -232,9 +342,8 @@ class RingCycle:
             if self._issued_at is None and mode == Mode.SUSPENDED:
                 return  # the release starts once the link is back
             if self._motion("release", self._release):
-                r = core.releaser
-                if r is not None:
-                    self.release_figures = r.figures.to_dict()
+                assert self._ticket is not None and self._ticket.motion is not None
+                self.release_figures = self._ticket.motion.figures()
                 core.modes.stop(f"ring {self.ring} released: the platform is clear of the part")
                 self._enter(
                     "survey", waiting_for="a survey (wara ctl survey FILE.csv | --from-store)"
@@ -249,43 +358,44 @@ class RingCycle:
             self._note_walk("walk_back")
             self.phase_times_s[ph] = core.now_s - self._since
             self.phase, self.waiting_for, self.done = "done", "", True
-            core.end_cycle(self, None)
+            self._end(None)
 
     def _note_walk(self, phase: str) -> None:
         """The figures of the walk that just ended (none when the cycle does not walk)."""
-        w = self.core.walker
-        if self.walk_steps and w is not None:
-            self.walk_figures[phase] = [st.to_dict() for st in w.steps]
+        t = self._ticket
+        if self.walk_steps and t is not None and t.motion is not None:
+            self.walk_figures[phase] = t.motion.figures()["steps"]
 
-    def _motion(self, what: str, issue: Callable[[], dict[str, Any]]) -> bool:
+    def _motion(self, what: str, issue: Callable[[], Ticket]) -> bool:
         """Issue the phase's motion once; True when it ended in COMPLETE."""
         core = self.core
-        if self._issued_at is None:
-            self._before = (core.walker, core.placer, core.releaser)
-            res = issue()
-            if not res.get("ok"):
-                err = CycleError(f"{what} refused: {res.get('error')}")
-                err.refused = res.get("code") == "infeasible"  # type: ignore[attr-defined]
-                raise err
-            self._issued_at = core.now_s
+        if self._ticket is None:
+            ticket = issue()
+            self._refused(what, ticket)
+            self._ticket, self._issued_at = ticket, core.now_s
             return False
         mode = core.modes.mode
         if not self._started:
-            if (core.walker, core.placer, core.releaser) != self._before and mode in (
-                Mode.EXECUTE, Mode.COMPLETE,
-            ):  # fmt: skip
+            if self._ticket.taken:  # by the loop: started, or refused there
+                self._refused(what, self._ticket)
                 self._started = True
-            elif core.requests_pending == 0 and core.now_s - self._issued_at > START_LIMIT_S:
-                raise CycleError(f"{what} was not taken: the service is {mode}")
             return False
         if mode in (Mode.EXECUTE, Mode.HELD, Mode.SUSPENDED, Mode.STARTING):
-            if core.now_s - self._issued_at > MOTION_LIMIT_S:
-                raise CycleError(f"{what} did not end within {MOTION_LIMIT_S:.0f} s")
+            assert self._issued_at is not None and self.cfg.cycle is not None
+            limit = self.cfg.cycle.max_motion_s  # cycle.max_motion_min
+            if core.now_s - self._issued_at > limit:
+                raise CycleError(f"{what} did not end within {limit:.0f} s")
             return False
         if mode != Mode.COMPLETE:
             why = "; ".join(core.modes.fault_reasons) or "stopped"
             raise CycleError(f"{what} ended in {mode}: {why}")
         return True
+
+    @staticmethod
+    def _refused(what: str, ticket: Ticket) -> None:
+        reply = ticket.reply
+        if reply is not None and not reply.ok:
+            raise CycleError(f"{what} refused: {reply.error}", reply.code == Code.INFEASIBLE)
 
     def _part_on(self) -> bool:
         """The part is on the platform: every upper cylinder's load pressure within
@@ -309,16 +419,15 @@ class RingCycle:
             self._loaded_since = now
         return now - self._loaded_since >= LOAD_SETTLED_S
 
-    def _release(self) -> dict[str, Any]:
-        return self.core.request_release(self.ring)
+    def _release(self) -> Ticket:
+        return self.core.request_motion(ReleaseMotion, (self.ring,))
 
-    def _walk_forward(self) -> dict[str, Any]:
-        return self.core.request_walk(self.walk_steps)
+    def _walk_forward(self) -> Ticket:
+        return self.core.request_motion(WalkMotion, (self.walk_steps, "forward", False))
 
-    def _walk_back(self) -> dict[str, Any]:
-        return self.core.request_walk(
-            self.walk_steps, direction="back", unloaded=self.walk_back_unloaded
-        )
+    def _walk_back(self) -> Ticket:
+        args = (self.walk_steps, "back", self.walk_back_unloaded)
+        return self.core.request_motion(WalkMotion, args)
 
     def _plan_target(self) -> None:
         """The ring's target from the previous part's as-built pose, before the walk to
@@ -331,78 +440,68 @@ class RingCycle:
             raise CycleError(f"ring {self.ring}: {exc}") from exc
         self.plan = plan
         if not plan.feasible:
-            err = CycleError(f"ring {self.ring}: " + "; ".join(plan.reasons))
-            err.refused = True  # type: ignore[attr-defined]
-            raise err
+            raise CycleError(f"ring {self.ring}: " + "; ".join(plan.reasons), refused=True)
 
-    def _place(self) -> dict[str, Any]:
+    def _place(self) -> Ticket:
         assert self.plan is not None
-        return self.core.request_place_plan(self.plan)
+        return self.core.request_motion(PlaceMotion, (self.plan,))
 
     # ----------------------------------------------------------------- requests
 
-    def confirm_fixed(self, user: str) -> dict[str, Any]:
+    def confirm_fixed(self, user: str) -> Reply:
         """The operator confirms the part is fixed: the cycle goes on to ``release`` (the
         platform lowered off the part), then waits for the survey."""
         with self._lock:
             return self._confirm_fixed(user)
 
-    def _confirm_fixed(self, user: str) -> dict[str, Any]:
+    def _confirm_fixed(self, user: str) -> Reply:
         if self.phase != "fixing" or not self.active:
-            return {
-                "ok": False,
-                "code": "refused",
-                "error": f"confirm-fixed refused: the cycle is in {self.phase or 'no phase'}, "
-                "not fixing",
-            }
+            return Reply.refused(
+                f"confirm-fixed refused: the cycle is in {self.phase or 'no phase'}, not fixing"
+            )
         self.fixed_by = user
         self.core.audit(user, "confirm_fixed", f"ring {self.ring} fixed")
         self._enter("release")
-        return {"ok": True, "ring": self.ring, "phase": self.phase}
+        return Reply.accepted(ring=self.ring, phase=self.phase)
 
     def submit_survey(
         self, points: list[SurveyPoint] | None = None, pose: Pose | None = None
-    ) -> dict[str, Any]:
+    ) -> Reply:
         """The as-built pose: ``points`` fitted as ``wara survey import`` fits a file, or
         ``pose`` (the acceptance store's, in the ring's own T). A refused fit leaves the
         cycle waiting in ``survey`` (another survey may follow)."""
         with self._lock:
             return self._submit_survey(points, pose)
 
-    def _submit_survey(self, points: list[SurveyPoint] | None, pose: Pose | None) -> dict[str, Any]:
+    def _submit_survey(self, points: list[SurveyPoint] | None, pose: Pose | None) -> Reply:
         if self.phase != "survey" or not self.active:
-            return {
-                "ok": False,
-                "code": "refused",
-                "error": f"survey refused: the cycle is in {self.phase or 'no phase'}, not survey",
-            }
+            return Reply.refused(
+                f"survey refused: the cycle is in {self.phase or 'no phase'}, not survey"
+            )
         if (points is None) == (pose is None):
-            return {"ok": False, "code": "bad_request", "error": "give survey points or a pose"}
+            return Reply.bad_request("give survey points or a pose")
         if points is not None:
             try:
                 fit = fit_survey(self.cfg, self.ring, points)
             except SurveyError as exc:
                 msg = str(exc) if str(exc).startswith("survey") else f"survey: {exc}"
-                return {"ok": False, "code": "bad_request", "error": msg}
+                return Reply.bad_request(msg)
             if not fit.accepted:
-                why = "; ".join(fit.reasons)
-                return {"ok": False, "code": "refused", "error": f"survey refused: {why}"}
+                return Reply.refused(f"survey refused: {'; '.join(fit.reasons)}")
             self.fit, self.surveyed = fit, fit.pose
             res = units.to_mm(fit.rms_residual_m)
-            out: dict[str, Any] = {"ok": True, "ring": self.ring, "rms_residual_mm": res}
+            out = Reply.accepted(ring=self.ring, rms_residual_mm=res)
         else:
             assert pose is not None
             problems = as_built_problems(self.cfg, self.ring, pose)
             if problems:
-                why = "; ".join(problems)
-                return {"ok": False, "code": "refused", "error": f"survey refused: {why}"}
+                return Reply.refused(f"survey refused: {'; '.join(problems)}")
             self.surveyed = pose
-            out = {"ok": True, "ring": self.ring, "source": "store"}
-        if self.core.record is not None:
-            self.core.record.event(
-                self.core.now_s, "cycle_survey", ring=self.ring, pose=self.surveyed.to_dict(),
-                rms_residual_mm=out.get("rms_residual_mm"),
-            )  # fmt: skip
+            out = Reply.accepted(ring=self.ring, source="store")
+        self.core.event(
+            "cycle_survey", ring=self.ring, pose=self.surveyed.to_dict(),
+            rms_residual_mm=out.fields.get("rms_residual_mm"),
+        )  # fmt: skip
         return out
 
     def _record(self) -> None:

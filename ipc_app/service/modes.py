@@ -180,6 +180,9 @@ RULES: dict[str, Rule] = {
               "the ring cycle's release: the upper platform lowers off the fixed part "
               "until its pressures are the empty platform's, then clear of it",
               units=frozenset({UnitMode.PRODUCTION})),
+        _rule("home", {Mode.IDLE, Mode.COMPLETE}, Mode.EXECUTE, "STARTING",
+              "each attitude layer to its reference stroke (mid-stroke), level, then held",
+              units=_MOVING_UNITS, command="home"),
         _rule("jog", {Mode.IDLE, Mode.COMPLETE}, Mode.EXECUTE, "STARTING",
               "one cylinder at the jog speed, the others held (interlocks on)",
               units=frozenset({UnitMode.MANUAL}), command="jog"),
@@ -380,24 +383,27 @@ class ModeMachine:
                 self._s.target_deg = None
             return out
 
+    def start_motion(self, event: str, what: str) -> Outcome:
+        """IDLE or COMPLETE -> EXECUTE for the motion of rule ``event`` (``jog``,
+        ``walk``, ``place``, ``release``, ``home``; ``what``: what it does), in the unit
+        modes of its rule."""
+        return self._go_clearing_target(event, f"{event} {what}")
+
     def jog(self, what: str) -> Outcome:
-        """IDLE or COMPLETE -> EXECUTE for a jog (``what``: which cylinder, how far), in
-        MANUAL."""
-        return self._go_clearing_target("jog", f"jog {what}")
+        """:meth:`start_motion` of a jog (``what``: which cylinder, how far), in MANUAL."""
+        return self.start_motion("jog", what)
 
     def walk(self, what: str) -> Outcome:
-        """IDLE or COMPLETE -> EXECUTE for a walk (``what``: the steps), in PRODUCTION."""
-        return self._go_clearing_target("walk", f"walk {what}")
+        """:meth:`start_motion` of a walk (``what``: the steps)."""
+        return self.start_motion("walk", what)
 
     def place(self, what: str) -> Outcome:
-        """IDLE or COMPLETE -> EXECUTE for a placement move (``what``: the ring and its
-        target), in PRODUCTION."""
-        return self._go_clearing_target("place", f"place {what}")
+        """:meth:`start_motion` of a placement move (``what``: the ring and its target)."""
+        return self.start_motion("place", what)
 
     def release(self, what: str) -> Outcome:
-        """IDLE or COMPLETE -> EXECUTE for the part's release (``what``: the ring), in
-        PRODUCTION."""
-        return self._go_clearing_target("release", f"release {what}")
+        """:meth:`start_motion` of the part's release (``what``: the ring)."""
+        return self.start_motion("release", what)
 
     def motion_done(self) -> Outcome:
         """EXECUTE -> COMPLETE: the trajectory ended and the target is reached."""

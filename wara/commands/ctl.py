@@ -8,6 +8,7 @@
     wara ctl unit-mode PRODUCTION|MAINTENANCE|MANUAL
     wara ctl jog --cylinder main_leg_1 --distance-mm 2   # MANUAL only
     wara ctl place --ring 5 --previous-deviation 6,-6,0,0,0.03
+    wara ctl home                   # each attitude layer to mid-stroke, level
     wara ctl --socket /tmp/wara-test/ctl.sock status
 
 The socket defaults to the service's (``$WARA_CTL_SOCKET``, ``/run/wara/ctl.sock`` on an
@@ -138,6 +139,11 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="the as-built pose wara survey import --db attached to the cycle's ring",
     )
     survey.add_argument("--db", default=None, metavar="PATH", help="acceptance store to read")
+    from ipc_app.service.ctl_protocol import TABLE
+
+    for row in TABLE.values():  # the motions without arguments (home), from the protocol
+        if row.motion is not None and not row.args:
+            verbs.add_parser(row.name.replace("_", "-"), parents=[common], help=row.what)
     p.set_defaults(func=run)
 
 
@@ -187,7 +193,7 @@ def _survey_fields(args: argparse.Namespace) -> dict[str, Any]:
     ring the service's cycle is at."""
     from acceptance.store import StoreError, check_store, default_db_path
     from ipc_app.planner.survey import SurveyError, read_survey_points
-    from ipc_app.service.ctl import MAX_SURVEY_POINTS
+    from ipc_app.service.requests import MAX_SURVEY_POINTS
 
     if args.from_store:
         try:  # the store first: a bad --db asks the service nothing
