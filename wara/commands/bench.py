@@ -26,12 +26,11 @@ BENCHES: dict[str, str] = {
     "demo": "wara.benches.demo:run",
     "opcua": "wara.benches.opcua:run",
     "harness": "wara.benches.harness:run",
-    "wire": "wara.benches.wire:run",
     "figures": "wara.benches.figures:run",
 }
 
 #: the benches that take ``--baseline DIR`` (this checkout against DIR's, in one run)
-WITH_BASELINE = ("harness", "step", "wire")
+WITH_BASELINE = ("harness", "step")
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -51,7 +50,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         "--baseline",
         default=None,
         metavar="DIR",
-        help="harness, step, wire: a checkout of another revision, measured in turn with this one",
+        help="harness, step: a checkout of another revision, measured in turn with this one",
     )
     p.add_argument(
         "--cpu-hog",
@@ -112,9 +111,7 @@ def _run(args: argparse.Namespace) -> int:
         )
     if args.baseline is not None and args.name not in WITH_BASELINE:
         raise UsageError(f"--baseline goes with `wara bench` {', '.join(WITH_BASELINE)}")
-    if args.runs is not None and not (
-        args.name == "demo" or (args.baseline is not None and args.name != "wire")
-    ):
+    if args.runs is not None and not (args.name == "demo" or args.baseline is not None):
         raise UsageError(
             "--runs goes with `wara bench demo` or `wara bench harness/step --baseline`"
         )
