@@ -908,7 +908,17 @@ class Rig:
         :attr:`external_force_n` held."""
         if self.part_state == "loading":
             self._load_ramp()
-        _advance(
+        kernel, args = self.kernel_call(n_steps)
+        kernel(*args)
+        self.t_s += n_steps * self.step_s
+
+    def kernel_call(self, n_steps: int) -> tuple[Any, tuple[Any, ...]]:
+        """The compiled kernel that integrates ``n_steps`` and its arguments (this rig's
+        arrays, in place): what :meth:`advance` calls after the load ramp, and the
+        simulator's compiled PLC scans call in line (:mod:`hil_sim.plc_fast`; they keep
+        :attr:`t_s`). The compiled scans use it for this class only: a subclass whose
+        :meth:`advance` does more (the walking rig) is advanced by its own method."""
+        return _advance, (
             self.y,
             self.command,
             self.ports_open,
@@ -932,7 +942,6 @@ class Rig:
             self._force,
             self.pad_force_n,
         )
-        self.t_s += n_steps * self.step_s
 
     def derivative(self, y: FloatArray | None = None) -> FloatArray:
         """The state's time derivative at ``y`` (default: the present state) with the
