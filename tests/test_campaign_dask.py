@@ -169,8 +169,13 @@ def test_tune_starts_from_the_shipped_tuning_and_returns_a_fragment(
     from wara.campaign.tune import tune
 
     res = tune(small, tmp_path / "tune", client=client2, trials=2, runs=1)
+    from ipc_app.control.tuning import derived_value
+
     first = res["trials"][0]
-    assert first["values"] == {"control.ladrc.wc_rad_s": 5.5, "control.ladrc.wo_rad_s": 11.0}
+    keys = ("control.ladrc.wc_rad_s", "control.ladrc.wo_rad_s")
+    # the project leaves them out: the search starts from what the plant derives
+    assert first["values"] == {k: derived_value(small.project, k) for k in keys}
+    assert first["values"]["control.ladrc.wc_rad_s"] == 5.75
     assert len(res["trials"]) == 2 and all(t["runs"] == 1 for t in res["trials"])
     fragment = yaml.safe_load(res["fragment"])
     assert set(fragment["control"]["ladrc"]) == {"wc_rad_s", "wo_rad_s"}
