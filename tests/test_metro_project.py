@@ -20,6 +20,7 @@ import yaml
 from config import default_project_path, load_project
 from ipc_app.control.tuning import delay_margin_problem, derive
 from tests.cli_helpers import run_wara
+from tests.walk_checks import assert_steps_within_the_walk_goals
 from wara.cycle import run_cycle
 from wara.demo import run_demo
 from wara.goals import step_time_limit_s
@@ -60,7 +61,7 @@ def cycle(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
     return run_cycle(str(METRO), 1, db_path=db, cfg=load_project(METRO))
 
 
-@pytest.mark.slow(seconds=60)
+@pytest.mark.slow(seconds=20)
 def test_the_metro_attitude_examples_pass(attitude: dict[str, Any]) -> None:
     """Measured: attitude error at most 1.5e-5 deg (goal 0.01), twist 0.002 mm (0.5),
     sync error at the end 0.004 mm (0.07), at most 0.021 mm on the way (2 mm interlock)."""
@@ -74,7 +75,7 @@ def test_the_metro_attitude_examples_pass(attitude: dict[str, Any]) -> None:
         assert ex["max_sync_error_mm"] < 0.1  # against the 2 mm interlock
 
 
-@pytest.mark.slow(seconds=80)
+@pytest.mark.slow(seconds=30)
 def test_one_metro_step_walks_one_ring_within_its_goals(
     walk: tuple[int, dict[str, Any], str],
 ) -> None:
@@ -90,12 +91,9 @@ def test_one_metro_step_walks_one_ring_within_its_goals(
     assert abs(out["distance_m"] - 1.5) <= 0.005  # simulator truth: one 1.5 m ring
     (step,) = out["steps"]
     assert step["passed"] and not step["missed"], step["missed"]
-    assert step["max_leg_force_ratio"] <= cfg.walking.overload_percent / 100
-    assert step["max_leg_sync_error_mm"] <= cfg.walking.leg_sync_band_mm
+    assert_steps_within_the_walk_goals(cfg, [step])
     assert step["max_travel_sync_error_mm"] <= cfg.walking.travel_sync_band_mm
-    assert step["min_stability_margin_m"] >= cfg.walking.min_stability_margin_m
     assert step["max_transfer_attitude_change_deg"] <= 0.01
-    assert step["duration_s"] <= step_time_limit_s(cfg)
     # the goals judged are this project's, not the shipped 2 m step's
     assert out["step_goals"]["max_step_duration_s"]["limit"] == pytest.approx(
         step_time_limit_s(cfg)
@@ -105,7 +103,7 @@ def test_one_metro_step_walks_one_ring_within_its_goals(
     assert carried_kn == pytest.approx(45.7 * 9.81, rel=0.02)
 
 
-@pytest.mark.slow(seconds=50)
+@pytest.mark.slow(seconds=40)
 def test_a_metro_ring_cycle_places_the_part_within_table_4(cycle: dict[str, Any]) -> None:
     """A ring cycle on the 1.5 m rings: one step there, the part placed, one step back
     unloaded, each walk's step and the placed part within the project's goals. Measured:
@@ -118,13 +116,8 @@ def test_a_metro_ring_cycle_places_the_part_within_table_4(cycle: dict[str, Any]
     cfg = load_project(METRO)
     assert cfg.walking is not None and cfg.cycle is not None
     assert set(ring["walks"]) == {"walk", "walk_back"}
-    overload = cfg.walking.overload_percent / 100
-    for steps in ring["walks"].values():
-        (step,) = steps
-        assert step["max_leg_force_ratio"] <= overload
-        assert step["max_leg_sync_error_mm"] <= cfg.walking.leg_sync_band_mm
-        assert step["min_stability_margin_m"] >= cfg.walking.min_stability_margin_m
-        assert step["duration_s"] <= step_time_limit_s(cfg)
+    assert [len(steps) for steps in ring["walks"].values()] == [1, 1]
+    assert_steps_within_the_walk_goals(cfg, [*ring["walks"]["walk"], *ring["walks"]["walk_back"]])
     acc = cfg.acceptance
     table4 = {k: getattr(acc, k) for k in type(acc).model_fields if getattr(acc, k) is not None}
     assert {"vertical_misalignment_mm", "max_gap_mm", "centreline_deviation_y_mm"} <= set(table4)
