@@ -302,8 +302,11 @@ class HilSimulator:
         on_status: Callable[[HilSimulator], None] | None = None,
         status_interval_s: float = 0.5,
         should_stop: Callable[[], bool] | None = None,
+        between_scans: Callable[[], None] | None = None,
     ) -> dict[str, Any]:
-        """Run PLC scans paced by the wall clock until ``duration_s`` or ``should_stop()``.
+        """Run PLC scans paced by the wall clock until ``duration_s`` or ``should_stop()``;
+        ``between_scans()`` after each scan (the site's acts from another thread:
+        :class:`hil_sim.site.SiteServer`).
 
         Behind schedule, scans run back to back to catch up; more than 0.1 s behind,
         the schedule is reset and counted in ``overruns`` (the plant never skips time).
@@ -331,6 +334,8 @@ class HilSimulator:
                 self.wire.set_arrival_horizon(start + to_epoch + k * self.cycle_s)
                 stall.arm()
                 self.step(self.cycle_s)
+                if between_scans is not None:
+                    between_scans()
                 k += 1
                 if on_status is not None and time.monotonic() >= next_status:
                     on_status(self)

@@ -93,8 +93,11 @@ SLOW: dict[str, dict[str, Any]] = {
     "can": {"interface": "socketcan", "channel": "vcan0", "stale_cycles": 100.0},
 }
 #: The simulator's plant at its coarsest allowed step, the PLC scan at 5 ms (the
-#: service's loop runs at 20 ms here).
-SCENARIO = {"name": "kernel-vm", "plant": {"step_ms": 0.5, "plc_cycle_ms": 5.0}}
+#: service's loop runs at 20 ms here); the attitude rig (the example does not walk).
+SCENARIO = {
+    "name": "kernel-vm",
+    "plant": {"step_ms": 0.5, "plc_cycle_ms": 5.0, "contact": False},
+}
 
 
 @dataclass
