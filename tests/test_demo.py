@@ -13,7 +13,7 @@ from typing import Any
 import pytest
 
 from tests.cli_helpers import run_wara
-from wara import demo_two_process as d2
+from wara import two_process_examples as ex
 from wara.demo import RING_DEMO_RINGS
 from wara.examples import (
     ATTITUDE_TOL_DEG,
@@ -166,10 +166,10 @@ def test_both_demo_forms_judge_alike() -> None:
         "duration_s": 6.1,
         "hold_samples": 600,
     }
-    two = d2._judge({"mode": "COMPLETE", "motion": motion}, ExampleResult(2.0, 1.0))
+    two = ex.judge({"mode": "COMPLETE", "motion": motion}, ExampleResult(2.0, 1.0))
     one = judge_example(_result(sync_mm=0.08))
     assert (two.passed, two.note) == (one.passed, one.note) == (False, "sync_error_mm 0.08 > 0.07")
-    no_hold = d2._judge({"mode": "COMPLETE", "motion": {**motion, "hold_samples": 0}}, _result())
+    no_hold = ex.judge({"mode": "COMPLETE", "motion": {**motion, "hold_samples": 0}}, _result())
     assert not no_hold.passed and no_hold.note.startswith("no standstill samples")
-    faulted = d2._judge({"mode": "ABORTED", "fault_reasons": ["x"]}, _result())
+    faulted = ex.judge({"mode": "ABORTED", "fault_reasons": ["x"]}, _result())
     assert not faulted.passed and faulted.note == "mode ABORTED: ['x']"
