@@ -9,8 +9,9 @@ formula for each (docs/hydraulic-plant.md explains them).
 from __future__ import annotations
 
 import math
+from typing import Literal
 
-from config.schema import Cylinder, CylinderPlant, Hydraulics
+from config.schema import WORKPIECE_BODY, Body, Cylinder, CylinderPlant, Hydraulics, ProjectConfig
 
 
 def chamber_volumes_m3(
@@ -79,4 +80,57 @@ def valve_flow_gain_m3_s(hydraulics: Hydraulics, plant: CylinderPlant) -> float:
         * plant.area_gradient_m
         * hydraulics.valve_max_opening_m
         * math.sqrt(dp / hydraulics.oil_density_kg_m3)
+    )
+
+
+# --------------------------------------------------------------------------- the rods' mass
+
+#: Where the bodies of the YAML weigh a cylinder's rod in (docs/model-choices.md, "The
+#: machine's mass"): the upper platform's own bodies (not the workpiece) its four
+#: cylinders' rods, each frame's bodies its four legs' rods and feet.
+RodOwner = Literal["upper", "main", "sub"]
+ROD_OWNERS: dict[RodOwner, tuple[str, str]] = {
+    "upper": ("layers.upper.bodies", "upper_attitude"),
+    "main": ("frames.main.bodies", "main_leg"),
+    "sub": ("frames.sub.bodies", "sub_leg"),
+}
+
+
+def owner_bodies(cfg: ProjectConfig, owner: RodOwner) -> tuple[Body, ...]:
+    """The bodies that weigh ``owner``'s rods in (none: a project without frames)."""
+    if owner == "upper":
+        return cfg.layers.upper.bodies
+    if cfg.frames is None:
+        return ()
+    return cfg.frames.main.bodies if owner == "main" else cfg.frames.sub.bodies
+
+
+def owned_rods_kg(cfg: ProjectConfig, owner: RodOwner) -> float:
+    """The mass of the rods ``owner``'s bodies weigh in (``hydraulics.rod_mass_kg`` each;
+    0 without those bodies)."""
+    if not owner_bodies(cfg, owner):
+        return 0.0
+    role = ROD_OWNERS[owner][1]
+    return sum(1 for c in cfg.cylinders if c.role == role) * cfg.hydraulics.rod_mass_kg
+
+
+def without_rods(cfg: ProjectConfig, owner: RodOwner) -> tuple[Body, ...]:
+    """``owner``'s bodies less the rods they weigh in, each body lighter in proportion to
+    its mass (its centre of gravity kept; the workpiece untouched): what a model that
+    carries the rods as masses of their own (the simulator's rods and feet) or leaves them
+    out (the walk's statics: a leg's rod is not in its load) keeps of them. ValueError
+    where the bodies weigh less than their rods (config.crosscheck refuses that)."""
+    bodies = owner_bodies(cfg, owner)
+    rods = owned_rods_kg(cfg, owner)
+    own = sum(b.mass_kg for b in bodies if b.name != WORKPIECE_BODY)
+    if rods == 0.0:
+        return bodies
+    if not rods < own:
+        raise ValueError(
+            f"{ROD_OWNERS[owner][0]}: {own:g} kg cannot weigh in their rods' {rods:g} kg"
+        )
+    k = 1.0 - rods / own
+    return tuple(
+        b if b.name == WORKPIECE_BODY else b.model_copy(update={"mass_kg": b.mass_kg * k})
+        for b in bodies
     )

@@ -167,9 +167,12 @@ class Alignment(Strict):
 
 
 class Tunnel(Strict):
-    #: the tunnel's outer diameter (project data; no check reads it)
-    outer_diameter_m: Annotated[Finite, Field(gt=0, le=30)]
-    #: the tunnel's inner diameter, smaller than the outer (project data)
+    """The lining the machine works in: the parts sit on its invert (their reference
+    height, :attr:`ProjectConfig.reference_height_m`) and the machine fits inside it
+    (config.crosscheck); the lining's outer diameter governs nothing here (not a key)."""
+
+    #: the lining's inside: the parts' reference height on its invert, the machine's
+    #: envelope within it (config.crosscheck)
     inner_diameter_m: Annotated[Finite, Field(gt=0, le=30)]
     #: a ring's width along the axis: ring n's chainage, a survey's plausible offset along
     #: the axis (half of it)
@@ -177,18 +180,19 @@ class Tunnel(Strict):
     #: the design axis; without it the machine cannot place (no ``placement``)
     alignment: Alignment | None = None
 
-    @model_validator(mode="after")
-    def _inner_smaller(self) -> Tunnel:
-        if self.inner_diameter_m >= self.outer_diameter_m:
-            raise ValueError(
-                f"inner_diameter_m ({self.inner_diameter_m}) must be smaller than "
-                f"outer_diameter_m ({self.outer_diameter_m})"
-            )
-        return self
+    @property
+    def inner_radius_m(self) -> float:
+        return self.inner_diameter_m / 2.0
 
 
 class Workpiece(Strict):
-    """The precast arc part."""
+    """The precast arc part.
+
+    Its mass is the upper layer's body named :data:`WORKPIECE_BODY` (with its centre of
+    gravity: what the statics and the simulator carry); ``mass_kg`` is left out then
+    (:attr:`ProjectConfig.workpiece_mass_kg`). A project without that body gives it here;
+    a project that gives both must give the same (config.crosscheck).
+    """
 
     #: the arc part's length across the tunnel (Table 4's corners, the angles' lever arm)
     length_m: LengthM
@@ -196,18 +200,22 @@ class Workpiece(Strict):
     height_m: LengthM
     #: its width along the tunnel (the ring width it fills: the joint's position, the pads)
     width_m: LengthM
-    #: its mass (the slide axes' friction check; the statics use the body ``workpiece``)
-    mass_kg: MassKg
+    #: its mass, for a project without an upper body ``workpiece``; left out, the body's
+    #: (which the statics and the simulator carry; config.crosscheck: the same if both)
+    mass_kg: MassKg | None = None
 
 
 class Robot(Strict):
-    #: the machine's envelope length (project data; no check reads it)
+    """The machine as a whole (paper): its envelope, which its legs stand within and
+    which must fit the tunnel, and its weight, which is its bodies' (config.crosscheck)."""
+
+    #: the machine's envelope length: its legs stand within it (config.crosscheck)
     length_mm: LengthMm
-    #: its envelope width (project data)
+    #: its envelope width: its legs within it, within the tunnel and the parts' hollow
     width_mm: LengthMm
-    #: its envelope height (project data)
+    #: its envelope height: within the tunnel and below a part (it walks through them)
     height_mm: LengthMm
-    #: its mass (project data; the statics use the layers' and frames' bodies)
+    #: its mass: the bodies' sum but the part's, the rods in it (config.crosscheck)
     mass_kg: MassKg
 
 
@@ -582,10 +590,11 @@ class Planner(Strict):
 class Ladrc(Strict):
     #: the model's order (1: the command sets a rod speed)
     order: Literal[1, 2] = 1
-    #: controller bandwidth (crossover)
-    wc_rad_s: BandwidthPositive = 6.0
-    #: extended state observer bandwidth
-    wo_rad_s: BandwidthPositive = 12.0
+    #: controller bandwidth (crossover) of every position loop; left out (null): each
+    #: group's derived from the plant (``ipc_app.control.tuning``, docs/control.md)
+    wc_rad_s: BandwidthPositive | None = None
+    #: extended state observer bandwidth; left out (null): derived as ``wc_rad_s`` is
+    wo_rad_s: BandwidthPositive | None = None
     #: ``zoh``: exact, with the current observer; ``euler``: forward Euler
     discretization: Literal["euler", "zoh"] = "zoh"
     #: the command's largest change per second (full opening is 1)
@@ -633,6 +642,10 @@ class Control(Strict):
     pid: Pid = Pid()
     sync: Sync = Sync()
     realtime: Realtime = Realtime()
+    #: every loop must stay stable with this much extra measurement delay (socketcan, a
+    #: PLC scan out of phase, two processes): derived bandwidths keep twice it in the
+    #: loop model, explicit ones are refused below it (``ipc_app.control.tuning``)
+    delay_margin_ms: Annotated[Finite, Field(ge=5, le=1000)] = 20.0
     #: The rod speed of a jog in the MANUAL unit mode (``wara ctl jog``): slow enough
     #: for an operator beside the machine; 20 mm/s is the top of a hand-jog range.
     manual_jog_speed_mm_s: Annotated[Finite, Field(gt=0, le=20)] = 2.0
@@ -782,8 +795,10 @@ class Acceptance(Strict):
 
 
 class Task(Strict):
-    #: the paper's assembly time of a part (project data; the cycle is judged against
-    #: ``cycle.max_cycle_time_min``)
+    """The assembly task an adjustment serves (paper)."""
+
+    #: the assembly task's time (paper: 5 min): a plan states its solve time as a share of
+    #: it (the paper's Table 2)
     assembly_time_min: Annotated[Finite, Field(gt=0, le=10_000)] = 5.0
 
 
@@ -871,8 +886,9 @@ class Walking(Strict):
     touch_mpa: Annotated[Finite, Field(gt=0, le=70)] = 1.0
     #: a foot not touched down this far below the expected ground: stop (hole, obstacle)
     touchdown_travel_mm: Annotated[Finite, Field(gt=0, le=1000)] = 10.0
-    #: lowering speed from touchdown_travel_mm above the expected ground on
-    touchdown_speed_mm_s: Annotated[Finite, Field(gt=0, le=1000)] = 2.5
+    #: lowering speed from touchdown_travel_mm above the expected ground on; left out:
+    #: derived from the legs' stiffness and the pressures' age (``ipc_app.control.tuning``)
+    touchdown_speed_mm_s: Annotated[Finite, Field(gt=0, le=1000)] | None = None
     #: preload or transfer not done within this: stop
     transfer_timeout_s: Annotated[Finite, Field(gt=0, le=600)] = 30.0
     #: a receiving leg off its expected share by more than this at the transfer's end: stop
@@ -882,10 +898,10 @@ class Walking(Strict):
     #: resume check: leg forces within this of the values at the stop (of the leg's share)
     resume_force_tolerance_percent: Annotated[Finite, Field(gt=0, le=100)] = 10.0
     #: force loop (touch-down, preload, transfer): the LADRC's crossover on the cap-side
-    #: force
-    force_wc_rad_s: Annotated[Finite, Field(gt=0, le=1000)] = 4.0
-    #: and its observer's bandwidth
-    force_wo_rad_s: Annotated[Finite, Field(gt=0, le=1000)] = 16.0
+    #: force; left out (null): derived from the plant (``ipc_app.control.tuning``)
+    force_wc_rad_s: Annotated[Finite, Field(gt=0, le=1000)] | None = None
+    #: and its observer's bandwidth; left out (null): derived
+    force_wo_rad_s: Annotated[Finite, Field(gt=0, le=1000)] | None = None
     #: the twist-mode controller of a frame standing in position control (travel,
     #: the other frame's lowering and preload): the crossover of its force loop on the
     #: legs' twist, which sets the twist mode's share of their valve commands
@@ -947,8 +963,6 @@ class Placement(Strict):
 
     #: r_yaw: the rotation pair acts at this lever arm about the upper platform's z axis
     rotation_lever_arm_m: Annotated[Finite, Field(gt=0, le=20)] = 1.5
-    #: height of the part's reference point (bottom-face centre) above the design centreline
-    reference_height_m: Annotated[Finite, Field(ge=-20, le=20)] = 0.0
     #: the gap the planner aims for between the previous part's front face and the new one's
     target_gap_mm: Annotated[Finite, Field(ge=0, le=100)] = 5.0
     #: steering back: the new part's deviation from the design differs from the
@@ -1081,6 +1095,35 @@ class ProjectConfig(Strict):
                         f"{(layer.bore_mm, layer.rod_mm, layer.stroke_mm)}"
                     )
         return self
+
+    @model_validator(mode="after")
+    def _workpiece_mass(self) -> ProjectConfig:
+        if self.workpiece.mass_kg is None and self.workpiece_body is None:
+            raise ValueError(
+                f"workpiece.mass_kg: give it, or a body named {WORKPIECE_BODY!r} on the upper "
+                "layer (layers.upper.bodies) whose mass it is"
+            )
+        return self
+
+    @property
+    def reference_height_m(self) -> float:
+        """The height of a part's reference point (its bottom-face centre) above the
+        design centreline: on the invert, the inner radius below the axis."""
+        return -self.tunnel.inner_radius_m
+
+    @property
+    def workpiece_body(self) -> Body | None:
+        """The upper layer's body named :data:`WORKPIECE_BODY`, if it has one."""
+        return next((b for b in self.layers.upper.bodies if b.name == WORKPIECE_BODY), None)
+
+    @property
+    def workpiece_mass_kg(self) -> float:
+        """The arc part's mass: its body's on the upper layer, else ``workpiece.mass_kg``."""
+        body = self.workpiece_body
+        if body is not None:
+            return body.mass_kg
+        assert self.workpiece.mass_kg is not None  # _workpiece_mass
+        return self.workpiece.mass_kg
 
     def cylinder(self, cylinder_id: str) -> Cylinder:
         for c in self.cylinders:

@@ -96,6 +96,23 @@ def orifice_flows(
     return q_a, q_b
 
 
+#: Below this pressure (Pa) the oil's entrained air makes a chamber soft: a falling
+#: pressure slows to a stop at zero instead of going below it (a chamber pulled open
+#: cavitates; a parked cylinder loaded from above with both ports locked, its rod side).
+#: Above it (the tank's 0.3 MPa is 15 times it) the oil's stiffness is whole.
+CAVITATION_PA = 2.0e4
+
+
+@jit
+def _falling(dp, p):
+    """``dp`` (Pa/s) where it lowers a pressure ``p``: scaled by the stiffness left to the
+    oil there, ``r (2 - r)`` with ``r = p / CAVITATION_PA`` in 0..1 (whole above it,
+    none at zero, smooth at both ends), scalars or arrays; a few flops, no
+    transcendental (the rig's RK4 calls it 38 times a stage)."""
+    r = np.minimum(np.maximum(p, 0.0) / CAVITATION_PA, 1.0)
+    return dp - np.minimum(dp, 0.0) * (1.0 - r) * (1.0 - r)
+
+
 @jit
 def chamber_pressure_derivatives(
     x_m,
@@ -116,7 +133,8 @@ def chamber_pressure_derivatives(
     """Continuity of the two chambers (model.md section 9), Pa/s.
 
     ``(V_A0 + A_A x)/beta dp_A/dt = Q_A - A_A v - C_il (p_A - p_B) - C_el p_A`` and
-    ``(V_B0 + A_B (L - x))/beta dp_B/dt = -Q_B + A_B v + C_il (p_A - p_B) - C_el p_B``.
+    ``(V_B0 + A_B (L - x))/beta dp_B/dt = -Q_B + A_B v + C_il (p_A - p_B) - C_el p_B``;
+    a falling pressure stops at zero (:data:`CAVITATION_PA`).
     """
     leak = internal_leakage * (p_a_pa - p_b_pa)
     vol_a = dead_volume_a_m3 + area_a_m2 * x_m
@@ -127,7 +145,7 @@ def chamber_pressure_derivatives(
     dp_b = (
         bulk_modulus_pa / vol_b * (-q_b_m3_s + area_b_m2 * v_m_s + leak - external_leakage * p_b_pa)
     )
-    return dp_a, dp_b
+    return _falling(dp_a, p_a_pa), _falling(dp_b, p_b_pa)
 
 
 @jit

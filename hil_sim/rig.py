@@ -29,9 +29,12 @@ Model
   the end stops, so cylinders that move out of step fight through the oil and the
   twist shows up as pressure.
 - Load-holding valves (option): while the PLC has the drives off, a cylinder's ports
-  are blocked: no valve flow and no leakage to tank (the paper's "external" leakage
-  is read as leakage on the valve side of the holding valves); internal leakage
-  across the piston stays.
+  are blocked and the cylinder is tight: no valve flow and neither of the paper's
+  leakages (read as the running servo's, its valve's null leakage in them: docs/hil.md).
+  A leaking holding valve (a fault) leaks both chambers to tank.
+- Start: parked (:func:`parked_pressures`): the pressures its servo held it at, at rest,
+  when the drives closed the holding valves (the loaded chamber at its load pressure,
+  below the supply); a falling chamber pressure stops at zero (cavitation).
 
 Everything is integrated together with fixed-step RK4 in one numba kernel.
 
@@ -49,13 +52,14 @@ step of all 19 cylinders form one kernel that must see them together.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
 from config import units
+from config.derived import without_rods
 from config.schema import N_CYLINDERS, WORKPIECE_BODY, ProjectConfig
 from hil_sim._jit import jit
 from hil_sim.hydraulics import (
@@ -301,13 +305,21 @@ def inverse(a):
 # --------------------------------------------------------------------------- dynamics
 
 
+#: the row of the rig's parameter matrix after CylinderParams' fields: the leakage across
+#: the piston that stays behind closed holding valves (m^3/s/Pa; a worn seal's)
+SEAL_ROW = len(fields(CylinderParams))
+
+
 @jit
 def cylinder_forces(y, dy, u, ports, leak, f_ext, p, x, v, f_out):
     """Valves, chambers and rod forces of all cylinders at rod positions ``x``, speeds ``v``.
 
     Writes the valve and pressure derivatives and, for a standalone rod, ``x' = v``,
-    ``v' = F / m``; ``f_out``: the net rod forces. ``leak``: leakage to tank past a
-    blocked load-holding valve (m^3/s/Pa, both chambers), on top of the ports' own.
+    ``v' = F / m``; ``f_out``: the net rod forces. ``ports``: 1 open, 0 blocked by the
+    load-holding valves (no valve flow and neither of the YAML's leakages: a parked
+    cylinder is tight, but for a worn seal's leakage across the piston, row
+    :data:`SEAL_ROW` of ``p``); ``leak``: leakage to tank past a leaking holding valve
+    (m^3/s/Pa, both chambers).
     """
     for i in range(N):
         spool = y[_SPOOL + i]
@@ -318,7 +330,8 @@ def cylinder_forces(y, dy, u, ports, leak, f_ext, p, x, v, f_out):
         q_a, q_b = orifice_flows(spool, p_a, p_b, p[9, i], p[8, i], p[12, i], p[13, i], p[14, i])
         dp_a, dp_b = chamber_pressure_derivatives(
             x[i], v[i], p_a, p_b, q_a * ports[i], q_b * ports[i], p[0, i], p[1, i], p[2, i],
-            p[3, i], p[4, i], p[5, i], p[6, i], p[7, i] * ports[i] + leak[i],
+            p[3, i], p[4, i], p[5, i], p[6, i] * ports[i] + p[SEAL_ROW, i] * (1.0 - ports[i]),
+            p[7, i] * ports[i] + leak[i],
         )  # fmt: skip
         force = (
             rod_force_n(p_a, p_b, p[0, i], p[1, i])
@@ -479,6 +492,60 @@ class LayerTruth:
     twist_force_n: float
 
 
+def parked_pressures(
+    force_n: float,
+    area_a: float,
+    area_b: float,
+    supply_pa: float,
+    tank_pa: float,
+    internal_leakage: float,
+    external_leakage: float,
+) -> tuple[float, float]:
+    """Chamber pressures ``(p_A, p_B)`` of a cylinder parked holding ``force_n``
+    (compression positive): those its servo held it at, at rest, when the drives closed
+    the load-holding valves (a parked cylinder is tight and keeps them; docs/hil.md).
+
+    At rest under the servo the valve's two metering edges pass just what the chambers
+    leak: into the loaded chamber from the supply what it loses (across the piston and
+    outside), out of the other to tank what it gains, through the same opening, so
+    ``sqrt(p_s - p_A) L_B = sqrt(p_B - p_T) L_A`` with ``L_A = C_i (p_A - p_B) + C_e p_A``,
+    ``L_B = C_i (p_A - p_B) - C_e p_B``, and ``p_A A_A - p_B A_B = F``: the loaded
+    chamber at its load pressure, below the supply; the other a little above tank. A
+    hanging rod (a lifted foot) is the mirror, its rod side loaded. Where there is no
+    such state (no leakage; a load the supply cannot hold) the far chamber is at tank."""
+    if force_n < 0.0:  # the mirror: the rod side carries the load
+        p_b, p_a = _servo_null(-force_n, area_b, area_a, supply_pa, tank_pa,
+                               internal_leakage, external_leakage)  # fmt: skip
+        return p_a, p_b
+    return _servo_null(
+        force_n, area_a, area_b, supply_pa, tank_pa, internal_leakage, external_leakage
+    )
+
+
+def _servo_null(
+    force_n: float, a_load: float, a_far: float, p_s: float, p_t: float, c_i: float, c_e: float
+) -> tuple[float, float]:
+    """:func:`parked_pressures` with the loaded chamber's area ``a_load``: ``(p_load,
+    p_far)``, bisecting on ``p_far`` from tank pressure up to where the loaded chamber
+    would reach the supply."""
+
+    def p_load(p_far: float) -> float:
+        return (force_n + p_far * a_far) / a_load
+
+    def balance(p_far: float) -> float:
+        p = p_load(p_far)
+        lost, gained = c_i * (p - p_far) + c_e * p, c_i * (p - p_far) - c_e * p_far
+        return math.sqrt(max(p_s - p, 0.0)) * gained - math.sqrt(max(p_far - p_t, 0.0)) * lost
+
+    lo, hi = p_t, (p_s * a_load - force_n) / a_far
+    if not (hi > lo and balance(lo) > 0.0 and balance(hi) < 0.0):
+        return p_load(p_t), p_t
+    for _ in range(60):
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if balance(mid) > 0.0 else (lo, mid)
+    return p_load(lo), lo
+
+
 class Rig:
     """The plant: construct from the project, :meth:`advance`, read the truth.
 
@@ -505,7 +572,9 @@ class Rig:
         self.params = CylinderParams.from_config(
             cyls, cfg.hydraulics, [cfg.plant_of(c) for c in cyls]
         )
-        self._p = self.params.matrix()
+        # the fields of CylinderParams, then row SEAL_ROW: the leakage across the piston
+        # that stays behind closed holding valves (0: a sound seal; a worn one's)
+        self._p = np.vstack([self.params.matrix(), np.zeros((1, N))])
         self._p_nominal = self._p.copy()
         lo, up = cfg.layers.lower, cfg.layers.upper
         by_id = {c.id: c for c in cyls}
@@ -525,8 +594,11 @@ class Rig:
         inertias: list[tuple[float, ...]] = []
         layers: list[int] = []
         part = -1
-        for k, layer in enumerate((lo, up)):
-            for b in layer.bodies:
+        # the upper cylinders' rods are masses of their own (below): out of the bodies
+        # that weigh them in (config.derived.without_rods)
+        for k, bodies in enumerate((lo.bodies, without_rods(cfg, "upper"))):
+            layer = (lo, up)[k]
+            for b in bodies:
                 is_part = k == 1 and b.name == WORKPIECE_BODY
                 part = len(masses) if is_part else part
                 masses.append(b.mass_kg)
@@ -672,28 +744,40 @@ class Rig:
         return out
 
     def _settle_level(self) -> None:
-        """Level at mid-stroke, at rest, valves closed, pressures holding the load.
-
-        Each chamber pair is at the pressure that makes internal leakage vanish
-        (``p_A = p_B = F / (A_A - A_B)``), so with blocked ports nothing moves.
-        """
+        """Level at mid-stroke, at rest, valves closed, parked: each attitude cylinder's
+        pressures hold its static load (:func:`parked_pressures`)."""
         p = self.params
         self.y[:] = 0.0
         self.y[_X : _X + N] = p.stroke_m / 2
         force = np.zeros(N)
         force[self._plat_idx] = self.static_rod_forces_n(np.zeros(6))
-        pressure = force / (p.area_a_m2 - p.area_b_m2)
-        self.y[_PA : _PA + N] = pressure
-        self.y[_PB : _PB + N] = pressure
+        self.park(force)
         self._xv[0] = self.y[_X : _X + N]
         self._force[:] = force
         self.bound_friction()
 
+    def park(self, force_n: FloatArray) -> None:
+        """The start state's pressures: the cylinders of :attr:`platform_mask` parked
+        holding ``force_n`` (N, by can_index; :func:`parked_pressures`), the others (no
+        load: the slide axes) empty."""
+        p = self.params
+        self.y[_PA : _PA + N] = 0.0
+        self.y[_PB : _PB + N] = 0.0
+        for i in np.flatnonzero(self.platform_mask):
+            self.y[_PA + i], self.y[_PB + i] = parked_pressures(
+                float(force_n[i]), float(p.area_a_m2[i]), float(p.area_b_m2[i]),
+                float(p.supply_pa[i]), float(p.tank_pa[i]),
+                float(p.internal_leakage_m3_s_pa[i]), float(p.external_leakage_m3_s_pa[i]),
+            )  # fmt: skip
+
     # ----------------------------------------------------------------- faults
 
     def set_internal_leakage(self, index: int, value: float | None) -> None:
-        """Internal leakage of cylinder ``index`` (m^3/s/Pa); ``None`` restores the YAML's."""
-        self._p[6, index] = self._p_nominal[6, index] if value is None else value
+        """Internal leakage of cylinder ``index`` (m^3/s/Pa): a worn piston seal, which
+        leaks across the piston also behind closed holding valves; ``None`` restores the
+        YAML's (the running servo's, none while parked)."""
+        for row in (6, SEAL_ROW):
+            self._p[row, index] = self._p_nominal[row, index] if value is None else value
 
     def set_platform_load(self, layer: str, mass_kg: float, cog_m: tuple[float, ...]) -> None:
         """The extra mass set down on a platform (frame of that platform)."""
@@ -824,7 +908,17 @@ class Rig:
         :attr:`external_force_n` held."""
         if self.part_state == "loading":
             self._load_ramp()
-        _advance(
+        kernel, args = self.kernel_call(n_steps)
+        kernel(*args)
+        self.t_s += n_steps * self.step_s
+
+    def kernel_call(self, n_steps: int) -> tuple[Any, tuple[Any, ...]]:
+        """The compiled kernel that integrates ``n_steps`` and its arguments (this rig's
+        arrays, in place): what :meth:`advance` calls after the load ramp, and the
+        simulator's compiled PLC scans call in line (:mod:`hil_sim.plc_fast`; they keep
+        :attr:`t_s`). The compiled scans use it for this class only: a subclass whose
+        :meth:`advance` does more (the walking rig) is advanced by its own method."""
+        return _advance, (
             self.y,
             self.command,
             self.ports_open,
@@ -848,7 +942,6 @@ class Rig:
             self._force,
             self.pad_force_n,
         )
-        self.t_s += n_steps * self.step_s
 
     def derivative(self, y: FloatArray | None = None) -> FloatArray:
         """The state's time derivative at ``y`` (default: the present state) with the

@@ -60,8 +60,8 @@ from config.hil_scenario import (
 )
 from config.schema import N_CYLINDERS, ProjectConfig
 from config.stall import StallTrace
-from hil_sim._jit import jit
 from hil_sim.placement import bolt_part
+from hil_sim.plc_fast import FastPlc, limit_switch_bits
 from hil_sim.rig import LayerTruth, Rig
 from hil_sim.sensors import PositionTransducer, PressureTransducer
 from hil_sim.walking import WalkingRig
@@ -155,7 +155,9 @@ class HilSimulator:
         ss = np.random.SeedSequence(self.seed)
         s_wire, s_pos, s_press, s_fault = (int(s.generate_state(1)[0]) for s in ss.spawn(4))
         self.wire = FaultyWire(inner, self.catalog, self.clock, seed=s_wire)
-        self.plc = PlcLink(cfg, self.wire, catalog=self.catalog, clock=self.clock)
+        #: the compiled scans (hil_sim.plc_fast), set at the end when they can run here
+        self._fast: FastPlc | None = None
+        self._plc = PlcLink(cfg, self.wire, catalog=self.catalog, clock=self.clock)
         sens = self.scenario.sensors
         self._pos_sensor = PositionTransducer(
             N_CYLINDERS,
@@ -193,14 +195,14 @@ class HilSimulator:
         #: TargetSeq values issued so far (one per hmi_target event)
         self.hmi_issued: list[int] = []
         self._engaged = False  # drives were on at the last scan with fresh commands
-        self.hmi_ack: tuple[int, TargetAck] | None = None
+        self._hmi_ack: tuple[int, TargetAck] | None = None
         self._latched = Fault.NONE
         self._drives = False
-        self.applied_command = np.zeros(N_CYLINDERS)
+        self._applied = np.zeros(N_CYLINDERS)
         #: the rig can walk (the walking rig): the PLC says so in its status and refuses
         #: WALK otherwise (``WalkAvailable``)
         self.walk_available = isinstance(self.rig, WalkingRig)
-        self.status = PlcStatus(
+        self._status = PlcStatus(
             supply_pressure_pa=cfg.hydraulics.supply_pressure_pa,
             walk_available=self.walk_available,
         )
@@ -227,6 +229,40 @@ class HilSimulator:
         self._u_key: tuple[Any, ...] = ()
         self._u = np.zeros(N_CYLINDERS)
         self._logic_inputs: tuple[Any, ...] = ()
+        if FastPlc.available(self):
+            self._fast = FastPlc(self)
+
+    # ----------------------------------------------------------------- the PLC's outputs
+
+    @property
+    def plc(self) -> PlcLink:
+        """The PLC's side of the link (its state up to date: the compiled scans hand it
+        back to the Python objects first, and take it again at the next step)."""
+        if self._fast is not None:
+            self._fast.export()
+        return self._plc
+
+    @property
+    def status(self) -> PlcStatus:
+        """The PLC's status word, as its logic last set it."""
+        if self._fast is not None:
+            self._fast.sync_outputs()
+        return self._status
+
+    @property
+    def applied_command(self) -> FloatArray:
+        """The spool commands the PLC applies (by ``can_index``): the IPC's, or 0 where
+        the drives are off, a limit switch stops the rod or a spool is stuck."""
+        if self._fast is not None:
+            self._fast.sync_outputs()
+        return self._applied
+
+    @property
+    def hmi_ack(self) -> tuple[int, TargetAck] | None:
+        """The IPC's last answer to an HMI request: (TargetSeq, status), None before one."""
+        if self._fast is not None:
+            self._fast.sync_outputs()
+        return self._hmi_ack
 
     # ----------------------------------------------------------------- set-up
 
@@ -287,8 +323,21 @@ class HilSimulator:
                 f"dt_s ({dt_s}) must be a whole number of PLC scans of {self.cycle_s} s"
             )
         t0 = time.perf_counter()
-        for _ in range(n):
-            self._scan()
+        fast = self._fast
+        if fast is None:
+            for _ in range(n):
+                self._scan()
+        else:
+            done = 0
+            while done < n:
+                m = fast.scans_allowed(n - done)
+                if m:
+                    fast.run(m)
+                    done += m
+                else:
+                    fast.export()
+                    self._scan()
+                    done += 1
         self._wall_s += time.perf_counter() - t0
 
     @property
@@ -357,7 +406,7 @@ class HilSimulator:
         if self._stalled:
             # no scan: nothing sampled, read or sent; the output card's watchdog has the
             # spools centred and the load-holding valves closed; the plant goes on
-            self.applied_command = np.zeros(N_CYLINDERS)
+            self._applied = np.zeros(N_CYLINDERS)
             self.rig.command[:] = 0.0
             if self.rig.load_holding_valves:
                 self.rig.ports_open[:] = 0.0
@@ -371,10 +420,10 @@ class HilSimulator:
         faults = self.wire.faults
         if not faults or not any(f.kind == "plc_silent" for f in faults):
             # on bus-off the PLC still runs (its frames are lost), when silent it is dead
-            frames = self.plc.poll(t)
+            frames = self._plc.poll(t)
         self._logic(t, frames)
         if self._deferred_readings:
-            self.plc.defer_readings(None, None)  # this scan's readings, or none
+            self._plc.defer_readings(None, None)  # this scan's readings, or none
         self.rig.advance(self.steps_per_cycle)
         self._k += 1
         self.t_s = self._k * self.cycle_s
@@ -383,9 +432,7 @@ class HilSimulator:
         events = self.scenario.events
         if not events:
             return
-        now_active = {
-            k for k, ev in enumerate(events) if k not in self._hmi_issued and _is_active(ev, t)
-        }
+        now_active = self._now_active(t)
         started = now_active - self._active
         ended = self._active - now_active
         if not started and not ended:
@@ -399,7 +446,7 @@ class HilSimulator:
                 req = {"cancel": TargetRequest.CANCEL, "walk": TargetRequest.WALK}.get(
                     ev.request, TargetRequest.NEW_TARGET
                 )
-                self.plc.set_hmi_target(
+                self._plc.set_hmi_target(
                     HmiTarget(
                         units.deg(ev.roll_deg),
                         units.deg(ev.pitch_deg),
@@ -466,6 +513,15 @@ class HilSimulator:
             self._wire_faults[k] for k in sorted(self._active) if k in self._wire_faults
         )
 
+    def _now_active(self, t: float) -> set[int]:
+        """The events in force at ``t`` (an HMI target event once: not after it was sent);
+        :meth:`_switch_events` acts when they differ from :attr:`_active`."""
+        return {
+            k
+            for k, ev in enumerate(self.scenario.events)
+            if k not in self._hmi_issued and _is_active(ev, t)
+        }
+
     def _derive_active(self) -> None:
         """What the active events mean for every scan until the set changes."""
         events = self.scenario.events
@@ -483,7 +539,7 @@ class HilSimulator:
         if self._deferred_readings:
             self._pos_sensor.skip()  # the noise only if a frame takes the reading
             self._press_sensor.skip()
-            self.plc.defer_readings(self._take_positions, self._take_pressures)
+            self._plc.defer_readings(self._take_positions, self._take_pressures)
         else:
             faults = self._sensor_faults
             new_pos = k % self._pos_every == 0
@@ -495,32 +551,32 @@ class HilSimulator:
                 self._press_reading = self._press_sensor.read(p).reshape(2, N_CYLINDERS).T
             if faults or new_pos or new_press or self._sensor_fault:
                 self._hand_over(faults)
-        bits = _limit_switch_bits(rig.x_view, self._limit_m, self._extended_at)
+        bits = limit_switch_bits(rig.x_view, self._limit_m, self._extended_at)
         if bits != self._limits:
             self._limits = bits
             self._retracted = (bits[0] >> self._bit) & 1 == 1
             self._extended = (bits[1] >> self._bit) & 1 == 1
-            self.plc.set_limit_switches(self._retracted, self._extended)
+            self._plc.set_limit_switches(self._retracted, self._extended)
 
     def _take_positions(self) -> None:
         """This scan's positions, deferred by :meth:`_sample` until a frame needs them."""
         sensor = self._pos_sensor
         self._pos_reading = sensor.quantize(self.rig.x_view, sensor.last_noise())
-        self.plc.set_positions_m(self._pos_reading)
+        self._plc.set_positions_m(self._pos_reading)
 
     def _take_pressures(self) -> None:
         """This scan's pressures, deferred by :meth:`_sample` until a frame needs them."""
         sensor = self._press_sensor
         press = sensor.quantize(self.rig.pressure_view, sensor.last_noise())
         self._press_reading = press.reshape(2, N_CYLINDERS).T
-        self.plc.set_pressures_pa(self._press_reading)
+        self._plc.set_pressures_pa(self._press_reading)
 
     def _hand_over(self, faults: list[int]) -> None:
         """Readings with the sensor faults applied, to the link."""
         if not faults:  # the link keeps its own copy
             self._sensor_fault = False
-            self.plc.set_positions_m(self._pos_reading)
-            self.plc.set_pressures_pa(self._press_reading)
+            self._plc.set_positions_m(self._pos_reading)
+            self._plc.set_pressures_pa(self._press_reading)
             return
         events = self.scenario.events
         pos = self._pos_reading.copy()
@@ -543,12 +599,12 @@ class HilSimulator:
                 arr[idx] = math.nan
                 sensor_fault = True
         self._sensor_fault = sensor_fault
-        self.plc.set_positions_m(pos)
-        self.plc.set_pressures_pa(press)
+        self._plc.set_positions_m(pos)
+        self._plc.set_pressures_pa(press)
 
     def _logic(self, t: float, frames: int) -> None:
         estop, dead, ignore = self._estop, self._dead, self._ignore
-        plc = self.plc
+        plc = self._plc
         # Stale commands: spools centred at once; the fault is latched only when the
         # loss lasts longer than safety.command_timeout_ms (fresh before: drive again).
         timeout = True if dead else plc.command_timeout(t)
@@ -624,19 +680,19 @@ class HilSimulator:
         self._drives = drives
         if not timeout:
             self._engaged = drives
-        self.applied_command = u
+        self._applied = u
         self.rig.command[:] = u
         if self.rig.load_holding_valves:
             self.rig.ports_open[:] = 1.0 if drives else 0.0
         if ctl is not None and ctl.ack_status is not TargetAck.NONE and ctl.ack_seq:
-            self.hmi_ack = (ctl.ack_seq, ctl.ack_status)
+            self._hmi_ack = (ctl.ack_seq, ctl.ack_status)
         fault = self._latched
         if fault is Fault.NONE and self._sensor_fault:
             fault = Fault.SENSOR_FAULT
         key = (mode, estop, drives, timeout, int(fault))
         if key != self._status_key:
             self._status_key = key
-            self.status = PlcStatus(
+            self._status = PlcStatus(
                 mode=mode,
                 estop=estop,
                 pump_running=not estop,
@@ -646,7 +702,7 @@ class HilSimulator:
                 supply_pressure_pa=self.cfg.hydraulics.supply_pressure_pa,
                 walk_available=self.walk_available,
             )
-            plc.set_status(self.status)
+            plc.set_status(self._status)
 
     # ----------------------------------------------------------------- the part
 
@@ -711,24 +767,7 @@ class HilSimulator:
         )
 
     def close(self) -> None:
-        self.plc.close()
-
-
-@jit
-def _limit_switch_bits(
-    x: FloatArray, retracted_at: float, extended_at: FloatArray
-) -> tuple[int, int]:
-    """The rods at their retracted and at their extended limit switches, as bit masks
-    (bit i: ``can_index`` i): ``x <= retracted_at``, ``x >= extended_at``. Compiled: the
-    PLC reads its switches every scan, and they change a few times in a run."""
-    retracted = 0
-    extended = 0
-    for i in range(x.shape[0]):
-        if x[i] <= retracted_at:
-            retracted |= 1 << i
-        if x[i] >= extended_at[i]:
-            extended |= 1 << i
-    return retracted, extended
+        self._plc.close()
 
 
 def _is_active(ev: Any, t: float) -> bool:

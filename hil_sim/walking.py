@@ -41,11 +41,10 @@ import math
 
 import numpy as np
 
+from config.derived import without_rods
 from config.schema import ProjectConfig
 from hil_sim._jit import jit
 from hil_sim.rig import (
-    _PA,
-    _PB,
     _Q,
     _QD,
     _SIGNS,
@@ -71,8 +70,6 @@ _XW = _HD + 8
 N_WALK_STATE = _XW + 4
 #: ground offset slots: rows (x_from, x_to, y_from, y_to, dz) in the base frame, m
 N_GROUND = 8
-#: pressure kept on the lower chamber of a rod that hangs (a lifted foot, the travel pair)
-_HANG_PRESSURE_PA = 1.0e6
 
 
 @jit
@@ -234,15 +231,6 @@ def _walk_advance(
                     slip[frame] += abs(moved)
 
 
-def hold_pressures(force_n: float, area_a: float, area_b: float) -> tuple[float, float]:
-    """Chamber pressures ``(p_A, p_B)`` that hold ``force_n`` with no internal leakage
-    where the force pushes (``p_A = p_B``), else with ``_HANG_PRESSURE_PA`` on the cap side."""
-    equal = force_n / (area_a - area_b)
-    if equal >= 0.0:
-        return equal, equal
-    return _HANG_PRESSURE_PA, (_HANG_PRESSURE_PA * area_a - force_n) / area_b
-
-
 class WalkingRig(Rig):
     """The rig with the eight legs on the invert (module docstring).
 
@@ -294,10 +282,12 @@ class WalkingRig(Rig):
         self.platform_mask[self._travel_idx] = True
         # bodies: the rig's (layer bodies, load-step slots) + main and sub frame structure
         self._n_rig_bodies = len(self._body_m)
-        extra_m = [b.mass_kg for b in frames.main.bodies] + [b.mass_kg for b in frames.sub.bodies]
-        extra_c = [b.cog_m for b in frames.main.bodies] + [b.cog_m for b in frames.sub.bodies]
-        extra_i = [plate_inertia(b.mass_kg, cfg.layers.lower) for b in frames.main.bodies] + [
-            plate_inertia(b.mass_kg, frames.sub) for b in frames.sub.bodies
+        # the frames' bodies less their legs' rods and feet, which are masses of their own
+        main_b, sub_b = without_rods(cfg, "main"), without_rods(cfg, "sub")
+        extra_m = [b.mass_kg for b in main_b] + [b.mass_kg for b in sub_b]
+        extra_c = [b.cog_m for b in main_b] + [b.cog_m for b in sub_b]
+        extra_i = [plate_inertia(b.mass_kg, cfg.layers.lower) for b in main_b] + [
+            plate_inertia(b.mass_kg, frames.sub) for b in sub_b
         ]
         # S's bodies: one slice (moved along the rails every scan; a slice, not an index
         # array: numpy's fancy indexing costs about three times as much per scan)
@@ -314,7 +304,7 @@ class WalkingRig(Rig):
         self._rod_m = np.array([0.0] * 4 + [self.rod_mass_kg] * 4)  # legs: feet of their own
         self._up_xy = self._rod_xy[4:].copy()
         self._up_half = self._half_stroke[4:].copy()
-        m_sub = float(sum(b.mass_kg for b in frames.sub.bodies)) + 4 * self.rod_mass_kg
+        m_sub = float(sum(b.mass_kg for b in sub_b)) + 4 * self.rod_mass_kg
         m_all = float(self._body_m.sum()) + 8 * self.rod_mass_kg + 4 * self.rod_mass_kg
         self._mass_x = np.array([m_all - m_sub, m_sub])
         k_c = walk.contact.stiffness_n_m
@@ -390,13 +380,7 @@ class WalkingRig(Rig):
         for j in range(4, 8):
             xw = x_s + self._leg_xy[j, 0]
             y[_H + j] = ground_height(xw, self._leg_xy[j, 1], self.ground) + walk.clearance_m
-        for i in range(N):
-            pa, pb = (
-                hold_pressures(forces[i], p.area_a_m2[i], p.area_b_m2[i])
-                if self.platform_mask[i]
-                else (0.0, 0.0)
-            )
-            y[_PA + i], y[_PB + i] = pa, pb
+        self.park(forces)
         self.advance(0)
 
     # ----------------------------------------------------------------- faults

@@ -44,6 +44,7 @@ import numpy as np
 from plc_bridge.bus import CAN_ERR_BUSOFF, CAN_ERR_RESTARTED
 from plc_bridge.catalog import Catalog
 from plc_bridge.e2e import crc8_p01
+from plc_bridge.lockstep_bus import LockstepBus
 
 #: A frame stamped later than the arrival horizon by more than this is on another clock.
 _MAX_EARLY_S = 1.0
@@ -151,6 +152,23 @@ class FaultyWire(can.BusABC):
         spec = self.catalog.by_id(frame_id)
         return spec.name if spec is not None else f"0x{frame_id:03X}"
 
+    @property
+    def receives_all(self) -> bool:
+        """A receive hands over every frame there is, in order (no arrival horizon set,
+        nothing held back from an earlier one): what the simulator's compiled scans,
+        which drain the bus once per step, need."""
+        return self._horizon is None and self._early is None
+
+    @property
+    def quiet(self) -> bool:
+        """No fault in force and nothing delayed: frames pass as they are, at once."""
+        return not self._faults and not self._delayed
+
+    @property
+    def has_delayed(self) -> bool:
+        """Frames are delayed on their way to the bus (:meth:`release_due`)."""
+        return bool(self._delayed)
+
     def set_arrival_horizon(self, epoch_s: float | None) -> None:
         """Receive only frames that arrived by ``epoch_s`` (None: all that are there)."""
         self._horizon = epoch_s
@@ -214,6 +232,22 @@ class FaultyWire(can.BusABC):
             return
         self.inner.send(msg, timeout=timeout)
 
+    def send_all(self, msgs: list[can.Message]) -> None:
+        """:meth:`send` of each of ``msgs`` in order; on the wire as it is most of the
+        time (no fault, nothing delayed) in one go onto a bus that takes a batch
+        (:meth:`~plc_bridge.lockstep_bus.LockstepBus.send_all`)."""
+        inner = self.inner
+        if self._faults or self._delayed or not isinstance(inner, LockstepBus):
+            for msg in msgs:
+                self.send(msg)
+            return
+        last, ids = self._last_counter, self._ids
+        for msg in msgs:
+            fid = msg.arbitration_id
+            if fid in ids:
+                last[fid] = msg.data[1] & 0x0F
+        inner.send_all(msgs)
+
     def release_due(self, now: float | None = None) -> int:
         """Put the delayed frames whose time has come on the bus; returns how many."""
         if not self._delayed:
@@ -241,6 +275,24 @@ class FaultyWire(can.BusABC):
         if self._filters is not None:
             return super().recv(0.0)
         return self._recv_internal(0.0)[0]
+
+    def recv_all(self, limit: int) -> list[can.Message]:
+        """Up to ``limit`` frames, as :meth:`recv` gives them one by one (in one go from a
+        bus that hands over a batch, when nothing on the wire acts on received frames)."""
+        inner = self.inner
+        if (
+            self._filters is None
+            and not self._faults
+            and not self._held_rx
+            and self._early is None
+            and self._horizon is None
+            and isinstance(inner, LockstepBus)
+        ):
+            return inner.recv_all(limit)
+        out: list[can.Message] = []
+        while len(out) < limit and (msg := self.recv()) is not None:
+            out.append(msg)
+        return out
 
     def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
         if not self._faults and not self._held_rx and self._early is None and self._horizon is None:

@@ -16,11 +16,12 @@ positions), ``GenMsgCycleTimeFast`` for the others (pressures).
 
 from __future__ import annotations
 
+import math
 from collections.abc import Iterable
 from dataclasses import asdict, dataclass
 from typing import Any
 
-from config import units
+from config import crosscheck, units
 from config.schema import ProjectConfig
 from plc_bridge.catalog import Catalog, MessageSpec, load_catalog
 
@@ -124,4 +125,21 @@ def bus_load(
         load_percent=round(100.0 * bps_total / bitrate, 3),
         max_load_percent=cfg.can.max_bus_load_percent,
         messages=tuple(rows),
+    )
+
+
+@crosscheck.provide("bus-load-within-budget", __name__)
+def check_bus_load(cfg: ProjectConfig) -> str | None:
+    """The cross-check of the configured bus load (config.crosscheck): the DBC's messages
+    with ``can.active_groups`` at the loop rate within ``can.max_bus_load_percent``."""
+    load = bus_load(cfg)
+    if load.ok:
+        return None
+    return (
+        f"can.max_bus_load_percent: {load.max_load_percent:g} % is exceeded: the "
+        f"messages load the bus to {load.load_percent:.1f} % (control.loop_rate_hz "
+        f"{cfg.control.loop_rate_hz:g} Hz, can.bitrate {cfg.can.bitrate} bit/s, "
+        f"can.active_groups {list(cfg.can.active_groups)}; `wara can busload`); expected "
+        f"at most {load.max_load_percent:g} %: a lower loop rate, or at this one a bitrate "
+        f"of at least {math.ceil(load.bits_per_s * 100.0 / load.max_load_percent)} bit/s"
     )

@@ -7,6 +7,15 @@ into a :class:`FrameCodec` that does the same arithmetic on one Python integer
 cantools' own: ``raw = round((value - offset) / scale)``, ``value = raw * scale +
 offset``; ``tests/test_plc_codec.py`` checks every message bit-exact against cantools.
 
+The compiled form is Python source made per message from its fields (as
+``collections.namedtuple`` and ``dataclasses`` make theirs): each signal's shift, mask,
+scale and range written into straight-line code, no loop over fields, and the CRC
+looked up for all bytes at once (:data:`~plc_bridge.e2e.CRC_SHIFTED`). It runs in
+the IPC's plain Python install, faster than loops over the same fields
+(:meth:`FrameCodec.to_raw`, :meth:`FrameCodec.encode_raw` and
+:meth:`FrameCodec.decode_reference` are those loops: the reference the compiled form is
+tested against).
+
 What cantools would reject, the codec makes safe instead of raising in the loop:
 a value outside the DBC range is clipped to it (counted by the caller), and NaN is
 sent as the signal's SENSOR_FAULT raw value where it has one (else as 0, the neutral
@@ -17,10 +26,12 @@ returned as NaN: it is never handed out as a number.
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
+from functools import lru_cache
+from typing import Any
 
 from plc_bridge.catalog import MessageSpec
-from plc_bridge.e2e import CRC_TABLE
+from plc_bridge.e2e import CRC_SHIFTED, CRC_TABLE
 
 
 class FrameCodec:
@@ -38,13 +49,27 @@ class FrameCodec:
         "_enc",
         "_fields",
         "_n",
+        "crc_of",
         "data_id",
+        "decode_word",
         "dlc",
+        "encode",
         "frame_id",
         "name",
         "signal_names",
         "spec",
     )
+
+    #: :meth:`encode`: frame bytes from physical values in DBC units (mm, MPa, deg,
+    #: normalized) and the alive counter; NaN as the signal's SENSOR_FAULT raw value
+    #: (else the neutral one), a value beyond the range clipped to it
+    encode: Callable[[int, Sequence[float]], bytes]
+    #: the CRC-8 a frame of this message's length must carry in byte 0 (over the data
+    #: id and its bytes 1..DLC-1)
+    crc_of: Callable[[bytes | bytearray], int]
+    #: the physical values of the frame whose payload is ``word``; NaN for SENSOR_FAULT
+    #: and out-of-range raw values (:meth:`decode` of its bytes)
+    decode_word: Callable[[int], tuple[float, ...]]
 
     def __init__(self, spec: MessageSpec) -> None:
         self.spec = spec
@@ -69,6 +94,14 @@ class FrameCodec:
         self._enc = tuple((f[0], f[1], f[4], f[3], f[5], f[6], f[7]) for f in fields)
         # CRC state after the two data id bytes: the same for every frame of this id
         self._crc0 = CRC_TABLE[CRC_TABLE[self.data_id & 0xFF] ^ (self.data_id >> 8)]
+        self._compile()
+
+    def _compile(self) -> None:
+        """Make :attr:`crc_of`, :attr:`decode_word` and :attr:`encode` from the fields
+        (the module docstring; made once per layout: links and simulators share them)."""
+        self.crc_of, self.decode_word, self.encode = _compiled(
+            self.name, self.signal_names, self.dlc, self._crc0, self._fields, self._enc
+        )
 
     # ------------------------------------------------------------------ encode
 
@@ -90,7 +123,8 @@ class FrameCodec:
         return raws
 
     def _finish(self, word: int) -> bytes:
-        """The frame of ``word`` (byte 0 still zero) with its CRC in byte 0."""
+        """The frame of ``word`` (byte 0 still zero) with its CRC in byte 0 (the byte loop
+        over :data:`~plc_bridge.e2e.CRC_TABLE`: the reference)."""
         t = CRC_TABLE
         crc = self._crc0
         for b in (word >> 8).to_bytes(self.dlc - 1, "little"):  # bytes 1..DLC-1
@@ -104,36 +138,13 @@ class FrameCodec:
             word |= (r & mask) << shift
         return self._finish(word)
 
-    def encode(self, counter: int, values: Sequence[float]) -> bytes:
-        """Frame bytes from physical values in DBC units (mm, MPa, deg, normalized)."""
-        if len(values) != self._n:
-            raise ValueError(
-                f"{self.name}: expected {self._n} values {self.signal_names}, got {len(values)}"
-            )
-        word = (counter & 0xF) << 8
-        for v, (shift, mask, offset, scale, lo, hi, nan_raw) in zip(values, self._enc):  # noqa: B905
-            if v != v:  # NaN
-                r = nan_raw
-            else:
-                r = round((v - offset) / scale)
-                if r < lo:
-                    r = lo
-                elif r > hi:
-                    r = hi
-            word |= (r & mask) << shift
-        return self._finish(word)
-
     # ------------------------------------------------------------------ decode
 
     def check_crc(self, data: bytes | bytearray) -> bool:
         """True if ``data`` has this message's length and a correct CRC-8."""
         if len(data) != self.dlc:
             return False
-        t = CRC_TABLE
-        crc = self._crc0
-        for b in data[1:]:
-            crc = t[crc ^ b]
-        return crc == data[0]
+        return self.crc_of(data) == data[0]
 
     @staticmethod
     def counter_of(data: bytes | bytearray) -> int:
@@ -152,6 +163,10 @@ class FrameCodec:
 
     def decode(self, data: bytes | bytearray) -> tuple[float, ...]:
         """Physical values in DBC units; NaN for SENSOR_FAULT and out-of-range raws."""
+        return self.decode_word(int.from_bytes(data, "little"))
+
+    def decode_reference(self, data: bytes | bytearray) -> tuple[float, ...]:
+        """:meth:`decode` as a loop over the fields (the compiled form's reference)."""
         word = int.from_bytes(data, "little")
         out = []
         for shift, mask, sign_bit, scale, offset, lo, hi, _, _ in self._fields:
@@ -163,3 +178,65 @@ class FrameCodec:
 
     def __repr__(self) -> str:
         return f"FrameCodec({self.name}, id=0x{self.frame_id:03X}, dlc={self.dlc})"
+
+
+@lru_cache(maxsize=256)
+def _compiled(
+    name: str,
+    signal_names: tuple[str, ...],
+    dlc: int,
+    crc0: int,
+    fields: tuple[tuple[Any, ...], ...],
+    enc: tuple[tuple[Any, ...], ...],
+) -> tuple[Any, Any, Any]:
+    """The code of a message (:class:`FrameCodec`'s ``crc_of``, ``decode_word`` and
+    ``encode``) made from its fields; the source only formatted numbers."""
+    n_body = dlc - 1  # bytes 1..DLC-1 under the CRC
+    state = crc0  # the data id's state through the body as zero bytes
+    for _ in range(n_body):
+        state = CRC_TABLE[state]
+    terms = [str(state), *(f"S{n_body - i}[d[{i}]]" for i in range(1, n_body + 1))]
+    lines = [f"def crc_of(d):\n    return {' ^ '.join(terms)}\n"]
+    # decode: each signal's raw value, sign-extended, scaled where in range
+    body = ["def decode_word(w):"]
+    outs = []
+    for k, (shift, mask, sign, scale, offset, lo, hi, _, _) in enumerate(fields):
+        body.append(f"    r{k} = (w >> {shift}) & {mask}")
+        if sign:
+            body.append(f"    if r{k} & {sign}:\n        r{k} -= {mask + 1}")
+        # (+ 0.0 changes no product of a positive scale: -0.0 needs r = 0 and scale < 0)
+        plain = offset == 0.0 and scale > 0
+        value = f"r{k} * {scale!r}" + ("" if plain else f" + {offset!r}")
+        outs.append(f"({value} if {lo} <= r{k} <= {hi} else nan)")
+    body.append(f"    return ({', '.join(outs)}{',' if len(outs) == 1 else ''})")
+    lines.append("\n".join(body) + "\n")
+    # encode: NaN -> its raw value, else round((v - offset) / scale) clipped
+    args = ", ".join(f"v{k}" for k in range(len(fields)))
+    body = [
+        "def encode(counter, values):",
+        f"    if len(values) != {len(fields)}:",
+        "        raise ValueError(wrong_count + str(len(values)))",
+    ]
+    if len(fields):
+        body.append(f"    {args}{',' if len(fields) == 1 else ''} = values")
+    word = ["((counter & 15) << 8)"]
+    for k, (shift, mask, offset, scale, lo, hi, nan_raw) in enumerate(enc):
+        x = f"(v{k} - {offset!r})" if offset != 0.0 else f"v{k}"
+        body += [
+            f"    if v{k} != v{k}:\n        r{k} = {nan_raw}",
+            f"    else:\n        r{k} = round({x} / {scale!r})",
+            f"        if r{k} < {lo}:\n            r{k} = {lo}",
+            f"        elif r{k} > {hi}:\n            r{k} = {hi}",
+        ]
+        word.append(f"((r{k} & {mask}) << {shift})")
+    body.append(f"    w = {' | '.join(word)}")
+    body.append(f"    crc = crc_of(w.to_bytes({dlc}, 'little'))")
+    body.append(f"    return (w | crc).to_bytes({dlc}, 'little')")
+    lines.append("\n".join(body) + "\n")
+    scope: dict[str, Any] = {f"S{k}": t for k, t in enumerate(CRC_SHIFTED)}
+    scope.update(
+        nan=math.nan,
+        wrong_count=f"{name}: expected {len(fields)} values {signal_names}, got ",
+    )
+    exec("\n".join(lines), scope)  # the source made above: numbers only
+    return scope["crc_of"], scope["decode_word"], scope["encode"]

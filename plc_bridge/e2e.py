@@ -47,6 +47,23 @@ def _make_table() -> tuple[int, ...]:
 CRC_TABLE: tuple[int, ...] = _make_table()
 
 
+def _shifted_tables() -> tuple[tuple[int, ...], ...]:
+    table = [CRC_TABLE]  # [k][b]: the CRC of byte b followed by k zero bytes, from 0
+    for _ in range(7):
+        table.append(tuple(CRC_TABLE[x] for x in table[-1]))
+    return tuple(table)
+
+
+#: The CRC byte by byte without a loop: ``CRC_SHIFTED[k][b]`` is what byte ``b``
+#: followed by ``k`` more bytes (k = 0..7) adds to the CRC of a frame. The CRC has no
+#: final XOR and no reflection, so it is linear: over bytes ``b_1..b_L`` from the state
+#: ``s`` it is ``F^L(s)`` (``s`` through ``L`` zero bytes) XOR, for each byte, the CRC
+#: of that byte alone followed by its successors as zeros; the lookups do not wait on
+#: each other as the loop's do (:class:`~plc_bridge.codec.FrameCodec`;
+#: ``tests/test_plc_e2e.py`` checks it against the bitwise definition).
+CRC_SHIFTED: tuple[tuple[int, ...], ...] = _shifted_tables()
+
+
 def crc8_p01(data_id: int, body: bytes | bytearray | memoryview) -> int:
     """CRC-8 over the data id (low, high byte) and ``body`` (frame bytes 1..DLC-1)."""
     t = CRC_TABLE

@@ -47,6 +47,31 @@ class LockstepBus(can.BusABC):
             msg.is_rx = True
             peer._queue.append(msg)
 
+    def send_all(self, msgs: list[can.Message]) -> None:
+        """:meth:`send` of each of ``msgs`` in order (one wall-clock stamp for them all:
+        they are sent at one instant of the one thread)."""
+        self._check_open()
+        peer = self._peer
+        if peer is not None and peer._open:
+            now = time.time()
+            for msg in msgs:
+                msg.timestamp = now
+                msg.is_rx = True
+            peer._queue.extend(msgs)
+
+    def recv_all(self, limit: int) -> list[can.Message]:
+        """Up to ``limit`` frames, as :meth:`recv` would give them one by one."""
+        self._check_open()
+        q = self._queue
+        if self._filters is not None or len(q) > limit:
+            out: list[can.Message] = []
+            while len(out) < limit and (msg := self.recv()) is not None:
+                out.append(msg)
+            return out
+        out = list(q)
+        q.clear()
+        return out
+
     def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
         self._check_open()
         q = self._queue
@@ -64,6 +89,11 @@ class LockstepBus(can.BusABC):
             if self._matches_filters(msg):
                 return msg
         return None
+
+    def has_error_frame(self) -> bool:
+        """An error frame is waiting to be received (the simulator's compiled scans
+        leave those to its Python scan)."""
+        return any(m.is_error_frame for m in self._queue)
 
     def shutdown(self) -> None:
         super().shutdown()

@@ -21,6 +21,8 @@ import math
 from collections import Counter
 from collections.abc import Iterable
 from enum import StrEnum
+from functools import lru_cache
+from typing import Any
 
 from plc_bridge.bus import ErrorFrame
 from plc_bridge.codec import FrameCodec
@@ -79,6 +81,18 @@ class LinkState(StrEnum):
 SURELY_MARGIN_S = 1e-6
 
 
+_OK = CounterCheck.OK
+
+
+@lru_cache(maxsize=16)
+def _counter_checks(max_delta: int) -> tuple[tuple[CounterCheck, int], ...]:
+    return tuple(
+        check_counter(last, counter, max_delta)
+        for last in (*range(COUNTER_MODULO), None)
+        for counter in range(16)
+    )
+
+
 class RxRecord:
     """Supervision and latest accepted values of one received message."""
 
@@ -89,6 +103,7 @@ class RxRecord:
         "counters",
         "grace_timeout_s",
         "grace_until",
+        "groups",
         "last_counter",
         "last_rx",
         "lost_frames",
@@ -112,17 +127,16 @@ class RxRecord:
         self._nan_checked = not all(self.nan_ok)
         # check_counter(last, counter, max_delta) for every (last, counter), by
         # (15 if last is None else last) * 16 + counter: one lookup per frame
-        self._counter_checks = tuple(
-            check_counter(last, counter, max_delta)
-            for last in (*range(COUNTER_MODULO), None)
-            for counter in range(16)
-        )
+        self._counter_checks = _counter_checks(max_delta)
         self.last_counter: int | None = None
         self.last_rx: float | None = None
         self.values: tuple[float, ...] | None = None
         self.was_fresh = False
         self.lost_frames = 0
         self.counters: Counter[str] = Counter()
+        #: where the link keeps this message's values by can_index as they change
+        #: (``(SlotGroup, first slot, end slot, first value, end value)``, its own)
+        self.groups: tuple[Any, ...] = ()
 
     def set_timeout(self, timeout_s: float, now: float) -> None:
         """Change the stale timeout; a shorter one applies after one old timeout of grace."""
@@ -136,14 +150,14 @@ class RxRecord:
         codec = self.codec
         if len(data) != codec.dlc:
             outcome = "length_error"
-        elif not codec.check_crc(data):
+        elif codec.crc_of(data) != data[0]:
             outcome = "crc_error"
         else:
             counter = data[1] & 0x0F
             last = self.last_counter
             result, lost = self._counter_checks[(15 if last is None else last) * 16 + counter]
-            if result is CounterCheck.OK:
-                values = codec.decode(data)
+            if result is _OK:
+                values = codec.decode_word(int.from_bytes(data, "little"))
                 bad = False
                 if self._nan_checked:
                     for v, nan_ok in zip(values, self.nan_ok, strict=True):

@@ -1,15 +1,21 @@
 """Running the ``wara`` command from tests: in-process through :func:`wara.cli.main`
 (stdout and stderr captured, usable inside hypothesis tests where the capsys fixture is
-not), or as a subprocess through ``sys.executable -m wara``."""
+not), or as a subprocess through ``sys.executable -m wara`` (:func:`run_wara`), optionally
+with a hook that keeps what the command computed besides what it prints
+(:func:`run_wara_observed`)."""
 
 from __future__ import annotations
 
 import contextlib
 import io
+import json
 import os
 import subprocess
 import sys
+import tempfile
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 from wara.cli import main
 
@@ -29,8 +35,34 @@ def run_wara(
 ) -> subprocess.CompletedProcess[str]:
     """``wara ARGS`` as a child process of this checkout (its PYTHONPATH; run in ``cwd``,
     default the checkout's directory), text output captured, never checked."""
+    return _child([sys.executable, "-m", "wara", *args], timeout_s, cwd)
+
+
+def run_wara_observed(
+    args: list[str], hook: Callable[[str], None], timeout_s: float = 120, cwd: Path = REPO
+) -> tuple[subprocess.CompletedProcess[str], Any]:
+    """:func:`run_wara` with a hook, and what the hook saw. The child process calls
+    ``hook`` (a module-level function of an importable module) with the path of a file
+    first, then runs ``wara ARGS`` as ``python -m wara`` would; the hook wraps a function
+    the command calls and writes what it returned or saw to that file as JSON (None if it
+    wrote nothing). So one run serves the tests of what the command prints and those of
+    the figures behind it (e.g. the summary behind ``wara demo``'s table)."""
+    with tempfile.TemporaryDirectory(prefix="wara-observed-") as d:
+        seen = Path(d) / "seen.json"
+        code = (
+            "import runpy, sys\n"
+            "from importlib import import_module\n"
+            f"import_module({hook.__module__!r}).{hook.__name__}({str(seen)!r})\n"
+            f"sys.argv = ['wara', *{args!r}]\n"
+            "runpy.run_module('wara', run_name='__main__', alter_sys=True)\n"
+        )
+        proc = _child([sys.executable, "-c", code], timeout_s, cwd)
+        return proc, json.loads(seen.read_text(encoding="utf-8")) if seen.exists() else None
+
+
+def _child(argv: list[str], timeout_s: float, cwd: Path) -> subprocess.CompletedProcess[str]:
     return subprocess.run(
-        [sys.executable, "-m", "wara", *args],
+        argv,
         capture_output=True,
         text=True,
         timeout=timeout_s,

@@ -168,7 +168,7 @@ def test_tune_starts_from_the_shipped_tuning_and_returns_a_fragment(
 
     res = tune(small, tmp_path / "tune", client=client2, trials=2, runs=1)
     first = res["trials"][0]
-    assert first["values"] == {"control.ladrc.wc_rad_s": 6.0, "control.ladrc.wo_rad_s": 12.0}
+    assert first["values"] == {"control.ladrc.wc_rad_s": 5.5, "control.ladrc.wo_rad_s": 11.0}
     assert len(res["trials"]) == 2 and all(t["runs"] == 1 for t in res["trials"])
     fragment = yaml.safe_load(res["fragment"])
     assert set(fragment["control"]["ladrc"]) == {"wc_rad_s", "wo_rad_s"}

@@ -21,7 +21,6 @@ from ipc_app.service.worker import PlannerWorker
 from tests.kernel.test_hil_vcan import SLOW, _write_slow_config
 from wara.cli import EXIT_USAGE, main
 from wara.harness import Harness
-from wara.studies import REQUIRED_MS
 from wara.studies.delay_margin import run_one, run_study
 
 
@@ -43,7 +42,8 @@ def _fast_tuning(tmp_path: Path) -> ProjectConfig:
 
 @pytest.mark.slow
 def test_shipped_tuning_holds_with_the_required_delay(planner: PlannerWorker) -> None:
-    run = run_one(load_project(), planner, REQUIRED_MS, hold_s=15.0)
+    cfg = load_project()
+    run = run_one(cfg, planner, cfg.control.delay_margin_ms, hold_s=15.0)
     assert run.reached_target and run.stable, run
     assert run.mode == "COMPLETE" and not run.faults
     assert max(run.hold_sync_error_mm.values()) < 0.02  # mm, far inside 0.07

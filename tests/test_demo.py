@@ -5,14 +5,16 @@ meets its goals and ``--plot`` writes the figure."""
 
 from __future__ import annotations
 
+import copy
 import json
 import math
+import subprocess
 from pathlib import Path
 from typing import Any
 
 import pytest
 
-from tests.cli_helpers import run_wara
+from tests.cli_helpers import run_main, run_wara, run_wara_observed
 from wara import two_process_examples as ex
 from wara.demo import RING_DEMO_RINGS
 from wara.examples import (
@@ -76,14 +78,43 @@ def check_ring_demo(out: dict[str, Any], rings: int, report: Path) -> None:
     assert report.stat().st_size > 10_000
 
 
-@pytest.mark.slow
-def test_the_readme_main_command_passes(tmp_path: Path) -> None:
+def keep_ring_demo_summary(out: str) -> None:
+    """Hook for :func:`run_wara_observed`: :func:`wara.demo.run_ring_demo`'s summary (the
+    object ``--json`` prints) also written to ``out``."""
+    import wara.demo
+
+    inner = wara.demo.run_ring_demo
+
+    def run(*args: Any, **kwargs: Any) -> dict[str, Any]:
+        summary = inner(*args, **kwargs)
+        Path(out).write_text(json.dumps(summary), encoding="utf-8")
+        return summary
+
+    wara.demo.run_ring_demo = run
+
+
+@pytest.fixture(scope="module")
+def readme_demo(
+    tmp_path_factory: pytest.TempPathFactory,
+) -> tuple[subprocess.CompletedProcess[str], Path, dict[str, Any] | None]:
+    """``wara demo`` exactly as the README writes it, run once where a user runs it (a new
+    directory): the process, that directory, and the summary behind its table."""
+    cwd = tmp_path_factory.mktemp("readme-demo")
+    proc, out = run_wara_observed(["demo"], keep_ring_demo_summary, timeout_s=1800, cwd=cwd)
+    return proc, cwd, out
+
+
+@pytest.mark.slow(seconds=240)
+@pytest.mark.xdist_group("readme_demo")
+def test_the_readme_main_command_passes(
+    readme_demo: tuple[subprocess.CompletedProcess[str], Path, dict[str, Any] | None],
+) -> None:
     """``wara demo`` exactly as the README writes it (the ring cycles, each walking the
     2 m step to its ring and back, in simulated time; the table on stdout), run where a
     user runs it: exit 0, every ring passed, the last ring steered back to within 1 mm of
     the design axis, the records and the report in ``./wara-demo``, the progress told on
     stderr."""
-    proc = run_wara(["demo"], timeout_s=1800, cwd=tmp_path)
+    proc, tmp_path, _ = readme_demo
     assert proc.returncode == 0, (proc.stdout[-3000:], proc.stderr[-3000:])
     rows = [ln.split("|") for ln in proc.stdout.splitlines() if ln.startswith("| ")]
     rings = [(r[1].strip(), r[-2].strip()) for r in rows[1:]]  # (ring, passed) below the head
@@ -100,23 +131,43 @@ def test_the_readme_main_command_passes(tmp_path: Path) -> None:
             assert f"wara demo: ring {ring}: {phase}" in proc.stderr, (ring, phase)
 
 
-@pytest.mark.slow
-def test_the_ring_demo_json_steers_back(tmp_path: Path) -> None:
-    """The ring demo with ``--json`` (two rings): every ring met its goals on the
-    simulator's truth, steering back from 6 mm at the 2 mm bound, each walk judged."""
-    proc = run_wara(["demo", "--rings", "2", "--json", "--out", str(tmp_path)], timeout_s=1800)
-    assert proc.returncode == 0, proc.stderr[-3000:]
-    out = json.loads(proc.stdout)  # nothing but the one object on stdout
+@pytest.mark.slow(seconds=240)
+@pytest.mark.xdist_group("readme_demo")
+def test_the_ring_demo_json_steers_back(
+    readme_demo: tuple[subprocess.CompletedProcess[str], Path, dict[str, Any] | None],
+    tmp_path: Path,
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """The ring demo's JSON (the README's run, its summary kept): every ring met its goals
+    on the simulator's truth, steering back from 6 mm at the 2 mm bound, each walk judged;
+    ``--json`` prints that summary as the one object on stdout, with ``--rings`` and
+    ``--out`` passed on to the run."""
+    proc, cwd, out = readme_demo
+    assert proc.returncode == 0 and out is not None, proc.stderr[-3000:]
     assert out["mode"] == "lockstep"
-    check_ring_demo(out, 2, tmp_path / "report" / "report.html")
+    report = cwd / "wara-demo" / "report" / "report.html"
+    check_ring_demo(out, RING_DEMO_RINGS, report)
     dev = [r["as_built_deviation"]["y_mm"] for r in out["rings"]]
     assert 3.0 <= dev[0] <= 5.0 and 1.0 <= dev[1] <= 3.0, dev  # 6 -> 4 -> 2 mm
-    html = (tmp_path / "report" / "report.html").read_text()
-    assert "rings 2–3" in html and "rings pass (100.0 %)" in html  # the demo's two records
+    html = report.read_text()
+    assert "rings 2–5" in html and "rings pass (100.0 %)" in html  # the demo's four records
     for r in out["rings"]:
         assert {"walk", "place", "release", "walk_back"} <= set(r["phase_times_s"])
         for steps in r["walks"].values():
             assert len(steps) == 1 and steps[0]["max_leg_force_ratio"] <= 1.10
+    import wara.demo
+
+    calls: list[tuple[Path, str, int]] = []
+
+    def run_ring_demo(_config: str | None, **kw: Any) -> dict[str, Any]:
+        calls.append((kw["out_dir"], kw["mode"], kw["rings"]))
+        return copy.deepcopy(out)
+
+    monkeypatch.setattr(wara.demo, "run_ring_demo", run_ring_demo)
+    code, stdout, _ = run_main(["demo", "--rings", "2", "--json", "--out", str(tmp_path)])
+    assert code == 0
+    assert json.loads(stdout) == out  # nothing but the one object on stdout
+    assert calls == [(tmp_path, "lockstep", 2)]
 
 
 def test_ring_demo_options_are_checked() -> None:

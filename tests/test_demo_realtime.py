@@ -27,6 +27,7 @@ from wara.harness import Harness
 REPO = Path(__file__).resolve().parents[1]
 
 
+@pytest.mark.realtime
 @pytest.mark.slow
 def test_realtime_one_process_demo_example_1() -> None:
     proc = run_wara(["demo", "--attitude", "--examples", "1", "--json"], timeout_s=600)

@@ -30,6 +30,7 @@ def netns() -> None:
         pytest.skip(f"wara demo --two-process needs a private netns: {problem}")
 
 
+@pytest.mark.realtime
 @pytest.mark.slow
 def test_example_1_through_two_processes(netns: None) -> None:
     proc = subprocess.run(

@@ -70,15 +70,16 @@ def test_a_step_is_judged_against_the_projects_walking_keys(project: ProjectConf
 def test_the_step_time_follows_the_planned_step_and_its_touch_downs(
     project: ProjectConfig,
 ) -> None:
-    """The shipped 2 m step is planned in 106.4 s; each of its two lowerings may take the
-    whole touch-down window (2 x 10 mm at 2.5 mm/s). Half the touch-down speed doubles
-    the windows; a shorter step plans shorter."""
+    """The shipped 2 m step is planned in 106.2 s; each of its two lowerings may take the
+    whole touch-down window (2 x 10 mm at the derived 2.4 mm/s). Half the touch-down
+    speed doubles the windows; a shorter step plans shorter."""
     walking = project.walking
     assert walking is not None
     limit = step_time_limit_s(project)
-    assert limit == pytest.approx(106.4 + 2 * 8.0, abs=0.1)
-    slow = _with(project, "walking", touchdown_speed_mm_s=1.25)
-    assert step_time_limit_s(slow) == pytest.approx(limit + 2 * 8.0, abs=1e-6)
+    window_s = 20.0 / 2.4
+    assert limit == pytest.approx(106.2 + 2 * window_s, abs=0.1)
+    slow = _with(project, "walking", touchdown_speed_mm_s=1.2)
+    assert step_time_limit_s(slow) == pytest.approx(limit + 2 * window_s, abs=1e-6)
     short = _with(project, "walking", step_length_mm=200.0)
     assert step_time_limit_s(short) < limit - 60.0
     assert judge(walk_step_goals(short), step_figures(STEP, 0.2)).note.startswith(

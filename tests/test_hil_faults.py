@@ -11,7 +11,6 @@ import numpy as np
 import pytest
 
 from config import ProjectConfig, units
-from config.derived import viscous_damping_n_s_m
 from plc_bridge import Fault, LinkState, Mode, TargetAck, TargetRequest
 from plc_bridge.supervision import BusState
 from tests.hil_helpers import Bench, make_bench
@@ -239,11 +238,10 @@ def test_raised_internal_leakage_equalizes_the_chambers(
 
 
 def test_load_step_raises_the_pressures_on_the_wire(bench_of: Any, project: ProjectConfig) -> None:
-    """A 3 t step on the upper platform, valves closed: the oil and the rods' friction
-    carry it. With the ports blocked the rods sink by the pistons' leakage (about
-    0.15 mm/s), and their friction, opposing that, carries part of the step (about 4 kN
-    of its 29.4): the wire's pressures show the step less what the friction carries (the
-    simulator's truth, net rod force less hydraulic)."""
+    """A 3 t step on the upper platform, valves closed: the oil carries it. Behind closed
+    holding valves a cylinder is tight (docs/hil.md), so the rods settle by the oil's
+    compression alone (a few hundredths of a mm) and stay; the wire's pressures show the
+    whole step."""
     b = bench_of(
         {
             "kind": "load_step",
@@ -254,27 +252,24 @@ def test_load_step_raises_the_pressures_on_the_wire(bench_of: Any, project: Proj
         }
     )
     cyl = project.cylinder("upper_1")
-    up = b.sim.rig.upper_index
     b.ipc.set_control(enable=False)  # blocked: the oil carries the step
 
     def force() -> float:
         p = b.ipc.pressures_pa().value[8:12]
         return float((p[:, 0] * cyl.cap_area_m2 - p[:, 1] * cyl.rod_area_m2).sum())
 
-    b.run(0.2)
+    b.run(0.15)
     f0 = force()
     x0 = b.ipc.positions_m().value[8:12].copy()
+    b.run(0.85)
+    x1 = b.ipc.positions_m().value[8:12].copy()
     b.run(1.0)
-    rig = b.sim.rig
-    friction = float((rig.rod_forces_n[up] - rig.hydraulic_forces_n[up]).sum())
-    sink_m_s = float(np.mean(b.ipc.positions_m().value[8:12] - x0))  # over the second
+    settle = float(np.mean(x1 - x0))
+    creep = float(np.mean(b.ipc.positions_m().value[8:12] - x1))  # over the next second
     weight = 3000 * units.G * np.cos(np.radians(0.17))
-    assert -0.3e-3 < sink_m_s < -0.05e-3  # the rods sink by leakage, slowly
-    plant = project.plant_of(cyl)
-    viscous = viscous_damping_n_s_m(cyl, plant, project.hydraulics)
-    at_most = 4 * (plant.coulomb_friction_n + viscous * abs(sink_m_s))
-    assert 0.1 * at_most < friction < at_most  # the friction opposes the sinking
-    assert force() - f0 + friction == pytest.approx(weight, rel=0.05)
+    assert -0.1e-3 < settle < -0.005e-3  # the oil compressed by the step
+    assert abs(creep) < 5e-6  # then it holds (within the noise): no leakage behind the valves
+    assert force() - f0 == pytest.approx(weight, rel=0.05)  # within the wire's noise
 
 
 def test_estop_closes_valves_and_latches(bench_of: Any) -> None:

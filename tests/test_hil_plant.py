@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from config import ProjectConfig, units
+from config.derived import without_rods
 from tests.hil_helpers import Bench, make_bench
 
 SIGNS = ((1, 1), (-1, 1), (-1, -1), (1, -1))
@@ -69,21 +70,23 @@ def min_norm(
 
 
 def layer_bodies(cfg: ProjectConfig, bench: Bench) -> tuple[list, list, np.ndarray, np.ndarray]:
-    """Bodies of each layer in its base frame (rods included as point masses), and gravity."""
+    """Bodies of each layer in its base frame (rods included as point masses, the upper
+    ones out of the upper bodies that weigh them in), and gravity."""
     tr = bench.sim.truth()
     lo, up = cfg.layers.lower, cfg.layers.upper
     m_rod = bench.sim.rig.rod_mass_kg
     r_l = rot(tr.lower.roll_rad, tr.lower.pitch_rad)
     r_u = rot(tr.upper.roll_rad, tr.upper.pitch_rad)
     o_u = np.array(up.origin_in_lower_m)
-    upper = [(bd.mass_kg, r_u @ np.array(bd.cog_m)) for bd in up.bodies]
+    up_bodies = without_rods(cfg, "upper")
+    upper = [(bd.mass_kg, r_u @ np.array(bd.cog_m)) for bd in up_bodies]
     upper += [(m_rod, np.array([sx * up.a_m, sy * up.b_m, 0.0])) for sx, sy in SIGNS]
     # the lower layer: its own bodies and rods, the upper bodies and the upper rods
     lower = [(bd.mass_kg, r_l @ np.array(bd.cog_m)) for bd in lo.bodies]
     lower += [(m_rod, np.array([sx * lo.a_m, sy * lo.b_m, 0.0])) for sx, sy in SIGNS]
     w_up = [
         (bd.mass_kg, o_u + np.array([0, 0, tr.upper.heave_m]) + r_u @ np.array(bd.cog_m))
-        for bd in up.bodies
+        for bd in up_bodies
     ]
     w_up += [
         (m_rod, o_u + np.array([sx * up.a_m, sy * up.b_m, tr.upper.extensions_m[k]]))

@@ -120,7 +120,7 @@ def test_the_site_acts_are_done_between_scans(project: ProjectConfig, tmp_path: 
         sim.close()
     a = answers
     assert a["part"]["ok"] and a["part"]["state"] == "carried"
-    assert a["part"]["load_n"] == pytest.approx(project.workpiece.mass_kg * 9.81, rel=0.01)
+    assert a["part"]["load_n"] == pytest.approx(project.workpiece_mass_kg * 9.81, rel=0.01)
     assert not a["load_carried"]["ok"] and "carries a part" in a["load_carried"]["error"]
     assert a["bolt"]["ok"] and a["bolt"]["state"] == "bolted"
     assert not a["bolt_again"]["ok"] and "bolted, not carried" in a["bolt_again"]["error"]

@@ -414,6 +414,7 @@ def _quick(result: tuple[str, float], code: str) -> None:
     assert result[0] == code and result[1] < 3.0, result
 
 
+@pytest.mark.realtime
 @pytest.mark.slow
 def test_no_session_but_on_sign_and_encrypt_and_passwords_always_encrypted(
     tmp_path: Path,
@@ -500,6 +501,7 @@ def _closed_within(s: socket.socket, timeout_s: float) -> bool:
     return False
 
 
+@pytest.mark.realtime
 @pytest.mark.slow
 def test_silent_connections_do_not_lock_out_a_client(tmp_path: Path) -> None:
     """100 connections that never send Hello (32 allowed): a good client still connects
@@ -557,6 +559,7 @@ def test_serve_with_opcua_and_no_users_file_is_one_line(tmp_path: Path) -> None:
     assert "no users file" in last and "wara opcua adduser" in last
 
 
+@pytest.mark.realtime
 @pytest.mark.slow
 def test_bench_opcua_reports_the_loop_and_the_latency_with_its_parts() -> None:
     """`wara bench opcua --json --quick` as a commissioning engineer runs it: the three
@@ -611,6 +614,7 @@ def test_bench_opcua_reports_the_loop_and_the_latency_with_its_parts() -> None:
     assert isinstance(out["call_latency_goal_met"], bool)
 
 
+@pytest.mark.realtime
 @pytest.mark.slow
 def test_demo_with_opcua_serves_the_demo_to_a_client_with_the_printed_credentials(
     tmp_path: Path,
@@ -620,17 +624,25 @@ def test_demo_with_opcua_serves_the_demo_to_a_client_with_the_printed_credential
     open a SignAndEncrypt session and follow the PackML state into Execute and the demo
     to its end. One example (``--examples 1``): the OPC UA side is the same for each, and a
     real-time run on a shared machine is exposed to its stalls for a third as long. On a
-    failure the message carries the demo's loop and scheduler figures (``--json``)."""
+    failure the message carries the demo's loop and scheduler figures (``--json``). The
+    project is the shipped one on a free port: the shipped 4840 may be taken on this
+    machine (another run of this test, another server)."""
+    import yaml
     from asyncua import Client
 
+    from config.loader import default_project_path
     from ipc_app.opcua import pki
 
     cert, key = S.make_client_cert(tmp_path / "client")
     pki.trust(tmp_path / "opcua-demo" / "pki", cert)  # as `wara opcua cert --trust` does
+    project = yaml.safe_load(default_project_path().read_text())
+    project["opcua"]["port"] = S.free_port()
+    config = tmp_path / "project.yaml"
+    config.write_text(yaml.safe_dump(project))
     env = dict(os.environ, WARA_DATA_DIR=str(tmp_path))
     demo = subprocess.Popen(
         [sys.executable, "-m", "wara", "demo", "--attitude", "--opcua", "--examples", "1",
-         "--json"],
+         "--json", "--config", str(config)],
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env,
     )  # fmt: skip
     assert demo.stderr is not None

@@ -1,5 +1,6 @@
-"""Every key under ``placement`` and ``tunnel.alignment`` governs something: for each key,
-the same situation with the shipped value and with a changed value ends differently."""
+"""Every key under ``placement`` and ``tunnel.alignment``, and the tunnel's inner diameter
+(the parts' reference height on its invert), governs something: for each key, the same
+situation with the shipped value and with a changed value ends differently."""
 
 from __future__ import annotations
 
@@ -19,6 +20,8 @@ FACES = [(4.0, 0.3), (-4.0, 0.3), (3.5, 2.5), (-3.5, 2.5), (0.0, 1.4)]
 
 def _with(cfg: ProjectConfig, key: str, value: Any) -> ProjectConfig:
     section, *rest = key.split(".")
+    if section == "tunnel":
+        return cfg.model_copy(update={"tunnel": cfg.tunnel.model_copy(update={rest[0]: value})})
     if section == "alignment":
         al = cfg.tunnel.alignment
         assert al is not None
@@ -107,7 +110,7 @@ _TABLE = (
 
 CASES: dict[str, tuple[Any, Callable[[ProjectConfig], Any]]] = {
     "placement.rotation_lever_arm_m": (2.0, lever_arm),
-    "placement.reference_height_m": (-5.0, reference_height),
+    "tunnel.inner_diameter_m": (10.0, reference_height),
     "placement.target_gap_mm": (3.0, target_gap),
     "placement.max_correction_per_ring_mm": (1.0, correction_mm),
     "placement.max_correction_per_ring_deg": (0.02, correction_deg),
@@ -127,7 +130,7 @@ def _keys() -> set[str]:
     keys = {f"placement.{k}" for k in Placement.model_fields if k != "weights"}
     keys |= {f"placement.weights.{k}" for k in PlacementWeights.model_fields}
     keys |= {f"alignment.{k}" for k in Alignment.model_fields}
-    return keys
+    return keys | {"tunnel.inner_diameter_m"}
 
 
 def test_every_placement_key_has_a_case() -> None:

@@ -536,6 +536,22 @@ def _reference_array(rows: Any, width: int, si_per_unit: float, now: float) -> A
     return val, np.array(ages)
 
 
+def _assert_readings_are_the_reference(ipc: IpcLink, now: float) -> bool:
+    """The link's positions and pressures at ``now`` are the reference's, bit for bit;
+    True when a row of them is not usable (NaN)."""
+    stale = False
+    for reading, rows, width, unit in (
+        (ipc.positions_m(now), ipc._pos, 1, 1e-3),
+        (ipc.pressures_pa(now), ipc._press, 2, 1e6),
+    ):
+        ref_val, ref_age = _reference_array(rows, width, unit, now)
+        np.testing.assert_array_equal(reading.value, ref_val)
+        np.testing.assert_array_equal(reading.age_s, ref_age)
+        np.testing.assert_array_equal(reading.valid, ~np.isnan(ref_val))
+        stale = stale or bool(np.isnan(ref_val).any())
+    return stale
+
+
 def test_readings_match_the_reference_definition_bit_for_bit(project: ProjectConfig) -> None:
     clock = Clock()
     bus = QueueBus()
@@ -557,16 +573,44 @@ def test_readings_match_the_reference_definition_bit_for_bit(project: ProjectCon
     ipc._pos[3][0].last_rx = None  # one never received (e.g. after a restart)
     ipc._pos[3][0].values = None
     for now in (clock.t, clock.t + 0.02, clock.t + 1.0):
-        for reading, rows, width, unit in (
-            (ipc.positions_m(now), ipc._pos, 1, 1e-3),
-            (ipc.pressures_pa(now), ipc._press, 2, 1e6),
-        ):
-            ref_val, ref_age = _reference_array(rows, width, unit, now)
-            np.testing.assert_array_equal(reading.value, ref_val)
-            np.testing.assert_array_equal(reading.age_s, ref_age)
-            np.testing.assert_array_equal(reading.valid, ~np.isnan(ref_val))
+        _assert_readings_are_the_reference(ipc, now)
     x = ipc.positions_m(clock.t)
     assert x.valid.any() and not x.valid.all()  # the cases above were all exercised
+
+
+def test_readings_right_after_the_poll_match_the_reference(project: ProjectConfig) -> None:
+    """At the poll's own time the readings come from the lists kept frame by frame; they
+    match the reference definition bit for bit as frames are lost, go stale, come back,
+    arrive late, and the active group (the timeouts, with their grace) changes."""
+    rnd = np.random.default_rng(7)
+    clock = Clock()
+    bus, plc_bus = QueueBus(), QueueBus()
+    ipc = IpcLink(project, bus, clock=clock)
+    plc = PlcLink(project, plc_bus, clock=clock)
+    plc.set_status(PlcStatus(pump_running=True))
+    groups = [range(8), range(8, 12), range(12, 19), range(4, 12)]
+    checked = 0
+    for k in range(600):
+        plc.set_positions_m(X + 1e-4 * k)
+        plc.set_pressures_pa(P * (1 + 1e-3 * k))
+        plc.poll()
+        lossy = (k // 50) % 3 == 1  # spells of heavy loss: rows go stale and come back
+        late = None
+        for m in plc_bus.sent:
+            if k % 41 == 0 and late is None:
+                late = m
+            elif rnd.random() > (0.7 if lossy else 0.02):
+                bus.inject(m)
+        plc_bus.sent.clear()
+        if k % 97 == 0:
+            ipc.set_active_cylinders(groups[(k // 97) % len(groups)])
+        now = clock.t
+        ipc.poll(now)
+        if late is not None:  # a frame taken in after the poll, with an older time
+            ipc.on_message(late, now - 0.5)
+        checked += _assert_readings_are_the_reference(ipc, now)
+        clock.advance(DT)
+    assert checked > 50  # stale rows were part of it
 
 
 def test_status_and_hmi_target_follow_each_new_frame(project: ProjectConfig) -> None:

@@ -44,6 +44,7 @@ def netns() -> None:
         pytest.skip(f"udp_multicast cross-process test needs a private netns: {problem}")
 
 
+@pytest.mark.realtime
 @pytest.mark.parametrize("interface", ["udp_multicast", "wara_udp"])
 def test_ipc_and_plc_processes_talk_across_processes(netns: None, interface: str) -> None:
     proc = _in_private_netns(

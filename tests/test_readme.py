@@ -111,7 +111,7 @@ def test_the_two_commands_are_in_the_readme_as_ci_runs_them() -> None:
     test_command = _ci_test_command()
     assert test_command == (
         "python3 -m venv .venv && .venv/bin/pip install -q -e '.[dev]' "
-        "&& .venv/bin/python -m pytest"
+        "&& .venv/bin/python -m pytest -n auto"
     )
     assert test_command in code
 

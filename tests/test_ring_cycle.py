@@ -96,7 +96,9 @@ def test_the_service_places_the_part_on_the_planned_target(tmp_path: Path) -> No
 def test_a_placement_rides_through_link_losses_and_ends_on_target() -> None:
     """Eight short losses of the link during the slide phase (frames held 60 ms both
     ways): the service suspends and resumes each time, and the part still ends within
-    0.02 mm of its target on the simulator's truth (the goal is 1 mm)."""
+    0.03 mm of its target on the simulator's truth (the goal is 1 mm; what the rods'
+    friction leaves at standstill: 0.019 mm with the former fixed 6/12 rad/s, 0.021 mm
+    with the derived tunings)."""
     from config.hil_scenario import HilScenario
     from config.loader import validate_data
 
@@ -121,7 +123,7 @@ def test_a_placement_rides_through_link_losses_and_ends_on_target() -> None:
     finally:
         h.close()
     err = deviation(got, plan_from_deviation(cfg, 3, dev).target)
-    assert max(abs(units.to_mm(v)) for v in (err.x, err.y, err.z)) <= 0.02, err.to_dict()
+    assert max(abs(units.to_mm(v)) for v in (err.x, err.y, err.z)) <= 0.03, err.to_dict()
 
 
 @pytest.mark.slow

@@ -606,6 +606,7 @@ def test_a_service_without_the_packml_commands_says_so() -> None:
     }
 
 
+@pytest.mark.realtime
 def test_a_status_that_waits_returns_at_the_next_change_of_state(short_tmp: Path) -> None:
     """What the OPC UA server asks: a status once ``state_seq`` has moved past the one it
     saw, at most ``wait_ms`` later; it waits in the worker pool, so the I/O thread goes on

@@ -69,6 +69,7 @@ def test_minutes_must_be_positive() -> None:
     assert exc.value.code == 2
 
 
+@pytest.mark.realtime
 @pytest.mark.slow
 def test_a_short_soak() -> None:
     problem = netns_problem()

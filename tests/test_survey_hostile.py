@@ -30,7 +30,8 @@ from ipc_app.planner.survey import (
     format_survey,
     parse_survey_text,
 )
-from ipc_app.service.requests import MAX_SURVEY_POINTS, CtlError, _line, dispatch, parse, request
+from ipc_app.service.ctl import CtlError, _line, dispatch, parse, request
+from ipc_app.service.requests import MAX_SURVEY_POINTS
 from tests.cli_helpers import run_main, run_wara
 from wara.cycle import survey_faces
 

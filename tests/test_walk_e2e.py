@@ -19,10 +19,12 @@ import yaml
 
 from config import load_project
 from config.hil_scenario import HilScenario
+from ipc_app.control.tuning import touchdown_speed_m_s
 from ipc_app.service.core import ServiceCore
 from ipc_app.service.interlocks import Interlock
 from ipc_app.service.modes import Mode
 from ipc_app.service.record import RunRecorder
+from tests.cli_helpers import run_wara_observed
 from wara.harness import Harness
 from wara.walk import run_walk
 
@@ -96,7 +98,9 @@ def test_a_hole_under_a_foot_stops_the_lowering(tmp_path: Path) -> None:
     assert f["interlock"] == str(Interlock.TOUCHDOWN) and f["where"] == "sub_leg_1"
     t2 = phase_starts(evs)["2"]
     # trapezoid to 40 mm, then 20 mm slow
-    lowering_s = (50 - 10) / 20 + 20 / 20 + 2 * 10 / walking.touchdown_speed_mm_s
+    lowering_s = (
+        (50 - 10) / 20 + 20 / 20 + 2 * 10 / (1e3 * touchdown_speed_m_s(load_project(config)))
+    )
     assert f["t_s"] - t2 <= lowering_s + 4 * PERIOD_S
     assert f["t_s"] - t2 >= lowering_s - 0.5  # not before the lowering ran out
 
@@ -409,15 +413,53 @@ def test_a_malformed_hmi_walk_request_is_refused_with_its_reason_and_nothing_mov
     assert spool == 0.0  # every valve closed: nothing is driven
 
 
-def test_three_shipped_steps_as_the_user_runs_them() -> None:
+def keep_transfer_force_ratios(out: str) -> None:
+    """Hook for :func:`run_wara_observed`: the walk's largest leg force ratio in each of
+    M's touch-down (7a), preload (7b) and the transfer to M (7c), written to ``out``."""
+    import wara.walk
+
+    inner = wara.walk.run_walk
+
+    def run(*args: Any, on_cycle: Any = None, **kwargs: Any) -> dict[str, Any]:
+        worst: dict[str, float] = {}
+
+        def watch(h: Any) -> None:
+            if on_cycle is not None:
+                on_cycle(h)
+            w = h.core.walker
+            if w is None or w.run is None or w.run.phase.key not in ("7a", "7b", "7c"):
+                return
+            fig = w.figures
+            ratio = max(f / e for f, e in zip(fig.leg_force_n, fig.expected_n, strict=True))
+            key = w.run.phase.key
+            worst[key] = max(worst.get(key, 0.0), ratio)
+
+        result = inner(*args, on_cycle=watch, **kwargs)
+        Path(out).write_text(json.dumps(worst), encoding="utf-8")
+        return result
+
+    wara.walk.run_walk = run
+
+
+@pytest.fixture(scope="module")
+def shipped_steps() -> tuple[subprocess.CompletedProcess[str], dict[str, float]]:
+    """`wara walk --steps 3 --lockstep --json` with the shipped project (2 m steps), run
+    once as the user runs it, the transfers' force ratios kept by a hook."""
+    args = ["walk", "--steps", "3", "--lockstep", "--json"]
+    run, worst = run_wara_observed(args, keep_transfer_force_ratios, timeout_s=7200, cwd=ROOT)
+    return run, worst or {}
+
+
+@pytest.mark.slow(seconds=100)
+@pytest.mark.xdist_group("shipped_steps")
+def test_three_shipped_steps_as_the_user_runs_them(
+    shipped_steps: tuple[subprocess.CompletedProcess[str], dict[str, float]],
+) -> None:
     """`wara walk --steps 3 --lockstep --json` with the shipped project (2 m steps): the
     goals of the walk (docs/walking.md), exit 0. Measured: 6.002691 m, the transfers'
     attitude change at most 0.0059 / 0.0060 / 0.0059 deg (goal 0.01), the largest force
     ratio 1.024 / 1.024 / 1.024."""
-    run = subprocess.run(
-        [sys.executable, "-m", "wara", "walk", "--steps", "3", "--lockstep", "--json"],
-        capture_output=True, text=True, timeout=7200, cwd=ROOT,
-    )  # fmt: skip
+    run, _ = shipped_steps
     out = json.loads(run.stdout)
     assert run.returncode == 0, (out["fault_reasons"], run.stderr[-2000:])
     assert out["passed"] and out["final_mode"] == "COMPLETE"
@@ -433,25 +475,19 @@ def test_three_shipped_steps_as_the_user_runs_them() -> None:
         assert st["duration_s"] <= 120.0
 
 
-def test_the_shipped_step_completes_below_the_overload() -> None:
-    """The shipped 2 m step, lockstep: through M's touch-down (7a) and preload (7b) S
-    stands in position control, its twist held by the twist-mode force loop; in the
-    transfer to M (7c) S's releasing loops are told their oil columns' decompression
-    (docs/walking.md). Measured: the largest force ratio 1.061 in 7a, 1.069 in 7b, 1.057
-    in 7c (7b tripped at 1.1026 with the twist set through S's position references, 7c at
-    1.1088 with the touch-down at 5 mm/s)."""
-    worst: dict[str, float] = {}
-
-    def on_cycle(h: Any) -> None:
-        w = h.core.walker
-        if w is None or w.run is None or w.run.phase.key not in ("7a", "7b", "7c"):
-            return
-        fig = w.figures
-        ratio = max(f / e for f, e in zip(fig.leg_force_n, fig.expected_n, strict=True))
-        key = w.run.phase.key
-        worst[key] = max(worst.get(key, 0.0), ratio)
-
-    out = run_walk(None, 1, on_cycle=on_cycle)
+@pytest.mark.slow(seconds=100)
+@pytest.mark.xdist_group("shipped_steps")
+def test_the_shipped_step_completes_below_the_overload(
+    shipped_steps: tuple[subprocess.CompletedProcess[str], dict[str, float]],
+) -> None:
+    """The shipped 2 m steps (the three of the run above), lockstep: through M's
+    touch-down (7a) and preload (7b) S stands in position control, its twist held by the
+    twist-mode force loop; in the transfer to M (7c) S's releasing loops are told their
+    oil columns' decompression (docs/walking.md). Measured: the largest force ratio 1.061
+    in 7a, 1.069 in 7b, 1.057 in 7c (7b tripped at 1.1026 with the twist set through S's
+    position references, 7c at 1.1088 with the touch-down at 5 mm/s)."""
+    run, worst = shipped_steps
+    out = json.loads(run.stdout)
     assert out["passed"] and out["final_mode"] == "COMPLETE", out["fault_reasons"]
     assert max(worst.values()) < 1.08 and len(worst) == 3, worst
     assert out["steps"][0]["max_leg_force_ratio"] <= 1.10

@@ -42,24 +42,39 @@ def recording(out: Path) -> Iterator[list[str]]:
 
     lines: list[str] = []
     current: list[Any] = []
-    send0 = lockstep_bus.LockstepBus.send
+    bus = lockstep_bus.LockstepBus
+    send0 = bus.send
+    send_all0 = getattr(bus, "send_all", None)  # a batch of frames (the simulator's scans)
     init0 = harness_mod.Harness.__init__
 
-    def send(self: Any, msg: Any, timeout: float | None = None) -> None:
+    def write(msg: Any) -> None:
         t = current[-1].sim.t_s if current else -1.0
         lines.append(f"{round(t * 1e6)} {msg.arbitration_id:x} {bytes(msg.data).hex()}")
+
+    def send(self: Any, msg: Any, timeout: float | None = None) -> None:
+        write(msg)
         send0(self, msg, timeout)
+
+    def send_all(self: Any, msgs: list[Any]) -> None:
+        for msg in msgs:
+            write(msg)
+        assert send_all0 is not None
+        send_all0(self, msgs)
 
     def init(self: Any, *args: Any, **kwargs: Any) -> None:
         current.append(self)
         init0(self, *args, **kwargs)
 
-    lockstep_bus.LockstepBus.send = send  # type: ignore[method-assign]
+    bus.send = send  # type: ignore[method-assign]
+    if send_all0 is not None:
+        bus.send_all = send_all  # type: ignore[method-assign]
     harness_mod.Harness.__init__ = init  # type: ignore[method-assign]
     try:
         yield lines
     finally:
-        lockstep_bus.LockstepBus.send = send0  # type: ignore[method-assign]
+        bus.send = send0  # type: ignore[method-assign]
+        if send_all0 is not None:
+            bus.send_all = send_all0  # type: ignore[method-assign]
         harness_mod.Harness.__init__ = init0  # type: ignore[method-assign]
         with gzip.open(out, "wt") as f:
             f.write("\n".join(lines) + "\n")

@@ -5,3 +5,11 @@ other; they meet on the CAN wire (``plc_bridge``) and in the ``config`` schema. 
 package, which wires whole runs together (the demo, the studies, the benchmarks), may
 import both.
 """
+
+import importlib
+
+from config import crosscheck
+
+# Every project this package loads runs every cross-check between keys, those that
+# plc_bridge and ipc_app provide included (config.crosscheck; imported when first needed).
+crosscheck.set_importer(importlib.import_module)

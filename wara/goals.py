@@ -22,6 +22,7 @@ from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
+from config import units
 from config.schema import ProjectConfig
 from ipc_app.service.cycle import RECORD_KEYS
 
@@ -162,14 +163,17 @@ def step_time_limit_s(cfg: ProjectConfig) -> float:
     """The longest a step may take: the project's step as planned from its nominal start
     (the ``walking`` and trajectory keys set its phases), each of its two lowerings given
     the whole touch-down window, ``2 x walking.touchdown_travel_mm`` at
-    ``walking.touchdown_speed_mm_s`` (the plan lowers at the legs' speed)."""
+    ``walking.touchdown_speed_mm_s`` or, left out, the derived touch-down speed
+    (:func:`ipc_app.control.tuning.touchdown_speed_m_s`; the plan lowers at the legs'
+    speed)."""
+    from ipc_app.control.tuning import touchdown_speed_m_s
     from ipc_app.planner.walk import plan_walk, start_state
 
     w = cfg.walking
     if w is None:
         raise ValueError("the project has no walking section: it does not walk")
     plan = plan_walk(cfg, 1, start_state(cfg))
-    window_s = 2.0 * w.touchdown_travel_mm / w.touchdown_speed_mm_s
+    window_s = 2.0 * units.mm(w.touchdown_travel_mm) / touchdown_speed_m_s(cfg)
     return plan.duration_s + 2.0 * window_s
 
 

@@ -329,11 +329,12 @@ class Harness:
         attitude request, or the HMI's walk, planned on a thread of its own from the
         HMI's frame until its request is back with the loop."""
         deadline = time.monotonic() + self.worker.timeout_s + 5.0
-        pause = 0.0005  # growing to 4 ms: a plan takes tenths of a second, and each
-        # look costs this process CPU time that the run's figures count
+        pause = 0.0005  # growing to 20 ms: a plan takes tenths of a second to seconds,
+        # and each look costs this process CPU time (some 50 us on a busy machine) that
+        # the run's figures count; a run waits at most 20 ms longer for it
         while self._planning() and time.monotonic() < deadline:
             time.sleep(pause)
-            pause = min(2.0 * pause, 0.004)
+            pause = min(2.0 * pause, 0.02)
 
     def wait_for(self, mode: Mode, timeout_s: float, *, stop_on_fault: bool = True) -> bool:
         """Advance until the service is in ``mode`` (machine time in lockstep); False at

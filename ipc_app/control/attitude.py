@@ -24,6 +24,7 @@ from ipc_app.control.ladrc import LADRC
 from ipc_app.control.pid import PID
 from ipc_app.control.plant_gain import cylinder_b0
 from ipc_app.control.sync import Controller, SyncGroup
+from ipc_app.control.tuning import position_bandwidths
 from ipc_app.model.kinematics import layer_twist
 from ipc_app.planner.trajectory import Trajectory
 
@@ -32,11 +33,13 @@ FloatArray = NDArray[np.float64]
 
 def cylinder_controller(cfg: ProjectConfig, cyl: Cylinder, period_s: float) -> Controller:
     """The position controller of one cylinder as ``control`` configures it: LADRC with
-    the cylinder's plant gain, or PID."""
+    the cylinder's plant gain and its group's bandwidths (:mod:`ipc_app.control.tuning`),
+    or PID."""
     ctl = cfg.control
     if ctl.controller == "ladrc":
         b0 = cylinder_b0(cyl, cfg.hydraulics, order=ctl.ladrc.order)
-        return LADRC.from_config(ctl.ladrc, b0, period_s)
+        wc, wo = position_bandwidths(cfg, cyl)
+        return LADRC.from_config(ctl.ladrc, b0, period_s, wc=wc, wo=wo)
     return PID.from_config(ctl.pid, period_s, rate_limit=ctl.ladrc.rate_limit_per_s)
 
 

@@ -146,14 +146,31 @@ class LADRC:
 
     @classmethod
     def from_config(
-        cls, cfg: Ladrc, b0: float, dt: float, u_min: float = -1.0, u_max: float = 1.0
+        cls,
+        cfg: Ladrc,
+        b0: float,
+        dt: float,
+        u_min: float = -1.0,
+        u_max: float = 1.0,
+        *,
+        wc: float | None = None,
+        wo: float | None = None,
     ) -> LADRC:
-        """Build from the ``control.ladrc`` section of a project or scenario."""
+        """Build from the ``control.ladrc`` section of a project or scenario; ``wc`` and
+        ``wo`` (the loop's tuning, :mod:`ipc_app.control.tuning`) where the section
+        leaves them to be derived."""
+        wc = cfg.wc_rad_s if wc is None else wc
+        wo = cfg.wo_rad_s if wo is None else wo
+        if wc is None or wo is None:
+            raise ValueError(
+                "control.ladrc.wc_rad_s / wo_rad_s not given: pass the derived bandwidths "
+                "(ipc_app.control.tuning.position_bandwidths)"
+            )
         return cls(
             order=cfg.order,
             b0=b0,
-            wc=cfg.wc_rad_s,
-            wo=cfg.wo_rad_s,
+            wc=wc,
+            wo=wo,
             dt=dt,
             u_min=u_min,
             u_max=u_max,

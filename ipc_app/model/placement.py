@@ -175,12 +175,12 @@ def to_ring_frame(cfg: ProjectConfig, pose: Pose, from_ring: int, to_ring: int) 
 
 def design_pose(cfg: ProjectConfig, ring: int) -> Pose:
     """Where ring ``ring``'s part belongs, in its own T: its reference point
-    ``placement.reference_height_m`` above the design centreline at mid-width, its axes
-    along the axis frame there."""
-    pl = _placement(cfg)
+    on the invert (:attr:`~config.schema.ProjectConfig.reference_height_m`, the inner
+    radius below the design centreline) at mid-width, its axes along the axis frame there."""
+    _placement(cfg)
     half = cfg.workpiece.width_m / 2.0
     at_mid = axis_pose(_alignment(cfg), ring_chainage_m(cfg, ring) + half)
-    local = compose(at_mid, Pose(z=pl.reference_height_m))
+    local = compose(at_mid, Pose(z=cfg.reference_height_m))
     return compose(inverse(tunnel_frame(cfg, ring)), local)
 
 

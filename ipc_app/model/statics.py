@@ -12,12 +12,14 @@ docs/model-choices.md; the test suite checks it against a generic least-norm sol
 
 from __future__ import annotations
 
+import functools
 from typing import NamedTuple
 
 import numpy as np
 from numpy.typing import ArrayLike
 
 from config import units
+from config.derived import without_rods
 from config.schema import WORKPIECE_BODY, Body, ProjectConfig
 from ipc_app.model.kinematics import Array, S, T, Vec, rotate, rotate_t
 
@@ -111,6 +113,7 @@ class MachineStatics:
         self.a_upper, self.b_upper = up.a_m, up.b_m
         self.lower_own = lump(lo.bodies)
         self.upper = lump(unloaded_upper_bodies(cfg) if unloaded else up.bodies)
+        self._cfg, self._unloaded = cfg, unloaded
         self.origin_upper = up.origin_in_lower_m
         #: an attitude cylinder's rod and piston (``hydraulics.rod_mass_kg``)
         self.rod_mass_kg = cfg.hydraulics.rod_mass_kg
@@ -147,6 +150,16 @@ class MachineStatics:
         )
         return f_lower, f_upper
 
+    @functools.cached_property
+    def upper_rodless(self) -> MassProperties:
+        """:attr:`upper` less the four rods its bodies weigh in
+        (:func:`config.derived.without_rods`): the platform on the rods, each rod's weight
+        on its own cylinder."""
+        rodless = without_rods(self._cfg, "upper")
+        if self._unloaded:
+            rodless = tuple(b for b in rodless if b.name != WORKPIECE_BODY)
+        return lump(rodless)
+
     def upper_cylinder_forces(
         self,
         lower_roll: ArrayLike,
@@ -154,10 +167,26 @@ class MachineStatics:
         upper_roll: ArrayLike,
         upper_pitch: ArrayLike,
     ) -> Array:
-        """The upper cylinders' hydraulic forces at rest, ``(..., 4)`` in N: the
-        platform's share of :meth:`forces` plus each cylinder's own rod and piston
-        (``hydraulics.rod_mass_kg``) along its axis, the upper base's z. What the rods'
-        pressures carry (``p_A A_A - p_B A_B``) when the platform stands still."""
-        _f_lower, f_upper = self.forces(lower_roll, lower_pitch, upper_roll, upper_pitch)
+        """The upper cylinders' hydraulic forces at rest, ``(..., 4)`` in N: the share
+        of the platform's bodies less the rods they weigh in, plus each cylinder's own rod
+        and piston (``hydraulics.rod_mass_kg``) along its axis, the upper base's z. What
+        the rods' pressures carry (``p_A A_A - p_B A_B``) when the platform stands still."""
         g_upper = gravity_in(lower_roll, lower_pitch, self.g_base)
+        m, c = self.upper_rodless
+        c_vec = Vec(np.asarray(c[0]), np.asarray(c[1]), np.asarray(c[2]))
+        f_upper = rod_forces(upper_roll, upper_pitch, self.a_upper, self.b_upper, m, c_vec, g_upper)
         return f_upper - self.rod_mass_kg * np.asarray(g_upper.z)[..., None]
+
+
+def home_cap_pressures_pa(cfg: ProjectConfig) -> dict[str, float]:
+    """Each attitude cylinder's cap pressure (Pa) under the nominal load: both layers
+    level on their bases (the home pose, as the machine stands at boot), the rod forces
+    of :meth:`MachineStatics.forces` over the cap areas, as the planner computes its
+    pressures (:class:`ipc_app.planner.problem.AttitudeProblem`). Keyed by cylinder id,
+    the lower layer's first."""
+    f_lower, f_upper = MachineStatics(cfg).forces(0.0, 0.0, 0.0, 0.0)
+    out: dict[str, float] = {}
+    for layer, forces in ((cfg.layers.lower, f_lower), (cfg.layers.upper, f_upper)):
+        for cid, f in zip(layer.cylinders, np.asarray(forces, dtype=float), strict=True):
+            out[cid] = float(f) / cfg.cylinder(cid).cap_area_m2
+    return out

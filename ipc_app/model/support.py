@@ -25,9 +25,17 @@ from typing import NamedTuple
 
 import numpy as np
 
+from config import crosscheck, units
+from config.derived import without_rods
 from config.schema import Body, ProjectConfig
 from ipc_app.model.kinematics import Array, S, T, Vec, rotate
-from ipc_app.model.statics import MachineStatics, MassProperties, lump, unloaded_upper_bodies
+from ipc_app.model.statics import (
+    MachineStatics,
+    MassProperties,
+    home_cap_pressures_pa,
+    lump,
+    unloaded_upper_bodies,
+)
 
 
 def cap_side_forces_n(p: Array, cap_m2: Array, rod_m2: Array) -> Array:
@@ -64,8 +72,9 @@ class WalkingMachine:
     Frames (walking.md section 1): M's legs at ``(s_i a_M, t_i b_M)``, S's legs at
     ``(x_S + s_i a_S, t_i b_S)``, in the lower platform frame. The upper platform's
     attitude relative to the lower one is given (it does not change during a walk). The
-    load is the bodies and the upper platform's rods (``hydraulics.rod_mass_kg`` each);
-    the legs' own rods are not in it: a leg's force on the body is its cap-side force.
+    load is the bodies (the upper platform's rods in them) less the legs' own rods and
+    feet, which the frames' bodies weigh in (:func:`config.derived.without_rods`): a
+    leg's force on the body is its cap-side force.
 
     ``unloaded``: without the workpiece, the upper layer's body named
     :data:`~config.schema.WORKPIECE_BODY` (the ring cycle walks back once the part is fixed to the
@@ -96,21 +105,19 @@ class WalkingMachine:
         o = statics.origin_upper
         cog_u = (o[0] + float(ru.x), o[1] + float(ru.y), o[2] + float(ru.z))
         upper_in_lower = Body(name="upper", mass_kg=mu, cog_m=cog_u) if mu > 0 else None
-        fixed = [b for b in cfg.layers.lower.bodies] + list(cfg.frames.main.bodies)
+        # the frames' bodies weigh their legs' rods in: out of the load
+        # (config.derived.without_rods); the upper bodies' rods stay (the legs carry them)
+        fixed = [b for b in cfg.layers.lower.bodies] + list(without_rods(cfg, "main"))
         if upper_in_lower is not None:
             fixed.append(upper_in_lower)
         #: the weight of one leg's rod (and foot), N along the base z: what a hanging leg
         #: pulls on the body; a standing leg's cap-side force is its foot's load less it
         self.rod_mass_kg = cfg.hydraulics.rod_mass_kg
         self.rod_weight_n = -self.rod_mass_kg * float(self.g_base.z)
-        # the upper platform's rods hang between the layers: the legs carry them (at the
-        # upper cylinders' centroid, the upper platform's origin)
-        n_up = len(cfg.layers.upper.cylinders)
-        fixed.append(Body(name="upper rods", mass_kg=n_up * self.rod_mass_kg, cog_m=o))
         #: everything that moves with M (lower platform frame)
         self.main: MassProperties = lump(tuple(fixed))
         #: S's structure (S's frame)
-        self.sub: MassProperties = lump(cfg.frames.sub.bodies)
+        self.sub: MassProperties = lump(without_rods(cfg, "sub"))
         lo, sub = cfg.layers.lower, cfg.frames.sub
         self.main_legs_xy = np.stack([S * lo.a_m, T * lo.b_m], axis=1)
         self.sub_legs_xy = np.stack([S * sub.a_m, T * sub.b_m], axis=1)
@@ -219,3 +226,53 @@ def stability_margin(points_xy: Array, point: Array) -> float:
         inward = np.array([-ey / length, ex / length])
         margin = min(margin, float(inward @ np.array([px - ax, py - ay])))
     return margin
+
+
+def boot_cap_pressures_pa(cfg: ProjectConfig) -> dict[str, float]:
+    """Each attitude cylinder's cap pressure (Pa) as the machine stands at boot, keyed by
+    cylinder id: the layers' statics at the home pose
+    (:func:`~ipc_app.model.statics.home_cap_pressures_pa`) and, for a project that walks,
+    M's legs carrying the whole machine in walking.md's start state (S lifted at the rear
+    end of its travel, its hanging legs' rods on the body), which the layers' statics
+    leave out (the frames)."""
+    out = home_cap_pressures_pa(cfg)
+    if cfg.frames is None or cfg.walking is None:
+        return out
+    machine = WalkingMachine(cfg)
+    x_s = -cfg.walking.step_length_m / 2
+    legs = machine.legs_xy(x_s)
+    rods = len(machine.sub_legs_xy) * machine.rod_mass_kg
+    mass = machine.mass_kg + rods
+    hanging = np.append(legs[4:].mean(axis=0), 0.0)
+    cog = (machine.cog(x_s) * machine.mass_kg + hanging * rods) / mass
+    forces = support_forces(legs[:4], mass, cog, machine.g_base)
+    for cid, f in zip(cfg.layers.lower.cylinders, forces, strict=True):
+        out[cid] = float(f) / cfg.cylinder(cid).cap_area_m2
+    return out
+
+
+@crosscheck.provide("static-pressure-within-limit", __name__)
+def check_static_pressure(cfg: ProjectConfig) -> str | None:
+    """The cross-check of the static load against the pressure limit (config.crosscheck):
+    a limit at or below a cylinder's pressure as the machine stands at boot
+    (:func:`boot_cap_pressures_pa`) trips the pressure interlock at boot."""
+    try:
+        pressures = boot_cap_pressures_pa(cfg)
+    except ValueError:  # bodies lighter than their rods: rods-within-their-bodies says so
+        return None
+    cid = max(pressures, key=lambda k: pressures[k])
+    p_mpa = units.to_mpa(pressures[cid])
+    limit = cfg.safety.max_pressure_mpa
+    if p_mpa < limit:
+        return None
+    if cid in cfg.layers.upper.cylinders:
+        load = "layers.upper.bodies"
+    elif cfg.frames is not None:
+        load = "layers.*.bodies and frames.*.bodies, M standing, S lifted"
+    else:
+        load = "layers.lower.bodies and layers.upper.bodies"
+    return (
+        f"safety.max_pressure_mpa: {limit:g} MPa is not above the static load pressure of "
+        f"cylinder {cid} ({p_mpa:.2f} MPa: {load}, at rest as the machine stands at boot; "
+        f"the interlock would trip under the machine's own load); expected above {p_mpa:.2f}"
+    )

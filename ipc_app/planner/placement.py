@@ -53,6 +53,7 @@ from ipc_app.model.placement import (
     to_ring_frame,
     tunnel_frame,
 )
+from ipc_app.planner.capacity import pressure_limit_pa, pressure_reason
 from ipc_app.planner.plan import plan as plan_attitude
 
 #: Slack (mm, or mm-equivalent) within which a limit counts as kept.
@@ -430,6 +431,7 @@ def check_moves(
     yaw = in_heading.yaw - att.yaw_residual_rad - home.yaw
     ext: SixDofExtensions = six_dof_extensions(delta._replace(yaw=yaw), pl.rotation_lever_arm_m)
     checks: list[ActuatorCheck] = []
+    p_limit = units.to_mpa(pressure_limit_pa(cfg))
     lower = cfg.layers.lower
     d_lower = tuple(d + ext.heave for d in att.lower.displacement_m)
     reasons = list(att.reasons) if not att.feasible else []
@@ -445,7 +447,7 @@ def check_moves(
             tuple(units.to_mm(d) for d in d_lower),
             units.to_mm(lower.extension_limit_m),
             units.to_mpa(att.peak_pressure_pa),
-            cfg.hydraulics.rated_pressure_mpa,
+            p_limit,
             tuple(reasons),
         )
     )
@@ -456,13 +458,13 @@ def check_moves(
             tuple(units.to_mm(d) for d in att.upper.displacement_m),
             units.to_mm(upper.extension_limit_m),
             units.to_mpa(max(att.upper.pressure_pa)),
-            cfg.hydraulics.rated_pressure_mpa,
+            p_limit,
             (),  # the attitude planner's reasons stand with the lower layer's
         )
     )
     # The slide axes push the part on the upper platform against its friction.
-    friction_n = pl.slide_friction_coefficient * cfg.workpiece.mass_kg * units.G
-    p_max = cfg.hydraulics.supply_pressure_mpa - cfg.hydraulics.load_sensing_margin_mpa
+    friction_n = pl.slide_friction_coefficient * cfg.workpiece_mass_kg * units.G
+    p_max = units.to_mpa(pressure_limit_pa(cfg))
     for role, values, share in (
         ("rotation", ext.rotation, 0.5),
         ("lateral", ext.lateral, 0.5),
@@ -479,11 +481,9 @@ def check_moves(
                 )
         area = min(c.rod_area_m2 for c in cyls)
         p_need = units.to_mpa(share * friction_n / area) + cfg.hydraulics.tank_pressure_mpa
-        if p_need > p_max:
-            why.append(
-                f"pressure: {role} needs {p_need:.2f} MPa to slide the part, above "
-                f"{p_max:.2f} MPa (supply less the load-sensing margin)"
-            )
+        slide = pressure_reason(cfg, role, share * friction_n, units.mpa(p_need))
+        if slide is not None:
+            why.append(slide)
         checks.append(
             ActuatorCheck(
                 role,

@@ -29,6 +29,7 @@ from ipc_app.model.kinematics import (
     linked_attitude,
 )
 from ipc_app.model.statics import MachineStatics
+from ipc_app.planner.capacity import pressure_limit_pa, pressure_reason
 
 Objective = Literal["sum_pressure", "peak_pressure", "pump_energy"]
 OBJECTIVES: tuple[Objective, ...] = ("sum_pressure", "peak_pressure", "pump_energy")
@@ -37,7 +38,7 @@ OBJECTIVE_UNITS = {"sum_pressure": "Pa", "peak_pressure": "Pa", "pump_energy": "
 #: Violation assigned where the composition has no solution (target out of reach).
 UNSOLVABLE = 1e3
 #: Dimensionless violation below which a candidate counts as feasible: constraints hold
-#: to 1e-12 of their scale (stroke limit, mean rod force, rated pressure), far below
+#: to 1e-12 of their scale (stroke limit, mean rod force, pressure limit), far below
 #: any sensor's resolution, so that vertex solutions found by Newton steps are accepted.
 FEASIBILITY_TOLERANCE = 1e-12
 
@@ -111,7 +112,8 @@ class PlanningProblem:
         self.path_limit_upper = path_limits(self.start_upper, self.limit_upper, half_upper)
         self.path_limit_lower = path_limits(self.start_lower, self.limit_lower, half_lower)
         self.f_min = cfg.planner.min_rod_force_n
-        self.p_rated = cfg.hydraulics.rated_pressure_pa
+        #: what a cylinder can get: supply less the load-sensing margin (or its rating)
+        self.p_limit = pressure_limit_pa(cfg)
         self.dp_margin = cfg.hydraulics.load_sensing_margin_pa
         self.coplanarity_tol = cfg.planner.coplanarity_tolerance_m
         self.statics = MachineStatics(cfg)
@@ -192,8 +194,8 @@ class PlanningProblem:
         f = np.minimum(fu.min(-1), fl.min(-1))
         v += np.maximum(self.f_min - fu, 0.0).sum(-1) / self.force_scale * (f < self.f_min)
         v += np.maximum(self.f_min - fl, 0.0).sum(-1) / self.force_scale * (f < self.f_min)
-        v += np.maximum(pu - self.p_rated, 0.0).sum(-1) / self.p_rated
-        v += np.maximum(pl - self.p_rated, 0.0).sum(-1) / self.p_rated
+        v += np.maximum(pu - self.p_limit, 0.0).sum(-1) / self.p_limit
+        v += np.maximum(pl - self.p_limit, 0.0).sum(-1) / self.p_limit
         if path:
             for d, a, b in ((du, self.a_upper, self.b_upper), (dl, self.a_lower, self.b_lower)):
                 cop = coplanarity_distance(d, a, b)
@@ -203,7 +205,7 @@ class PlanningProblem:
     def critical(self, ev: Evaluation, d1: ArrayLike, d2: ArrayLike) -> Array:
         """The smooth functions whose zero curves bound the pieces of the problem.
 
-        Constraint boundaries (upper box, lower strokes, lift-off, rated pressure), and
+        Constraint boundaries (upper box, lower strokes, lift-off, pressure limit), and
         for the non-smooth objectives the kinks (a cylinder at its start extension) and
         the ties of the peak pressure (two cap pressures equal). Shape ``(..., m)``.
         """
@@ -215,8 +217,8 @@ class PlanningProblem:
             ev.d_lower + self.limit_lower,
             ev.f_upper - self.f_min,
             ev.f_lower - self.f_min,
-            ev.p_upper - self.p_rated,
-            ev.p_lower - self.p_rated,
+            ev.p_upper - self.p_limit,
+            ev.p_lower - self.p_limit,
         ]
         if self.objective_name != "sum_pressure":
             p = np.concatenate([ev.p_upper, ev.p_lower], -1)
@@ -294,9 +296,7 @@ class PlanningProblem:
                         f"lift-off: {name} rod force {units.to_kn(f[i]):.1f} kN below the minimum "
                         f"{units.to_kn(self.f_min):.1f} kN"
                     )
-                if p[i] > self.p_rated:
-                    out.append(
-                        f"pressure: {name} cap pressure {units.to_mpa(p[i]):.2f} MPa above the "
-                        f"rated {units.to_mpa(self.p_rated):.2f} MPa"
-                    )
+                why = pressure_reason(cfg, name, float(f[i]), float(p[i]))
+                if why is not None:
+                    out.append(why)
         return out

@@ -41,6 +41,7 @@ from ipc_app.model.support import (
     stability_margin,
     support_forces,
 )
+from ipc_app.planner.capacity import Duty, pressure_limit_pa, pressure_reason
 
 _SAMPLES = 41  # samples per phase (the margin and forces are checked at each)
 
@@ -56,6 +57,9 @@ PHASES: dict[str, str] = {
     "7c": "transfer to M",
     "8": "lift S",
 }
+#: The phases that ramp leg forces: their ``start_m``/``end_m`` are the standing legs'
+#: forces (N), not positions.
+RAMP_PHASES: frozenset[str] = frozenset({"3", "4", "7b", "7c"})
 #: The travel phases' names in a backward step (the other phases keep theirs).
 BACK_PHASES: dict[str, str] = {"1": "move S back", "6": "move M back"}
 #: The phases of one step in their order: forward (walking.md section 2) and backward
@@ -174,7 +178,9 @@ class Phase:
     duration_s: float
     standing: tuple[str, ...]  #: legs that carry load (ids)
     moving: tuple[str, ...]  #: cylinders in position control
-    start_m: tuple[float, ...]  #: their positions at the start (x_S for travel; extension)
+    #: at the start: their positions (x_S for travel; extension), or in a force ramp
+    #: (:data:`RAMP_PHASES`) the legs' forces (N)
+    start_m: tuple[float, ...]
     end_m: tuple[float, ...]
     t_s: Array  #: sample instants (from the walk's start)
     x_s_m: Array  #: S's position along the rails at the samples
@@ -189,6 +195,18 @@ class Phase:
         return phase_name(self.key, self.direction)
 
     def summary(self, leg_ids: tuple[str, ...]) -> dict[str, Any]:
+        """The phase for the plan's JSON: a move's start and end positions in mm
+        (``start_mm``, ``end_mm``), a force ramp's forces in kN (``start_kn``, ``end_kn``)."""
+        if self.key in RAMP_PHASES:
+            ends = {
+                "start_kn": [round(v / units.KN, 3) for v in self.start_m],
+                "end_kn": [round(v / units.KN, 3) for v in self.end_m],
+            }
+        else:
+            ends = {
+                "start_mm": [round(units.to_mm(v), 3) for v in self.start_m],
+                "end_mm": [round(units.to_mm(v), 3) for v in self.end_m],
+            }
         return {
             "step": self.step,
             "phase": self.key,
@@ -197,8 +215,7 @@ class Phase:
             "duration_s": round(self.duration_s, 3),
             "standing": list(self.standing),
             "moving": list(self.moving),
-            "start_mm": [round(units.to_mm(v), 3) for v in self.start_m],
-            "end_mm": [round(units.to_mm(v), 3) for v in self.end_m],
+            **ends,
             "min_stability_margin_m": round(float(self.margin_m.min()), 4),
             "leg_forces_end_kn": {
                 cid: round(float(f) / units.KN, 2)
@@ -319,6 +336,9 @@ class _Planner:
         self.travel_ids = tuple(c.id for c in cfg.cylinders if c.role == "travel")
         legs = [cfg.cylinder(cid) for cid in self.leg_ids]
         self.cap_area = np.array([c.cap_area_m2 for c in legs])
+        self.limit_pa: dict[Duty, float] = {
+            d: pressure_limit_pa(cfg, d) for d in ("moves", "holds")
+        }
         self.leg_limit = np.array([c.stroke_m / 2 - cfg.layers.lower.reserve_m for c in legs])
         travel = [cfg.cylinder(cid) for cid in self.travel_ids]
         self.x_s_limit = min(c.stroke_m for c in travel) / 2 - self.walk.travel_reserve_m
@@ -432,14 +452,21 @@ class _Planner:
                 f"{cid} force {standing[kk, jj] / units.KN:.1f} kN below "
                 f"{f_min / units.KN:.1f} kN (lifts off)",
             )  # fmt: skip
+        # capacity (ipc_app.planner.capacity): a leg lifted or lowered in position control
+        # moves its load (its foot); standing legs hold theirs, and legs in a force ramp
+        # take theirs at the ramp's trickle of flow
+        moves = [phase.key not in RAMP_PHASES and cid in phase.moving for cid in self.leg_ids]
+        limit = np.array([self.limit_pa["moves" if m else "holds"] for m in moves])
         pressure = phase.leg_forces_n / self.cap_area
-        kk, jj = np.unravel_index(int(np.argmax(pressure)), pressure.shape)
-        p_max = cfg.hydraulics.rated_pressure_pa
-        if pressure[kk, jj] > p_max:
+        kk, jj = np.unravel_index(int(np.argmax(pressure - limit)), pressure.shape)
+        why = pressure_reason(
+            cfg, self.leg_ids[int(jj)], float(phase.leg_forces_n[kk, jj]),
+            float(pressure[kk, jj]), "moves" if moves[int(jj)] else "holds",
+        )  # fmt: skip
+        if why is not None:
             self.violation(
-                phase, int(kk), "pressure", float(pressure[kk, jj]), p_max, "Pa",
-                f"{self.leg_ids[int(jj)]} cap pressure {pressure[kk, jj] / 1e6:.2f} MPa above "
-                f"the rated {p_max / 1e6:.2f} MPa",
+                phase, int(kk), "pressure", float(pressure[kk, jj]), float(limit[jj]), "Pa",
+                why.removeprefix("pressure: "),
             )  # fmt: skip
         slip = np.abs(phase.travel_force_n) - phase.friction_capacity_n
         k = int(np.argmax(slip))

@@ -64,7 +64,8 @@ from typing import Any, Literal, TypeVar
 import numpy as np
 import structlog
 
-from config import load_project
+from config import default_project_path, load_project
+from config.loader import load_model
 from config.schema import ProjectConfig
 from ipc_app.planner.plan import Plan
 from ipc_app.planner.trajectory import Trajectory
@@ -203,7 +204,11 @@ def _child_main(
     service, not this process, decides when it ends (``None``, or its owner gone)."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     try:
-        cfg = load_project(config_path)
+        # the schema only: the service checked this file whole (the cross-checks too,
+        # PlannerWorker) before starting this process, whose start they would slow by
+        # their imports (the DBC's bus load, the statics; about 1 s of CPU)
+        path = default_project_path() if config_path is None else config_path
+        cfg = load_model(ProjectConfig, path)
         fn = _resolve(plan_fn)
     except Exception as exc:
         results.put(("fatal", f"{type(exc).__name__}: {exc}"))

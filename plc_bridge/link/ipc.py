@@ -14,6 +14,7 @@ from config import units
 from config.schema import N_CYLINDERS, ProjectConfig
 from plc_bridge.busload import BusLoad, bus_load
 from plc_bridge.catalog import MessageSpec
+from plc_bridge.codec import FrameCodec
 from plc_bridge.errors import BusLoadError
 from plc_bridge.link.side import LinkSide, SideRole, mask_of
 from plc_bridge.link.words import (
@@ -49,17 +50,20 @@ class IpcLink(LinkSide):
     def __init__(self, cfg: ProjectConfig, bus: can.BusABC | None = None, **kwargs: Any):
         super().__init__(cfg, bus, role=self.ROLE, **kwargs)
         self._control = ControlWord()
-        self._valve = [
-            (self._codec_by_name[m.name], list(m.slots))
-            for m in self.catalog.with_prefix("IPC_ValveCmd_")
-        ]
+        #: the valve frames: (codec, first slot, end slot), each a run of can_index slots
+        self._valve: list[tuple[FrameCodec, int, int]] = []
+        for m in self.catalog.with_prefix("IPC_ValveCmd_"):
+            lo, hi = m.slots[0], m.slots[-1] + 1
+            if list(m.slots) != list(range(lo, hi)):
+                raise ValueError(f"{m.name}: slots {m.slots} are not consecutive")
+            self._valve.append((self._codec_by_name[m.name], lo, hi))
         self._last_hmi_seq: int | None = None
         self._pos = self._loop_rows
         self._press = [
             (self._rx_by_name[m.name], list(m.slots))
             for m in self.catalog.with_prefix("PLC_Pressure_")
         ]
-        self._press_fast = self._compile_rows(self._press, 2)
+        self._press_fast = self._slot_group(self._press, 2)
         self._status_rec = self._rx_by_name["PLC_Status"]
         self._hmi_rec = self._rx_by_name["PLC_HmiTarget"]
         self._limits_rec = self._rx_by_name["PLC_Limits"]
@@ -88,8 +92,11 @@ class IpcLink(LinkSide):
             k in CONTROL_FIELDS and getattr(c, k) == v for k, v in changes.items()
         ):
             return  # every field already so (the loop sets mode and enable every cycle)
-        new = replace(word if word is not None else c, **changes)
-        if new != self._control:
+        if word is not None and not changes:
+            new = word  # (frozen: taken as it is)
+        else:
+            new = replace(word if word is not None else c, **changes)
+        if new != c:
             self._control = new
             now = self._clock()
             self._send(self._ctl_codec, self._control_values(), now)
@@ -151,45 +158,50 @@ class IpcLink(LinkSide):
                 f"valve commands: expected {N_CYLINDERS} values, got shape {arr.shape}"
             )
         # Plain floats (numpy's per-call overhead dominates on 19 values): NaN -> 0, then
-        # clipped to [-1, 1], each counted, as np.where / np.clip did.
+        # clipped to [-1, 1], each counted, as np.where / np.clip did. (The sum is NaN
+        # with a NaN in it; min and max bound the rest.)
         vals = arr.tolist()
-        nan = clipped = 0
-        for i, v in enumerate(vals):
-            if v != v:
-                vals[i] = 0.0
-                nan += 1
-            elif v > 1.0:
-                vals[i] = 1.0
-                clipped += 1
-            elif v < -1.0:
-                vals[i] = -1.0
-                clipped += 1
-        if nan:
-            self.tx_counts["nan"] += nan
-        if clipped:
-            self.tx_counts["clipped"] += clipped
+        total = sum(vals)
+        if total != total or min(vals) < -1.0 or max(vals) > 1.0:
+            nan = clipped = 0
+            for i, v in enumerate(vals):
+                if v != v:
+                    vals[i] = 0.0
+                    nan += 1
+                elif v > 1.0:
+                    vals[i] = 1.0
+                    clipped += 1
+                elif v < -1.0:
+                    vals[i] = -1.0
+                    clipped += 1
+            if nan:
+                self.tx_counts["nan"] += nan
+            if clipped:
+                self.tx_counts["clipped"] += clipped
         sent = 0
         period = self._loop_period_s
-        for codec, slots in self._valve:
+        periods, next_due = self._period, self._next_due
+        for codec, lo, hi in self._valve:
             fid = codec.frame_id
-            if self._period.get(fid, 0.0) > period:  # inactive: on its own cycle
-                due = self._next_due.get(fid, -math.inf)
+            own = periods.get(fid, 0.0)
+            if own > period:  # inactive: on its own cycle
+                due = next_due.get(fid, -math.inf)
                 if now < due - 0.25 * period:
                     continue
-                self._next_due[fid] = max(due + self._period[fid], now)
+                next_due[fid] = max(due + own, now)
                 self._wake = -math.inf
-            sent += self._send(codec, [vals[i] for i in slots], now)
+            sent += self._send(codec, vals[lo:hi], now)
         return sent
 
     # ----------------------------------------------------------------- readings
 
     def positions_m(self, now: float | None = None) -> Reading:
         """Rod positions from fully retracted [m], by ``can_index`` (NaN where not valid)."""
-        return self._array(self._loop_slices, 1, units.MM, self._clock() if now is None else now)
+        return self._array(self._loop_slices, units.MM, self._clock() if now is None else now)
 
     def pressures_pa(self, now: float | None = None) -> Reading:
         """Chamber pressures [Pa], shape (19, 2): column 0 cap side, column 1 rod side."""
-        return self._array(self._press_fast, 2, units.MPA, self._clock() if now is None else now)
+        return self._array(self._press_fast, units.MPA, self._clock() if now is None else now)
 
     def status(self, now: float | None = None) -> PlcStatus | None:
         """The PLC status word, or None when stale (the PLC is then considered lost)."""

@@ -91,7 +91,7 @@ class PlcLink(LinkSide):
 
     def valve_commands(self, now: float | None = None) -> Reading:
         """Spool commands in [-1, 1] by ``can_index``; NaN where stale (centre the spool)."""
-        return self._array(self._loop_slices, 1, 1.0, self._clock() if now is None else now)
+        return self._array(self._loop_slices, 1.0, self._clock() if now is None else now)
 
     def command_timeout(self, now: float | None = None) -> bool:
         """True when the control word or any valve frame is stale: hold spools at centre."""
@@ -169,27 +169,39 @@ class PlcLink(LinkSide):
     def _values_for(self, spec: MessageSpec, now: float) -> list[float] | None:
         return self._builders[spec.frame_id](now)
 
+    @staticmethod
+    def tx_kind(spec: MessageSpec) -> str:
+        """What a message the PLC sends carries: ``positions``, ``pressures``, ``status``,
+        ``limits`` or ``hmi`` (:meth:`_builder`; the simulator's compiled scan too)."""
+        name = spec.name
+        if name.startswith("PLC_RodPos_"):
+            return "positions"
+        if name.startswith("PLC_Pressure_"):
+            return "pressures"
+        kinds = {"PLC_Status": "status", "PLC_Limits": "limits", "PLC_HmiTarget": "hmi"}
+        if name not in kinds:
+            raise ValueError(f"{name}: the PLC sends no such message")
+        return kinds[name]
+
     def _builder(self, spec: MessageSpec) -> Callable[[float], list[float]]:
         """The function that gives ``spec``'s values (DBC units, in its signals' order)."""
-        name = spec.name
-        if name.startswith(("PLC_RodPos_", "PLC_Pressure_")):
+        kind = self.tx_kind(spec)
+        if kind in ("positions", "pressures"):
             lo, hi = spec.slots[0], spec.slots[-1] + 1
             if list(spec.slots) != list(range(lo, hi)):
-                raise ValueError(f"{name}: slots {spec.slots} are not consecutive")
-            if name.startswith("PLC_RodPos_"):
+                raise ValueError(f"{spec.name}: slots {spec.slots} are not consecutive")
+            if kind == "positions":
                 return lambda _now: self._positions_mm()[lo:hi]
             return lambda _now: self._pressures_mpa()[2 * lo : 2 * hi]
-        names = self._codec_by_name[name].signal_names
-        if name == "PLC_Status":
+        names = self._codec_by_name[spec.name].signal_names
+        if kind == "status":
             return lambda now: self._status_values(names, now)
-        if name == "PLC_Limits":
+        if kind == "limits":
             return lambda _now: [
                 {"LimitRetractedMask": self._limits[0], "LimitExtendedMask": self._limits[1]}[n]
                 for n in names
             ]
-        if name == "PLC_HmiTarget":
-            return lambda _now: self._hmi_values(names)
-        raise ValueError(f"{name}: the PLC sends no such message")  # pragma: no cover
+        return lambda _now: self._hmi_values(names)
 
     def _positions_mm(self) -> list[float]:
         """The latest positions in DBC units (mm, by ``can_index``), the deferred ones

@@ -47,17 +47,43 @@ W = TypeVar("W")
 FAULT_HOLD_S = 1.0
 
 
-class _TxMessage(can.Message):
-    """A frame this side sends: a :class:`can.Message` with a cheaper deep copy.
+class TxFrame(can.Message):
+    """A frame this side sends: a :class:`can.Message` that is quick to make and to
+    deep-copy.
 
-    python-can's ``virtual`` bus (lockstep, tests, the in-process demo) deep-copies every
-    frame sent, once per receiver; ``Message.__deepcopy__`` copies the payload with
+    ``TxFrame(arbitration_id, data)`` is a classic frame (11-bit id, no remote, error
+    or FD flags, ``is_rx`` True and ``timestamp`` 0 as python-can's defaults), its
+    fields set directly: python-can's constructor, general over every flag, takes
+    about three times as long, and every frame of both nodes is made here (the
+    simulated PLC's too). Any other keyword goes to python-can's constructor.
+
+    python-can's ``virtual`` bus (the in-process demo, tests) deep-copies every frame
+    sent, once per receiver; ``Message.__deepcopy__`` copies the payload with
     ``copy.deepcopy`` (the pickle protocol, about 60 % of the copy). This one copies the
     same fields and the payload directly: an equal, independent message. Other
     interfaces serialise the frame and never copy it.
     """
 
     __slots__ = ()
+
+    def __init__(
+        self, arbitration_id: int = 0, data: bytes | bytearray = b"", **kwargs: Any
+    ) -> None:
+        if kwargs:
+            super().__init__(arbitration_id=arbitration_id, data=data, **kwargs)
+            return
+        self.timestamp = 0.0
+        self.arbitration_id = arbitration_id
+        self.is_extended_id = False
+        self.is_remote_frame = False
+        self.is_error_frame = False
+        self.channel = None
+        self.is_fd = False
+        self.is_rx = True
+        self.bitrate_switch = False
+        self.error_state_indicator = False
+        self.data = bytearray(data)
+        self.dlc = len(data)
 
     def __deepcopy__(self, memo: dict[int, Any] | None) -> can.Message:
         return can.Message(
@@ -74,6 +100,45 @@ class _TxMessage(can.Message):
             bitrate_switch=self.bitrate_switch,
             error_state_indicator=self.error_state_indicator,
         )
+
+
+#: the name this class had (tests)
+_TxMessage = TxFrame
+
+
+class SlotGroup:
+    """Received messages' latest values by ``can_index`` (``width`` values a slot, DBC
+    units) and their receive times, kept as the frames arrive and go stale: the IPC's
+    positions and pressures, the PLC's valve commands. Plain lists, made into arrays
+    in one conversion per read (:meth:`LinkSide._array`).
+
+    What they hold: a message's values where its record has values (NaN where not),
+    its receive time where it has one (-inf where never). A record has values only
+    while fresh as of the link's last timeout check, so at that check's time these
+    lists are the reading; at any other time the reading is worked out from the records.
+    """
+
+    __slots__ = ("last", "rows", "vals", "width")
+
+    def __init__(self, rows: list[tuple[RxRecord, int, int, int, int]], width: int) -> None:
+        self.rows = rows
+        self.width = width
+        self.vals = [math.nan] * (N_CYLINDERS * width)
+        self.last = [-math.inf] * N_CYLINDERS
+        for rec, lo, hi, vlo, vhi in rows:
+            rec.groups += ((self, lo, hi, vlo, vhi),)
+
+    def refill(self) -> None:
+        """Take every row again from its record (after its state was set from outside)."""
+        for rec, lo, hi, vlo, vhi in self.rows:
+            v = rec.values
+            self.vals[vlo:vhi] = [math.nan] * (vhi - vlo) if v is None else v[: vhi - vlo]
+            last = rec.last_rx
+            self.last[lo:hi] = [-math.inf if last is None else last] * (hi - lo)
+
+
+#: bus states in which nothing is sent (:meth:`BusHealth.can_send`)
+_CANNOT_SEND = frozenset({BusState.BUS_OFF, BusState.DOWN})
 
 
 def mask_of(indices: Iterable[int]) -> int:
@@ -148,7 +213,15 @@ class LinkSide:
             (self._rx_by_name[m.name], list(m.slots))
             for m in self.catalog.with_prefix(role.loop_rx_prefix)
         ]
-        self._loop_slices = self._compile_rows(self._loop_rows, 1)
+        self._groups: list[SlotGroup] = []
+        self._hooked = type(self)._on_accepted is not LinkSide._on_accepted
+        self._loop_slices = self._slot_group(self._loop_rows, 1)
+        #: the time of the last timeout check (NaN: none since the timeouts changed or
+        #: a record that was not fresh took a frame): the records' freshness then is
+        #: what their values and ``was_fresh`` say (:class:`SlotGroup`, :meth:`state`)
+        self._fresh_at = math.nan
+        #: at that check: (the critical records fresh, every record fresh)
+        self._fresh_counts = (False, False)
         #: Per received word (:meth:`_word`): the values it was built from, and the word.
         self._words: dict[str, tuple[tuple[float, ...], Any]] = {}
         self._tx_counter: dict[int, int] = {m.frame_id: 0 for m in self.tx_specs}
@@ -215,13 +288,19 @@ class LinkSide:
         for spec in self.rx_specs:
             self._rx[spec.frame_id].set_timeout(self._timeout_for(spec, active), now)
         self._stale_check_at = -math.inf
+        self._fresh_at = math.nan
         for spec in self.tx_specs:
             self._period[spec.frame_id] = spec.cycle_in_force_s(
                 is_active(spec, active), self._loop_period_s
             )
         self._wake = -math.inf
-        # The records the link is LOST without: the peer's heartbeat and the loop-rate
-        # rows that carry an active cylinder.
+        self._set_active_group(active)
+
+    def _set_active_group(self, active: frozenset[int]) -> None:
+        """``active`` as the group, and the records the link is LOST without: the peer's
+        heartbeat and the loop-rate rows that carry an active cylinder (the timeouts and
+        periods are :meth:`_apply_active`'s)."""
+        self._active = active
         self._critical_recs: tuple[RxRecord, ...] = (
             self._rx_by_name[self.role.heartbeat],
             *(rec for rec, slots in self._loop_rows if any(i in active for i in slots)),
@@ -249,38 +328,54 @@ class LinkSide:
             out.append((rec, lo, hi, lo * width, hi * width))
         return out
 
-    def _array(
-        self,
-        rows: list[tuple[RxRecord, int, int, int, int]],
-        width: int,
-        si_per_unit: float,
-        now: float,
-    ) -> Reading:
-        """The latest values of ``rows`` by ``can_index`` in SI; NaN where not usable.
+    def _slot_group(self, rows: list[tuple[RxRecord, list[int]]], width: int) -> SlotGroup:
+        group = SlotGroup(self._compile_rows(rows, width), width)
+        self._groups.append(group)
+        return group
 
-        Plain list slices per message, one numpy conversion at the end (the IPC's
-        positions and pressures every loop cycle, the PLC's valve commands).
+    def _records_set(self) -> None:
+        """The records' state was set from outside (the simulator's compiled scans hand
+        theirs back): the groups taken again, every shortcut worked out anew."""
+        for group in self._groups:
+            group.refill()
+        self._wake = -math.inf
+        self._stale_check_at = -math.inf
+        self._fresh_at = math.nan
+
+    def _array(self, group: SlotGroup, si_per_unit: float, now: float) -> Reading:
+        """The latest values of ``group`` by ``can_index`` in SI; NaN where not usable.
+
+        At the time of the last timeout check (the loop polls, then reads) the group's
+        lists are the answer: one numpy conversion each. At any other time each row's
+        record says: values while fresh at ``now`` (:meth:`RxRecord.latest`, written
+        out), its age where it was ever received. The same figures either way
+        (``tests/test_plc_link.py``).
         """
-        vals = [math.nan] * (N_CYLINDERS * width)
-        ages = [math.inf] * N_CYLINDERS
-        for rec, lo, hi, vlo, vhi in rows:
-            last = rec.last_rx
-            if last is None:
-                continue
-            age = now - last
-            ages[lo:hi] = [age] * (hi - lo)
-            # rec.latest(now), written out: values while fresh (RxRecord.fresh)
-            v = rec.values
-            if v is not None and age <= (
-                rec.grace_timeout_s if now < rec.grace_until else rec.timeout_s
-            ):
-                vals[vlo:vhi] = v[: vhi - vlo]
-        val = np.array(vals)
+        width = group.width
+        if now == self._fresh_at:
+            val = np.array(group.vals)
+            age = now - np.array(group.last)  # never received: inf
+        else:
+            vals = [math.nan] * (N_CYLINDERS * width)
+            ages = [math.inf] * N_CYLINDERS
+            for rec, lo, hi, vlo, vhi in group.rows:
+                last = rec.last_rx
+                if last is None:
+                    continue
+                a = now - last
+                ages[lo:hi] = [a] * (hi - lo)
+                v = rec.values
+                if v is not None and a <= (
+                    rec.grace_timeout_s if now < rec.grace_until else rec.timeout_s
+                ):
+                    vals[vlo:vhi] = v[: vhi - vlo]
+            val = np.array(vals)
+            age = np.array(ages)
         if si_per_unit != 1.0:  # (times 1.0 changes no value: the valve commands)
             val *= si_per_unit  # DBC unit -> SI, factor from config.units
         if width > 1:
             val = val.reshape(N_CYLINDERS, width)
-        return Reading(value=val, valid=val == val, age_s=np.array(ages))  # == : not NaN
+        return Reading(value=val, valid=val == val, age_s=age)  # == : not NaN
 
     def _word(
         self, rec: RxRecord, build: Callable[[dict[str, float]], W], now: float | None
@@ -303,27 +398,25 @@ class LinkSide:
     def _send(self, codec: FrameCodec, values: Sequence[float], now: float) -> bool:
         """Send one frame without blocking; failures are counted, never raised."""
         fid = codec.frame_id
-        counter = self._tx_counter[fid]
-        self._tx_counter[fid] = (counter + 1) % COUNTER_MODULO
-        if not self.bus_health.can_send():
+        counters = self._tx_counter
+        counter = counters[fid]
+        counters[fid] = (counter + 1) % COUNTER_MODULO
+        health = self.bus_health
+        if health.state in _CANNOT_SEND:  # (BusHealth.can_send)
             self.tx_counts["tx_suppressed"] += 1
             return False
-        msg = _TxMessage(
-            arbitration_id=fid,
-            data=codec.encode(counter, values),
-            is_extended_id=False,
-            check=False,
-        )
+        msg = TxFrame(fid, codec.encode(counter, values))
         try:
             self.bus.send(msg, timeout=0.0)
         except can.CanError as exc:
-            self.bus_health.on_send_error(getattr(exc, "error_code", None), str(exc), now)
+            health.on_send_error(getattr(exc, "error_code", None), str(exc), now)
             return False
         except OSError as exc:
-            self.bus_health.on_send_error(exc.errno, str(exc), now)
+            health.on_send_error(exc.errno, str(exc), now)
             return False
         self.tx_counts["tx_frames"] += 1
-        self.bus_health.on_send_ok()
+        if health.tx_error_active:  # a failure before: it works again (logged once)
+            health.on_send_ok()
         return True
 
     def _send_due(self, now: float) -> None:
@@ -401,12 +494,20 @@ class LinkSide:
                 lost_before = rec.lost_frames
                 outcome = rec.on_frame(msg.data, now)
                 if outcome == "accepted":
+                    for g, lo, hi, vlo, vhi in rec.groups:
+                        g.vals[vlo:vhi] = rec.values[: vhi - vlo]  # type: ignore[index]
+                        g.last[lo:hi] = [now] * (hi - lo)
+                    if now < self._fresh_at:  # older than the check: fresh then?
+                        self._fresh_at = math.nan
                     if not rec.was_fresh:  # it may turn fresh: walk the records again
                         self._stale_check_at = -math.inf
-                    self.bus_health.on_frame_ok()
+                        self._fresh_at = math.nan  # (its was_fresh is not fresh(now))
+                    health = self.bus_health
+                    health.backoff_s = health.backoff_initial_s  # (BusHealth.on_frame_ok)
                     if rec.lost_frames != lost_before:
                         self._last_fault = now
-                    self._on_accepted(rec, now)
+                    if self._hooked:
+                        self._on_accepted(rec, now)
                 elif outcome in RX_FAULTS:
                     self._last_fault = now
                     last = self._fault_logged_at.get(rec.name, -math.inf)
@@ -423,15 +524,20 @@ class LinkSide:
         return outcome
 
     def _on_accepted(self, rec: RxRecord, now: float) -> None:
-        """Hook: a frame passed all checks (the PLC side reads the active mask here)."""
+        """Hook: a frame passed all checks (the PLC side reads the active mask here;
+        called only where a subclass has its own)."""
 
     def _check_timeouts(self, now: float) -> None:
         if now < self._stale_check_at:
+            self._fresh_at = now
             return  # every record's own check below would change nothing
         check_at = math.inf
+        every = True  # every record fresh
         for rec in self._rx.values():
             was = rec.was_fresh
             if rec.check_timeout(now):
+                for g, _lo, _hi, vlo, vhi in rec.groups:
+                    g.vals[vlo:vhi] = [math.nan] * (vhi - vlo)
                 self._last_fault = now
                 log.warning(
                     "%s: %s (0x%03X) stale: no valid frame for %.0f ms (timeout %.0f ms)",
@@ -447,10 +553,15 @@ class LinkSide:
                 until = rec.fresh_until_s()
                 if until < check_at:
                     check_at = until
+            else:
+                every = False
         self._stale_check_at = check_at
+        self._fresh_at = now
+        self._fresh_counts = (every or all(r.was_fresh for r in self._critical_recs), every)
 
     def _recover(self, now: float) -> None:
-        if not self.bus_health.due_for_reopen(now):
+        health = self.bus_health
+        if health.state not in _CANNOT_SEND or not health.due_for_reopen(now):
             return
         if self._bus_factory is None:
             # A bus passed in cannot be made anew here: after the same back-off it is
@@ -475,13 +586,18 @@ class LinkSide:
             now = self._clock()
         if not self.bus_health.can_send():
             return LinkState.LOST
-        if not all_fresh(self._critical_recs, now):
+        if now == self._fresh_at:  # as of the timeout check at this time
+            critical_fresh, all_fresh_now = self._fresh_counts
+        else:
+            critical_fresh = all_fresh(self._critical_recs, now)
+            all_fresh_now = critical_fresh and all_fresh(self._rx.values(), now)
+        if not critical_fresh:
             return LinkState.LOST
         if (
             self.bus_health.state is not BusState.ACTIVE
             or now - self._last_fault <= FAULT_HOLD_S
             or now - self.bus_health.last_fault_time <= FAULT_HOLD_S
-            or not all_fresh(self._rx.values(), now)
+            or not all_fresh_now
         ):
             return LinkState.DEGRADED
         return LinkState.OK

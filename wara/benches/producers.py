@@ -781,10 +781,17 @@ def harness(outs: Sequence[Output]) -> Measured:
             t(d, ">= {lockstep.goal_realtime_factor}x"),
         ),
         Figure(
-            "CPU: emulated PLC's Python / plant kernel / service core / rest",
+            "CPU: compiled PLC scans and plant / simulator's Python / plant kernel from "
+            "Python / service core / rest",
             " / ".join(
                 num(100 * (get(d, s + k) or 0), ".0f")
-                for k in ("plc_scan_python", "plant_kernel", "service_core", "rest")
+                for k in (
+                    "compiled_scans",
+                    "plc_scan_python",
+                    "plant_kernel",
+                    "service_core",
+                    "rest",
+                )
             )
             + " %",
         ),

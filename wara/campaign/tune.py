@@ -89,9 +89,15 @@ def tune(
 
 
 def _nominal(c: Campaign, path: str) -> float:
+    """The project's value of ``path``, or (left out of the YAML) the derived one
+    (:func:`ipc_app.control.tuning.derived_value`), within the search range."""
     cur: Any = c.project.model_dump(mode="json")
     for p in path.split("."):
         cur = cur[p]
+    if cur is None:
+        from ipc_app.control.tuning import derived_value
+
+        cur = derived_value(c.project, path)
     lo, hi = c.spec.tune.parameters[path]
     return float(min(max(float(cur), lo), hi))
 

@@ -29,6 +29,9 @@ BENCHES: dict[str, str] = {
     "figures": "wara.benches.figures:run",
 }
 
+#: the benches that take ``--baseline DIR`` (this checkout against DIR's, in one run)
+WITH_BASELINE = ("harness", "step")
+
 
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("bench", help="run a benchmark and print JSON")
@@ -41,13 +44,13 @@ def register(sub: argparse._SubParsersAction) -> None:
         type=integer,
         default=None,
         metavar="N",
-        help="demo: how many runs (default 5); step with --baseline: rounds (default 5)",
+        help="demo: how many runs (default 5); harness, step with --baseline: rounds (default 5)",
     )
     p.add_argument(
         "--baseline",
         default=None,
         metavar="DIR",
-        help="step: a checkout of another revision, measured in turn with this one",
+        help="harness, step: a checkout of another revision, measured in turn with this one",
     )
     p.add_argument(
         "--cpu-hog",
@@ -106,10 +109,12 @@ def _run(args: argparse.Namespace) -> int:
         raise UsageError(
             "--realtime goes with the ring cycles (the attitude examples run in real time)"
         )
-    if args.baseline is not None and args.name != "step":
-        raise UsageError("--baseline goes with `wara bench step`")
+    if args.baseline is not None and args.name not in WITH_BASELINE:
+        raise UsageError(f"--baseline goes with `wara bench` {', '.join(WITH_BASELINE)}")
     if args.runs is not None and not (args.name == "demo" or args.baseline is not None):
-        raise UsageError("--runs goes with `wara bench demo` or `wara bench step --baseline`")
+        raise UsageError(
+            "--runs goes with `wara bench demo` or `wara bench harness/step --baseline`"
+        )
     if args.runs is not None and args.runs < 1:
         raise UsageError("--runs must be at least 1")
     module_name, func_name = BENCHES[args.name].split(":")

@@ -9,8 +9,8 @@ from pathlib import Path
 
 import yaml
 
-from config import ProjectConfig, load_project
-from config.loader import defaulted_sections, read_yaml, validate_data
+from config import ConfigError, ProjectConfig, load_project
+from config.loader import cross_check, defaulted_sections, read_yaml, validate_data
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -28,7 +28,14 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def _validate(args: argparse.Namespace) -> int:
     data = read_yaml(Path(args.path))
-    cfg = validate_data(ProjectConfig, data, args.path)
+    cfg = cross_check(validate_data(ProjectConfig, data, args.path), args.path)
+    # the loops' delay margin: the rule needs the controller's model
+    # (ipc_app.control.tuning), which the shared schema package may not import
+    from ipc_app.control.tuning import delay_margin_problem
+
+    problem = delay_margin_problem(cfg)
+    if problem is not None:
+        raise ConfigError(f"{args.path}: {problem}")
     defaulted = defaulted_sections(ProjectConfig, data)
     if defaulted:
         # Valid, but a whole section (safety limits, the bus) came from the defaults:

@@ -122,7 +122,8 @@ def render_table(p: Plan) -> str:
         f"attitude error       {p.attitude_error_rad:.2e} rad",
         f"yaw residual         {d['yaw_residual_deg']:+.4f} deg (rotation cylinders take it out)",
         f"trajectory duration  {p.trajectory_duration_s:.2f} s",
-        f"solve time           {units.to_ms(p.solve_time_s):.2f} ms ({p.evaluations} candidates)",
+        f"solve time           {units.to_ms(p.solve_time_s):.2f} ms ({p.evaluations} candidates; "
+        f"{p.solve_time_share_percent:.2g} % of the {p.task_time_s / 60:g} min assembly task)",
     ]
     if p.reasons:
         lines += ["", "Why not feasible:"] + [f"  - {r}" for r in p.reasons]

@@ -9,11 +9,11 @@ Examples::
     wara sim dual-cylinder --plot study.png        # positions, sync error, commands, pressures
 
     wara sim delay-margin                          # shipped project, 0-50 ms of delay
-    wara sim delay-margin --config my.yaml --delays-ms 0,10,20 --json
+    wara sim delay-margin my.yaml --delays-ms 0,10,20 --json
 
 Exit code 0 when the goals hold (dual-cylinder: LADRC sync error within the paper's
 0.07 mm after the transient, PID worse by the scenario's ratio; delay-margin: the hold
-stable up to ``--required-ms``), 1 when not.
+stable up to ``--required-ms`` and every loop's modelled margin at least that), 1 when not.
 """
 
 from __future__ import annotations
@@ -28,7 +28,7 @@ from config.numbers import decimal
 from config.scenario import load_scenario
 from wara.cli import EXIT_FAILED, EXIT_OK, UsageError
 from wara.extras import require
-from wara.studies import CONTROLLERS, DEFAULT_DELAYS_MS, REQUIRED_MS, ControllerKind
+from wara.studies import CONTROLLERS, DEFAULT_DELAYS_MS, ControllerKind
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -61,7 +61,10 @@ def register(sub: argparse._SubParsersAction) -> None:
         "delay, with every rod-position frame held back by that delay on the wire. "
         "Reports whether the hold stays stable (docs/control.md, 'Delay margin').",
     )
-    m.add_argument("--config", default=None, help="project YAML (default: shipped project)")
+    m.add_argument(
+        "project", nargs="?", default=None, help="project YAML (default: shipped project)"
+    )
+    m.add_argument("--config", default=None, help="project YAML (the same as PROJECT)")
     m.add_argument(
         "--delays-ms",
         default=",".join(f"{d:g}" for d in DEFAULT_DELAYS_MS),
@@ -80,8 +83,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     m.add_argument(
         "--required-ms",
         type=decimal,
-        default=REQUIRED_MS,
-        help="exit 0 only if the hold is stable up to this delay (default: %(default)g)",
+        default=None,
+        help="exit 0 only if the hold is stable up to this delay and every loop's modelled "
+        "margin reaches it (default: the project's control.delay_margin_ms)",
     )
     m.add_argument("--json", action="store_true", help="print the figures as JSON")
     m.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
@@ -112,7 +116,12 @@ def _delay_margin(args: argparse.Namespace) -> int:
         raise UsageError(f"--hold-s must be > 0, got {args.hold_s}")
     if not 0 < args.sim_speed <= 1:
         raise UsageError(f"--sim-speed must be in (0, 1], got {args.sim_speed}")
-    cfg = load_project(args.config)
+    if args.project is not None and args.config is not None and args.project != args.config:
+        raise UsageError(f"give the project once: {args.project} or --config {args.config}")
+    path = args.project if args.project is not None else args.config
+    if args.required_ms is not None and not args.required_ms > 0:
+        raise UsageError(f"--required-ms must be > 0, got {args.required_ms}")
+    cfg = load_project(path)
 
     def say(text: str) -> None:
         if not args.quiet:
@@ -124,7 +133,7 @@ def _delay_margin(args: argparse.Namespace) -> int:
     try:
         report = run_study(
             cfg,
-            args.config,
+            path,
             delays_ms=delays,
             target=(roll, pitch),
             hold_s=args.hold_s,

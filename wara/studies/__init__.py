@@ -11,6 +11,3 @@ ControllerKind = Literal["ladrc", "pid"]
 CONTROLLERS: tuple[ControllerKind, ...] = ("ladrc", "pid")
 #: extra position delays tested by default (ms)
 DEFAULT_DELAYS_MS: tuple[float, ...] = (0.0, 10.0, 20.0, 30.0, 40.0, 50.0)
-#: the hold must be stable up to this extra delay (twice what two processes add: a
-#: position frame up to one 5 ms period old plus the loop's phase against the PLC scan)
-REQUIRED_MS = 20.0

@@ -21,6 +21,11 @@ dynamics, its oil-column mode included, then take longer on the clock the loop r
 (docs/kernel-tests.md, the slowed project of the HIL over vcan0). The delays are the
 simulator's: seen from the service a delay is ``delay / sim_speed``.
 
+Beside the lockstep runs it reports each loop's modelled delay margin against the
+project's ``control.delay_margin_ms`` (:mod:`ipc_app.control.tuning`: the position loop
+of each cylinder group, the walk's force loops): their bandwidths, where they come from
+(derived, or the YAML key) and the rule that bounds them.
+
     wara sim delay-margin                       # shipped project, 0-50 ms
     wara sim delay-margin --config my.yaml --delays-ms 0,5,10 --json
     wara sim delay-margin --config slow.yaml --sim-speed 0.5 --delays-ms 0,50,100
@@ -35,14 +40,16 @@ from typing import Any
 
 import numpy as np
 
+from config import units
 from config.hil_scenario import HilScenario
 from config.loader import validate_data
 from config.schema import ProjectConfig
+from ipc_app.control.tuning import MARGIN_FACTOR, MODE_GAIN, derive, rule_broken
 from ipc_app.service.modes import Mode
 from ipc_app.service.worker import PlannerWorker
 from wara.goals import SYNC_TOL_MM
 from wara.harness import Harness
-from wara.studies import DEFAULT_DELAYS_MS, REQUIRED_MS
+from wara.studies import DEFAULT_DELAYS_MS
 
 
 @dataclass
@@ -119,12 +126,17 @@ def run_study(
     delays_ms: Sequence[float] = DEFAULT_DELAYS_MS,
     target: tuple[float, float] = (2.0, 1.0),
     hold_s: float = 20.0,
-    required_ms: float = REQUIRED_MS,
+    required_ms: float | None = None,
     progress: Callable[[str], None] | None = None,
     sim_speed: float = 1.0,
 ) -> dict[str, Any]:
-    """Every delay in turn; the JSON-ready report (``passed``: stable up to ``required_ms``)."""
+    """Every delay in turn, and the loops' modelled margins; the JSON-ready report
+    (``passed``: the hold stable up to ``required_ms``, default the project's
+    ``control.delay_margin_ms``, and every loop's modelled margin at least that)."""
     say = progress or (lambda _s: None)
+    if required_ms is None:
+        required_ms = cfg.control.delay_margin_ms
+    loops = loop_margins(cfg, required_ms)
     planner = PlannerWorker(config_path, timeout_s=60.0)
     planner.start()
     runs: list[DelayRun] = []
@@ -154,10 +166,38 @@ def run_study(
         "runs": [asdict(r) for r in runs],
         "delay_margin_ms": margin,
         "required_ms": required_ms,
+        "loops": loops,
         "passed": bool(tested_required)
         and any(r.delay_ms >= required_ms for r in runs)
-        and all(r.stable for r in tested_required),
+        and all(r.stable for r in tested_required)
+        and all(lp["meets_required"] for lp in loops),
     }
+
+
+def loop_margins(cfg: ProjectConfig, required_ms: float) -> list[dict[str, Any]]:
+    """Each loop's tuning and modelled delay margin (:func:`ipc_app.control.tuning.derive`)
+    and the rule's margins for ``required_ms`` (``breaks``: ``"delay"``, ``"mode"`` or
+    ``""``)."""
+    out = []
+    for lt in derive(cfg).loops:
+        have = units.to_ms(lt.delay_margin_s)
+        breaks = rule_broken(lt.plant, lt.wc_rad_s, lt.wo_rad_s, units.ms(required_ms))
+        out.append(
+            {
+                "group": lt.group,
+                "kind": lt.kind,
+                "wc_rad_s": lt.wc_rad_s,
+                "wo_rad_s": lt.wo_rad_s,
+                "source": lt.source,
+                "bound": lt.bound,
+                "mode_rad_s": lt.plant.mode_rad_s if math.isfinite(lt.plant.mode_rad_s) else None,
+                "mode_gain": round(lt.mode_gain, 4),
+                "model_delay_margin_ms": round(have, 1) if math.isfinite(have) else None,
+                "breaks": breaks,
+                "meets_required": not breaks,
+            }
+        )
+    return out
 
 
 def render(report: dict[str, Any]) -> str:
@@ -182,6 +222,7 @@ def render(report: dict[str, Any]) -> str:
             f"{r['attitude_error_deg']:>12.5f} {r['max_twist_mm']:>12.4f} {sync:>25}  "
             f"{r['mode']} / {verdict}"
         )
+    lines += ["", render_loops(report["loops"], report["required_ms"])]
     margin = report["delay_margin_ms"]
     speed = report["sim_speed"]
     lines += [
@@ -196,4 +237,29 @@ def render(report: dict[str, Any]) -> str:
         f"required {report['required_ms']:g} ms",
         "PASSED" if report["passed"] else "FAILED",
     ]
+    return "\n".join(lines)
+
+
+def render_loops(loops: list[dict[str, Any]], required_ms: float) -> str:
+    """The loops' table: bandwidths, source, bound, modelled margin, the rule kept."""
+    head = (
+        f"{'loop':<24} {'wc':>6} {'wo':>6} {'mode rad/s':>10} {'gain@mode':>9} "
+        f"{'model margin ms':>15}  source / bound"
+    )
+    lines = [
+        f"loops (the loop model; the rule: margin >= {MARGIN_FACTOR:g} x {required_ms:g} ms, "
+        f"gain at an oil-column mode in reach <= {MODE_GAIN:g})",
+        head,
+        "-" * len(head),
+    ]
+    for lp in loops:
+        mode = "-" if lp["mode_rad_s"] is None else f"{lp['mode_rad_s']:.1f}"
+        have = lp["model_delay_margin_ms"]
+        margin = "inf" if have is None else f"{have:.1f}"
+        ok = f"  BREAKS the rule ({lp['breaks']})" if lp["breaks"] else ""
+        bound = f" / {lp['bound']}" if lp["bound"] else ""
+        lines.append(
+            f"{lp['group'] + ' ' + lp['kind']:<24} {lp['wc_rad_s']:>6g} {lp['wo_rad_s']:>6g} "
+            f"{mode:>10} {lp['mode_gain']:>9.3f} {margin:>15}  {lp['source']}{bound}{ok}"
+        )
     return "\n".join(lines)

@@ -8,7 +8,8 @@
 - **Force (pressure) control** for the legs in touch-down, preload and transfer: the
   same LADRC on the cap-side force ``p_A A_A - p_B A_B``; ``b0`` is the position ``b0``
   times the leg's stiffness against the invert (oil column in series with the
-  contact), bandwidths ``walking.force_wc_rad_s`` and ``force_wo_rad_s``.
+  contact), bandwidths ``walking.force_wc_rad_s`` and ``force_wo_rad_s`` or, left out,
+  derived from the plant (:mod:`ipc_app.control.tuning`, as the position loops' are).
 - **The twist mode** of a frame standing in position control: a force loop on its legs'
   twist sets that mode's share of their valve commands (:meth:`WalkLoops._twist_control`).
 - **The hold** of every other walk cylinder (:meth:`WalkLoops._hold`): in the active
@@ -24,10 +25,11 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
-from config.derived import hydraulic_stiffness_n_m, viscous_damping_n_s_m
+from config.derived import viscous_damping_n_s_m
 from config.schema import ProjectConfig
 from ipc_app.control.ladrc import LADRC
 from ipc_app.control.plant_gain import cylinder_b0
+from ipc_app.control.tuning import force_bandwidths, leg_stiffness_n_m, position_bandwidths
 from ipc_app.control.walk.forces import HeldLegShares, LegForceSamples, RodFriction
 from ipc_app.control.walk.phases import MAIN, PHASES, SUB, PhaseKind, PhaseRun
 from ipc_app.model.kinematics import fit_layer
@@ -87,7 +89,8 @@ class WalkLoops:
         for i in self.walk_cylinders:
             cyl = by_index[i]
             self.b0[i] = cylinder_b0(cyl, cfg.hydraulics, order=ctl.ladrc.order)
-            self.pos[i] = LADRC.from_config(ctl.ladrc, float(self.b0[i]), period_s)
+            wc, wo = position_bandwidths(cfg, cyl)
+            self.pos[i] = LADRC.from_config(ctl.ladrc, float(self.b0[i]), period_s, wc=wc, wo=wo)
         self.k_contact = self.walk.contact.stiffness_n_m
         #: each leg's rod friction (its plant's): Coulomb, N, and viscous, N s/m
         plants = [(by_index[i], cfg.plant_of(by_index[i])) for i in self.legs]
@@ -100,13 +103,9 @@ class WalkLoops:
         self.force: dict[int, LADRC] = {}
         for i in self.legs:
             cyl = by_index[i]
-            k_h = hydraulic_stiffness_n_m(cyl, cfg.plant_of(cyl), cfg.hydraulics)
-            k = 1.0 / (1.0 / k_h + 1.0 / self.k_contact)
-            b0 = cylinder_b0(cyl, cfg.hydraulics, order=1) * k
-            self.force[i] = LADRC(
-                1, b0, self.walk.force_wc_rad_s, self.walk.force_wo_rad_s, period_s,
-                rate_limit=ctl.ladrc.rate_limit_per_s,
-            )  # fmt: skip
+            b0 = cylinder_b0(cyl, cfg.hydraulics, order=1) * leg_stiffness_n_m(cfg, cyl)
+            wc, wo = force_bandwidths(cfg, cyl)
+            self.force[i] = LADRC(1, b0, wc, wo, period_s, rate_limit=ctl.ladrc.rate_limit_per_s)
         #: the legs (``can_index``) in force control
         self.force_mode: set[int] = set()
         #: the twist-mode controller of a standing frame: a force loop on its legs'

@@ -46,6 +46,7 @@ from config import units
 from config.derived import hydraulic_stiffness_n_m
 from config.schema import ProjectConfig
 from ipc_app.control.sync import sync_errors
+from ipc_app.control.tuning import touchdown_speed_m_s
 from ipc_app.control.walk.figures import StepFigures, WalkFigures
 from ipc_app.control.walk.forces import equilibrium_matrix, min_norm_forces
 from ipc_app.control.walk.loops import WalkLoops, twist_part
@@ -95,7 +96,7 @@ class WalkSequencer(WalkLoops):
         #: a leg's cap-side force above this is a foot touching (walking.touch_mpa), N
         self.touch_force_n = [float(v) for v in self.touch_rise_pa * self.cap_area_m2[self.legs]]
         self.touchdown_travel_m = units.mm(self.walk.touchdown_travel_mm)
-        self.touchdown_speed_m_s = units.mm(self.walk.touchdown_speed_mm_s)
+        self.touchdown_speed_m_s = touchdown_speed_m_s(cfg)
         traj = cfg.planner.trajectory
         self.leg_speed_m_s = traj.max_rod_speed_m_s
         self.leg_accel_m_s2 = traj.max_rod_accel_m_s2
