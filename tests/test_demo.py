@@ -176,7 +176,9 @@ def test_ring_demo_options_are_checked() -> None:
     assert main(["demo", "--rings", "0"]) == 2
     assert main(["demo", "--rings", "21"]) == 2
     assert main(["demo", "--attitude", "--rings", "2"]) == 2  # rings: the ring cycles'
-    assert main(["demo", "--two-process", "--out", "x"]) == 2
+    assert main(["demo", "--two-process", "--rings", "1", "--examples", "1"]) == 2
+    assert main(["demo", "--two-process", "--out", "x", "--settle-s", "3"]) == 2
+    assert main(["demo", "--two-process", "--rings", "1", "--opcua"]) == 2
     assert main(["demo", "--examples", "1"]) == 2  # examples: the attitude demo's
     assert main(["demo", "--plot", "x"]) == 2
     assert main(["demo", "--opcua"]) == 2

@@ -187,6 +187,7 @@ class _Driver:
                 phase = str(cyc.get("phase"))
                 if phase != self.phase:
                     self.phase, since = phase, time.monotonic()
+                    self.say(f"ring {ring}: {phase}")
                 if cyc.get("error"):
                     reasons = "; ".join(st.get("fault_reasons") or [])
                     why = str(cyc["error"]) + (
@@ -387,6 +388,7 @@ def run_inside(
         bus_load_percent=bus_load(cfg, active).load_percent,
         simulator_realtime_factor=sim_realtime_factor(sim.log_path.read_text(errors="replace")),
         load_average={"start": list(load_start), "end": list(load_end)},
+        fixing_confirmed_by=OPERATOR,
     )
     if not loop_ok:
         pct = "n/a" if frac is None else f"{100 * frac:.1f} %"
