@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import argparse
 import json
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -247,26 +248,57 @@ def _ring_count(args: argparse.Namespace) -> int:
 def _run_rings_two_process(args: argparse.Namespace) -> int:
     """The ring cycles with the simulator and the service as two processes
     (:mod:`wara.two_process_cycle`): the namespace from outside, the run inside it."""
-    import sys
-
-    from ipc_app.service.ctl import CtlError
     from wara import demo_two_process as d2
     from wara import two_process_cycle as tpc
     from wara.demo import stderr_progress
 
     rings = _ring_count(args)
     out_dir = Path(args.out or DEFAULT_OUT)
+    got = _in_two_processes(
+        args,
+        lambda: tpc.run_two_process_cycle(
+            args.config,
+            rings=rings,
+            out_dir=out_dir,
+            json_out=args.json,
+            keep_dir=Path(args.keep_dir) if args.keep_dir else None,
+            transport=args.transport or d2.DEFAULT_TRANSPORT,
+            pin=not args.no_pin,
+        ),
+        lambda: tpc.run_inside(
+            Path(args.inside_netns), args.config, rings=rings, out_dir=out_dir,
+            progress=stderr_progress,
+        ),
+    )  # fmt: skip
+    if isinstance(got, int):
+        return got
+    print(json.dumps(got, indent=2) if args.json else tpc.render_table(got))
+    if got["refused"] is not None:
+        stderr_progress(f"refused: {got['refused']}")
+        return EXIT_INFEASIBLE
+    if not got["passed"]:
+        stderr_progress("FAILED: " + "; ".join(got["missed"]))
+        return EXIT_FAILED
+    return EXIT_OK
+
+
+def _in_two_processes(
+    args: argparse.Namespace,
+    outside: Callable[[], int],
+    inside: Callable[[], dict[str, Any]],
+) -> dict[str, Any] | int:
+    """``--two-process``: outside the namespace ``outside()`` (the command again inside
+    it; its exit code, 2 when the namespace cannot be made), inside it ``inside()``'s
+    result; a run whose processes or control socket failed: one line on stderr (and the
+    verdict with ``--json``), exit 1."""
+    import sys
+
+    from ipc_app.service.ctl import CtlError
+    from wara import demo_two_process as d2
+
     if args.inside_netns is None:
         try:
-            return tpc.run_two_process_cycle(
-                args.config,
-                rings=rings,
-                out_dir=out_dir,
-                json_out=args.json,
-                keep_dir=Path(args.keep_dir) if args.keep_dir else None,
-                transport=args.transport or d2.DEFAULT_TRANSPORT,
-                pin=not args.no_pin,
-            )
+            return outside()
         except d2.NetnsUnavailable as exc:
             print(
                 f"wara demo: --two-process needs a private network namespace: {exc}",
@@ -274,23 +306,12 @@ def _run_rings_two_process(args: argparse.Namespace) -> int:
             )
             return EXIT_USAGE
     try:
-        out = tpc.run_inside(
-            Path(args.inside_netns), args.config, rings=rings, out_dir=out_dir,
-            progress=stderr_progress,
-        )  # fmt: skip
+        return inside()
     except (d2.TwoProcessError, CtlError) as exc:
         print(f"wara demo: two-process run failed: {exc}", file=sys.stderr)
         if args.json:  # the verdict stays machine-readable
             print(json.dumps({"mode": "two-process", "passed": False, "error": str(exc)}))
         return EXIT_FAILED
-    print(json.dumps(out, indent=2) if args.json else tpc.render_table(out))
-    if out["refused"] is not None:
-        stderr_progress(f"refused: {out['refused']}")
-        return EXIT_INFEASIBLE
-    if not out["passed"]:
-        stderr_progress("FAILED: " + "; ".join(out["missed"]))
-        return EXIT_FAILED
-    return EXIT_OK
 
 
 def _run_demo(*args: Any, **kwargs: Any) -> dict[str, Any]:
@@ -316,10 +337,8 @@ def _examples(n: int | None, available: int) -> int:
 
 
 def _run_two_process(args: argparse.Namespace) -> int:
-    import sys
 
     from ipc_app.service.core import ServiceCore
-    from ipc_app.service.ctl import CtlError
     from wara import demo_two_process as d2
     from wara import two_process_examples as ex
     from wara.demo import EXAMPLES, stderr_progress
@@ -334,37 +353,28 @@ def _run_two_process(args: argparse.Namespace) -> int:
         )
     n = _examples(args.examples, len(EXAMPLES))
     min_run = ex.MIN_RUN_S if args.min_run_s is None else args.min_run_s
-    if args.inside_netns is None:
-        try:
-            return ex.run_two_process(
-                args.config,
-                json_out=args.json,
-                settle_s=settle,
-                examples=n,
-                min_run_s=min_run,
-                keep_dir=Path(args.keep_dir) if args.keep_dir else None,
-                transport=args.transport or d2.DEFAULT_TRANSPORT,
-                pin=not args.no_pin,
-            )
-        except d2.NetnsUnavailable as exc:
-            print(
-                f"wara demo: --two-process needs a private network namespace: {exc}",
-                file=sys.stderr,
-            )
-            return EXIT_USAGE
-    try:
-        summary = ex.run_inside_netns(
+    summary = _in_two_processes(
+        args,
+        lambda: ex.run_two_process(
+            args.config,
+            json_out=args.json,
+            settle_s=settle,
+            examples=n,
+            min_run_s=min_run,
+            keep_dir=Path(args.keep_dir) if args.keep_dir else None,
+            transport=args.transport or d2.DEFAULT_TRANSPORT,
+            pin=not args.no_pin,
+        ),
+        lambda: ex.run_inside_netns(
             Path(args.inside_netns),
             args.config,
             settle_s=settle,
             examples=EXAMPLES[:n],
             min_run_s=min_run,
             progress=stderr_progress,
-        )
-    except (d2.TwoProcessError, CtlError) as exc:
-        print(f"wara demo: two-process run failed: {exc}", file=sys.stderr)
-        if args.json:  # the verdict stays machine-readable
-            print(json.dumps({"mode": "two-process", "passed": False, "error": str(exc)}))
-        return EXIT_FAILED
+        ),
+    )
+    if isinstance(summary, int):
+        return summary
     print(json.dumps(summary, indent=2) if args.json else ex.render_table(summary))
     return EXIT_OK if summary["passed"] else EXIT_FAILED
