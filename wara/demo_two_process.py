@@ -549,6 +549,18 @@ def service_and_simulator(
         say(f"stopped: service exit {codes.get('service')}, simulator exit {codes['simulator']}")
 
 
+def setting_lines(out: dict[str, Any]) -> list[str]:
+    """A two-process run's bus, its load, the simulator's real-time factor and the
+    placement of the processes, as lines of its table."""
+    rtf = out.get("simulator_realtime_factor")
+    return [
+        f"bus: {out['bus']}; bus load {out['bus_load_percent']:.1f} %; simulator "
+        + ("n/a" if rtf is None else f"{rtf:.1f}x")
+        + " real time (compute)",
+        placement_line(out.get("placement") or {}),
+    ]
+
+
 def placement_line(pl: dict[str, Any]) -> str:
     if pl.get("simulator_cpus"):
         return (

@@ -71,9 +71,9 @@ from wara.demo_two_process import (
     Progress,
     Service,
     TwoProcessError,
-    placement_line,
     run_in_netns,
     service_and_simulator,
+    setting_lines,
     sim_realtime_factor,
 )
 from wara.harness import ring_pose
@@ -404,7 +404,6 @@ def render_table(out: dict[str, Any]) -> str:
 
     lp, period_ms = out["loop"], float(out["loop"]["period_ms"])
     frac = lp.get("compute_p99_fraction")
-    rtf = out.get("simulator_realtime_factor")
     la = out.get("load_average") or {}
 
     def avg(v: Sequence[float] | None) -> str:
@@ -412,10 +411,7 @@ def render_table(out: dict[str, Any]) -> str:
 
     lines = [render_ring_table(out) if out["rings"] else render(out), ""]
     lines += [
-        f"bus: {out['bus']}; bus load {out['bus_load_percent']:.1f} %; simulator "
-        + ("n/a" if rtf is None else f"{rtf:.1f}x")
-        + " real time (compute)",
-        placement_line(out.get("placement") or {}),
+        *setting_lines(out),
         f"loop: {period_ms:.1f} ms period, {lp['measured_s']:.1f} s after start-up "
         f"({lp['measured_cycles']} cycles, {lp['reports']} reports); compute p99 (worst "
         f"report) {_ms(lp['compute_p99_ms'])}"

@@ -36,9 +36,9 @@ from wara.demo_two_process import (
     Progress,
     Service,
     TwoProcessError,
-    placement_line,
     run_in_netns,
     service_and_simulator,
+    setting_lines,
     sim_realtime_factor,
 )
 from wara.examples import EXAMPLES, HOLD_MEASURE_S, ExampleResult, judge_example
@@ -230,13 +230,9 @@ def render_table(summary: dict[str, Any]) -> str:
         return "n/a" if v is None else f"{v:.3f} ms"
 
     frac = lp.get("compute_p99_fraction")
-    rtf = summary.get("simulator_realtime_factor")
     lines += [
         "",
-        f"bus: {summary['bus']}; bus load {summary['bus_load_percent']:.1f} %; simulator "
-        + ("n/a" if rtf is None else f"{rtf:.1f}x")
-        + " real time (compute)",
-        placement_line(summary.get("placement") or {}),
+        *setting_lines(summary),
         f"loop: {lp['period_ms']:.1f} ms period, {lp['measured_s']:.1f} s measured after "
         f"start-up ({lp['measured_cycles']} cycles, {lp['reports']} reports); worst p99 of "
         f"the reports: compute {ms(lp['compute_p99_ms'])} "
