@@ -159,7 +159,7 @@ def test_one_ring_cycle_through_two_processes(netns: None, tmp_path: Path) -> No
     phases = {r[1].strip() for r in rows}
     assert {"walk", "place", "fixing", "release", "survey", "walk_back"} <= phases, phases
     assert proc.stdout.rstrip().endswith("PASSED"), why
-    for phase in ("walk", "place", "fixing", "release", "survey", "record", "walk_back"):
+    for phase in ("walk", "place", "fixing", "release", "survey", "walk_back"):
         assert f"wara demo: ring 2: {phase}" in proc.stderr, (phase, why)
     out_dir = tmp_path / "wara-demo"
     assert (out_dir / "acceptance.sqlite").is_file()
