@@ -138,29 +138,3 @@ def test_placement_of_loop_and_simulator(tmp_path: Path) -> None:
     assert list(own.control.realtime.cpu_affinity) == [1]
     assert simulator_cpus(own, [0, 1, 2]) == [0, 2]
 
-
-@pytest.mark.realtime
-@pytest.mark.slow(seconds=420)
-def test_one_ring_cycle_through_two_processes(netns: None, tmp_path: Path) -> None:
-    """``wara demo --two-process --rings 1`` as a user runs it (the table, in a new
-    directory): the simulator with the walking rig and the service as two processes on
-    the wall clock with the shipped safety timeouts, the demo the operator on the control
-    socket and the site's people on the simulator's: exit 0, ring 2 within every Table 4
-    item on the simulator's truth, the loop's figures per phase printed, the record and
-    the report in ``./wara-demo``."""
-    from tests.cli_helpers import run_wara
-
-    proc = run_wara(["demo", "--two-process", "--rings", "1"], timeout_s=1500, cwd=tmp_path)
-    why = (proc.stdout[-4000:], proc.stderr[-3000:])
-    assert proc.returncode == 0, why
-    rows = [ln.split("|") for ln in proc.stdout.splitlines() if ln.startswith("| ")]
-    rings = [(r[1].strip(), r[-2].strip()) for r in rows if r[1].strip().isdigit()]
-    assert rings == [("2", "yes")], why
-    phases = {r[1].strip() for r in rows}
-    assert {"walk", "place", "fixing", "release", "survey", "walk_back"} <= phases, phases
-    assert proc.stdout.rstrip().endswith("PASSED"), why
-    for phase in ("walk", "place", "fixing", "release", "survey", "walk_back"):
-        assert f"wara demo: ring 2: {phase}" in proc.stderr, (phase, why)
-    out_dir = tmp_path / "wara-demo"
-    assert (out_dir / "acceptance.sqlite").is_file()
-    assert "rings pass (100.0 %)" in (out_dir / "report" / "report.html").read_text()

@@ -360,6 +360,50 @@ def two_process(outs: Sequence[Output]) -> Measured:
     return Measured(tuple(figs), headline)
 
 
+def two_process_cycle(outs: Sequence[Output]) -> Measured:
+    d = outs[0].data
+    rings = get(d, "rings") or []
+    pct = num(_percent(d, "loop.compute_p99_fraction"), ".1f")
+    figs = [Figure("rings passed", _count(rings), "all")]
+    for r in rings:
+        figs.append(
+            Figure(
+                f"ring {r.get('ring')}: vertical / horizontal / gap / centreline x / y (truth)",
+                " / ".join(num(r.get(k), ".3f" if k == "max_gap_mm" else "+.3f") for k in _T4)
+                + " mm",
+                "8 / 8 / 0-10 / 5 / 5 mm",
+            )
+        )
+    for ph in get(d, "loop_phases.phases") or []:
+        if ph.get("phase") in ("walk", "place", "walk_back"):
+            figs.append(
+                Figure(
+                    f"{ph['phase']}: compute p50 / p99 / max; overruns (skipped periods)",
+                    t(ph, "{compute_p50_ms:.2f} / {compute_p99_ms:.2f} / {compute_max_ms:.1f} ms; ")
+                    + t(ph, "{overruns} ({skipped_periods})"),
+                )
+            )
+    causes = get(d, "loop_phases.by_cause") or {}
+    figs += [
+        Figure(
+            "compute p99, worst report after start-up",
+            t(d, "{loop.compute_p99_ms:.2f} ms") + f" ({pct} %)",
+            "< 20 % of the period",
+        ),
+        Figure(
+            "overruns after start-up, by cause",
+            ", ".join(f"{k} {v}" for k, v in sorted(causes.items())) or "none",
+        ),
+        Figure("suspends", t(d, "{ride_through.suspends}")),
+        Figure("wall time", mmss(get(d, "wall_time_s"))),
+    ]
+    headline = (
+        f"{_count(rings)} rings passed; compute p99 {t(d, '{loop.compute_p99_ms:.2f}')} ms "
+        f"({pct} % of the period); {passed(get(d, 'passed'), 'passed', 'FAILED')}"
+    )
+    return Measured(tuple(figs), headline)
+
+
 def soak(outs: Sequence[Output]) -> Measured:
     d = outs[0].data
     faults = len(get(d, "latched_faults") or [])
@@ -899,6 +943,9 @@ PRODUCERS: tuple[Producer, ...] = (
     Producer("two-process", _SVC, "two processes: the examples and the loop goal",
              ("wara demo --two-process --json",), two_process,
              realtime=True, headline="loop goal, two processes"),
+    Producer("two-process-cycle", _SVC, "two processes: a ring cycle and the loop per phase",
+             ("wara demo --two-process --rings 1 --json",), two_process_cycle,
+             realtime=True, headline="a ring cycle, two processes"),
     Producer("soak", _SVC, "the two-process soak",
              ("wara soak --minutes 30 --json",), soak,
              quick=("wara soak --minutes 2 --json",), realtime=True,
