@@ -137,4 +137,3 @@ def test_placement_of_loop_and_simulator(tmp_path: Path) -> None:
     own = multicast_config(tmp_path / "own.yaml", tmp_path / "o.yaml", pin=True)
     assert list(own.control.realtime.cpu_affinity) == [1]
     assert simulator_cpus(own, [0, 1, 2]) == [0, 2]
-
