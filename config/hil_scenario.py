@@ -173,10 +173,13 @@ class _WireFault(_Timed):
 
 
 class DropFrames(_WireFault):
-    """Each frame is lost with probability ``rate`` (seeded)."""
+    """Each frame is lost with probability ``rate`` (seeded); with ``max_burst``, at most
+    that many frames of one message in a row (the next one gets through: the isolated
+    losses of a healthy bus)."""
 
     kind: Literal["drop"]
     rate: Fraction
+    max_burst: Annotated[int, Field(ge=1, le=1000)] | None = None
 
 
 class DelayFrames(_WireFault):

@@ -287,6 +287,7 @@ class HilSimulator:
                     frame_ids=ids,
                     direction=ev.direction,
                     rate=getattr(ev, "rate", 1.0),
+                    max_burst=getattr(ev, "max_burst", None) or 0,
                     delay_s=ev.delay_s if isinstance(ev, DelayFrames) else 0.0,
                     key=k,
                 )

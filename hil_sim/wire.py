@@ -61,13 +61,16 @@ class WireFault:
     ``kind``: ``drop``, ``delay``, ``bad_crc``, ``frozen_counter``, ``plc_silent``,
     ``bus_off`` or ``wire_stall``; ``frame_ids``: the frames it applies to (empty: all);
     ``direction``: ``plc_to_ipc``, ``ipc_to_plc`` or ``both``; ``rate`` for
-    drop/bad_crc; ``delay_s`` for delay; ``until_s`` (simulated time) for a stall.
+    drop/bad_crc; ``max_burst`` for drop (at most that many frames of one message lost
+    in a row; 0: no bound); ``delay_s`` for delay; ``until_s`` (simulated time) for a
+    stall.
     """
 
     kind: str
     frame_ids: frozenset[int] = frozenset()
     direction: str = PLC_TO_IPC
     rate: float = 1.0
+    max_burst: int = 0
     delay_s: float = 0.0
     until_s: float = 0.0
     key: int = 0  #: identifies the fault (frozen counters are kept per fault)
@@ -118,6 +121,8 @@ class FaultyWire(can.BusABC):
         self._delayed: collections.deque[tuple[float, can.Message]] = collections.deque()
         self._frozen: dict[tuple[int, int], int] = {}
         self._last_counter: dict[int, int] = {}
+        #: frames of one message a drop fault lost in a row, by (fault key, frame id)
+        self._burst: Counter[tuple[int, int]] = Counter()
         self._bus_off = False
         self._horizon: float | None = None
         self._early: can.Message | None = None  # received, arrived after the horizon
@@ -211,7 +216,7 @@ class FaultyWire(can.BusABC):
                 data[0] ^= 0xFF
                 msg = _copy(msg, bytes(data))
                 self.counts[("bad_crc", name)] += 1
-            elif f.kind == "drop" and self._rng.random() < f.rate:
+            elif f.kind == "drop" and self._drops(f, fid):
                 self.counts[("drop", name)] += 1
                 return
             elif f.kind == "delay":
@@ -231,6 +236,19 @@ class FaultyWire(can.BusABC):
             self.release_due()
             return
         self.inner.send(msg, timeout=timeout)
+
+    def _drops(self, f: WireFault, fid: int) -> bool:
+        """Whether drop fault ``f`` loses this frame of ``fid``: with probability
+        ``rate``, never after ``max_burst`` frames of it lost in a row."""
+        if not f.max_burst:
+            return bool(self._rng.random() < f.rate)
+        key = (f.key, fid)
+        if self._burst[key] >= f.max_burst:
+            self._burst[key] = 0
+            return False
+        lost = bool(self._rng.random() < f.rate)
+        self._burst[key] = self._burst[key] + 1 if lost else 0
+        return lost
 
     def send_all(self, msgs: list[can.Message]) -> None:
         """:meth:`send` of each of ``msgs`` in order; on the wire as it is most of the
@@ -327,7 +345,7 @@ class FaultyWire(can.BusABC):
             for f in self._faults:
                 if not f.applies(fid, IPC_TO_PLC):
                     continue
-                if f.kind == "drop" and self._rng.random() < f.rate:
+                if f.kind == "drop" and self._drops(f, fid):
                     self.counts[("drop_rx", name)] += 1
                     dropped = True
                     break

@@ -11,6 +11,7 @@ import yaml
 
 SMALL_SPEC: dict[str, Any] = {
     "name": "test campaign",
+    "kind": "fault",  # a PLC stall of tens of ms: beyond a scan's lateness
     "seed": 11,
     "run": {"targets": 1, "roll_deg": [-0.5, 0.5], "pitch_deg": [-0.3, 0.3]},
     "dispersions": {

@@ -32,6 +32,14 @@ def _spec(**changes: Any) -> dict[str, Any]:
     return data
 
 
+def _event(kind: str, **fields: Any) -> dict[str, Any]:
+    return {
+        "event": {"kind": kind, **fields},
+        "start_s": {"dist": "uniform", "low": 1, "high": 2},
+        "duration_s": {"dist": "uniform", "low": 0.5, "high": 1},
+    }
+
+
 def test_zero_failure_run_counts() -> None:
     assert zero_failure_runs(0.99, 0.95) == 299
     assert zero_failure_runs(0.9973, 0.90) == 852
@@ -210,6 +218,41 @@ def test_bounds_redraw_inside_min_max(tmp_path: Path) -> None:
             "events[0].start_s: min/max keep 0.00% of the choice draws",
         ),
         ({"requirement": {"limits": {"speed": 1}}}, "limits: unknown figure 'speed'"),
+        ({"kind": "worst"}, "kind: "),
+        # a nominal campaign: only what a healthy machine shows, within the project's bounds
+        (
+            {"kind": "nominal"},
+            "kind: nominal: events[0] (plc_stall): duration_s up to 0.04; within the "
+            "specification at most 0.015 (can.stale_cycles loop periods",
+        ),
+        (
+            {"kind": "nominal", "events": [_event("bus_off")]},
+            "kind: nominal: events[0] (bus_off): a fault, not a dispersion within the "
+            "specification (a nominal campaign draws delay, drop, plc_stall, ground): put it "
+            "in a campaign of kind: fault",
+        ),
+        (
+            {"kind": "nominal", "events": [_event("drop", rate=0.005)]},
+            "events[0] (drop): max_burst not given; within the specification at most 1 "
+            "(can.max_delta_counter - 1",
+        ),
+        (
+            {"kind": "nominal", "events": [_event("drop", max_burst=1, rate=0.05)]},
+            "events[0] (drop): rate up to 0.05; within the specification at most 0.01",
+        ),
+        (
+            {
+                "kind": "nominal",
+                "events": [
+                    {
+                        **_event("delay"),
+                        "fields": {"delay_ms": {"dist": "normal", "mean": 5, "std": 1}},
+                    }
+                ],
+            },
+            "events[0] (delay): delay_ms unbounded (give its distribution a max); within the "
+            "specification at most 20 (control.delay_margin_ms",
+        ),
         ({"requirement": {"probability": 1.0}}, "requirement.probability"),
         ({"tune": {"parameters": {"planner.min_rod_force_kn": [1, 5]}}}, "only control.* keys"),
         (
@@ -347,7 +390,7 @@ def test_whether_an_event_happened_is_ranked_as_a_driver(tmp_path: Path) -> None
     assert lead["rho_failure"] == pytest.approx(1.0)
 
 
-def test_a_histogram_of_values_far_below_their_limit_shows_its_bar() -> None:
+def test_a_histogram_of_values_far_below_their_limit_shows_them_scaled_too() -> None:
     """Values of 1e-5 against a limit of 0.01: 30 bins over the values alone were too
     thin to see on the axis the limit's line stretches to 0.01."""
     import matplotlib
@@ -359,10 +402,20 @@ def test_a_histogram_of_values_far_below_their_limit_shows_its_bar() -> None:
 
     fig, ax = plt.subplots()
     v = np.full(50, 1e-5) + np.linspace(0, 1e-6, 50)
-    histogram(ax, v, 0.01)
+    inset = histogram(ax, v, 0.01)
     bars = [b for b in ax.patches if b.get_height() > 0]
     assert sum(b.get_height() for b in bars) == 50
     assert min(b.get_width() for b in bars) >= 0.01 / 30 * 0.99  # one bin of the axis
+    # and the values' own distribution on an axis scaled to them (1e-5 .. 1.1e-5)
+    assert inset is not None
+    lo, hi = inset.get_xlim()
+    assert 0.9e-5 < lo < 1e-5 and 1.1e-5 <= hi < 1.2e-5, (lo, hi)
+    assert sum(b.get_height() for b in inset.patches) == 50
+    assert len([b for b in inset.patches if b.get_height() > 0]) > 10
+    plt.close(fig)
+    # values spread up to the limit need no inset
+    fig, ax = plt.subplots()
+    assert histogram(ax, np.linspace(0, 0.009, 50), 0.01) is None
     plt.close(fig)
 
 
@@ -437,7 +490,7 @@ def test_a_walk_run_and_a_ring_cycle_run_on_a_drawn_machine(tmp_path: Path) -> N
         write_spec(tmp_path, _spec(project=project, run={"kind": "walk"}, events=[stall]), "w.yaml")
     )
     row = run_one(walk, 1)
-    assert row["status"] == "passed", row["note"]
+    assert row["status"] == "ridden_through", row["note"]  # the stall happened
     assert 0.0 <= row["distance_error_mm"] <= 5.0 and row["min_stability_margin_m"] > 0.25
     assert 1.0 < row["max_leg_force_ratio"] <= 1.10 and row["p.event0_plc_stall_start_s"] > 2.0
     assert row["sim_time_s"] > row["max_step_duration_s"] > 10.0
@@ -498,3 +551,54 @@ def test_engine_overhead_is_split_into_the_tail_and_the_engines_gaps(tmp_path: P
     o.workers = 3
     assert o.tail_s == pytest.approx(0.5 + 3.8 + 10.0)
     assert o.gap_share == pytest.approx(0.7 / 15.0)
+
+
+def test_the_spec_says_which_kind_of_campaign_it_is(tmp_path: Path) -> None:
+    data = _spec()
+    del data["kind"]
+    with pytest.raises(ConfigError, match=r"kind: .*required"):
+        load_campaign(write_spec(tmp_path, data))
+    # the shipped campaigns are nominal: their events within the shipped project's bounds
+    for name in ("shanghai_airport_link", "shanghai_airport_link_walk"):
+        assert load_campaign(REPO / f"config/campaigns/{name}.yaml").spec.kind == "nominal"
+
+
+def test_a_fault_run_is_judged_on_the_reaction() -> None:
+    """Ridden through and within the goals; or the safe state with a cause the faults
+    that happened may latch, except after a link loss within safety.max_suspend_ms."""
+    from wara.campaign.kinds import judge_fault
+
+    def judge(happened: list[tuple[str, float]], done: bool, *causes: str) -> tuple[bool, str]:
+        v = judge_fault(happened, done, [], list(causes), 250.0)
+        return v.passed, v.status
+
+    assert judge([("plc_stall", 0.1)], True) == (True, "ridden_through")
+    assert judge([], True) == (True, "passed")
+    assert judge([("plc_stall", 0.4)], False, "plc heartbeat") == (True, "safe_state")
+    assert judge([("plc_silent", math.nan)], False, "sensor timeout") == (True, "safe_state")
+    assert judge([("plc_stall", 0.2)], False, "plc heartbeat") == (False, "not_ridden_through")
+    assert judge([("stuck_valve", 1.0)], False, "tracking error") == (True, "safe_state")
+    assert judge([("sensor", 1.0)], False, "overload") == (False, "wrong_cause")
+    assert judge([("plc_stall", 0.4)], False, "planner") == (False, "wrong_cause")
+    assert judge([("drop", 1.0)], False) == (False, "not_finished")
+    over = judge_fault([("plc_stall", 0.1)], True, ["max_leg_force_ratio 1.12 > 1.1"], [], 250)
+    assert (over.passed, over.status) == (False, "over_limit")  # a resume into an overload
+
+
+@pytest.mark.slow
+def test_a_fault_campaigns_run_ends_in_the_safe_state_with_the_right_cause(
+    tmp_path: Path,
+) -> None:
+    """A PLC stall of 0.4-0.6 s during the adjustment, beyond safety.max_suspend_ms: the
+    safe state, latched as the link's loss (a pass of a fault campaign)."""
+    from wara.campaign.run import run_one
+
+    stall = {
+        "event": {"kind": "plc_stall"},
+        "start_s": {"dist": "uniform", "low": 2.0, "high": 3.0},
+        "duration_s": {"dist": "uniform", "low": 0.4, "high": 0.6},
+    }
+    c = load_campaign(write_spec(tmp_path, _spec(events=[stall])))
+    row = run_one(c, 0)
+    assert (row["passed"], row["status"], row["note"]) == (True, "safe_state", "plc heartbeat")
+    assert row["fault_reasons"].startswith("plc heartbeat: ") and row["margin"] == -1.0

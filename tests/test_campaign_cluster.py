@@ -195,6 +195,13 @@ def test_a_finished_directory_resumed_starts_no_cluster(
     monkeypatch.setattr(engine, "dask_client", no_cluster)
     o = run_campaign(small, tmp_path / "camp", resume=True, progress=False)
     assert (o.complete, o.written, o.done_before) == (True, 0, 4)
+    spec = write_spec(tmp_path)
+    code, out, err = run_main(["campaign", "run", str(spec), "--resume", str(tmp_path / "camp")])
+    assert (code, err) == (0, "")
+    assert out == (
+        f"{tmp_path / 'camp'}: all 4 runs were already done, nothing to run; "
+        f"wara campaign report {tmp_path / 'camp'} gives the verdict\n"
+    )
 
 
 def test_ctrl_c_ends_a_run_without_the_workers_tracebacks(tmp_path: Path) -> None:

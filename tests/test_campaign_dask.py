@@ -68,7 +68,9 @@ def test_two_worker_processes_over_tcp(client2: Any, reference: list[dict[str, A
     ran_in = {int(r["worker"].rsplit(":", 1)[1]) for r in reference}
     assert ran_in <= pids and os.getpid() not in ran_in
     assert [r["run"] for r in reference] == [0, 1, 2, 3]
-    assert all(r["status"] == "passed" for r in reference), [r["note"] for r in reference]
+    # a fault campaign: the runs with a PLC stall (tens of ms) rode it through
+    assert all(r["passed"] for r in reference), [r["note"] for r in reference]
+    assert {r["status"] for r in reference} <= {"passed", "ridden_through"}
 
 
 def test_one_worker_gives_the_same_table(reference: list[dict[str, Any]], tmp_path: Path) -> None:
@@ -150,7 +152,7 @@ def test_cli_run_on_a_scheduler_report_replay(
     code, text, _ = run_main(
         ["campaign", "run", str(spec), "--resume", str(out), "--scheduler", addr]
     )
-    assert code == 0 and "0 runs written (2 before) of 2" in text
+    assert code == 0 and f"{out}: all 2 runs were already done, nothing to run" in text
     code, text, _ = run_main(["campaign", "report", str(out)])
     assert code == 1 and "2 of 2 runs, 0 failed" in text and "incomplete" not in text
     assert (out / "report.html").stat().st_size > 10_000
@@ -167,8 +169,13 @@ def test_tune_starts_from_the_shipped_tuning_and_returns_a_fragment(
     from wara.campaign.tune import tune
 
     res = tune(small, tmp_path / "tune", client=client2, trials=2, runs=1)
+    from ipc_app.control.tuning import derived_value
+
     first = res["trials"][0]
-    assert first["values"] == {"control.ladrc.wc_rad_s": 5.5, "control.ladrc.wo_rad_s": 11.0}
+    keys = ("control.ladrc.wc_rad_s", "control.ladrc.wo_rad_s")
+    # the project leaves them out: the search starts from what the plant derives
+    assert first["values"] == {k: derived_value(small.project, k) for k in keys}
+    assert first["values"]["control.ladrc.wc_rad_s"] == 5.75
     assert len(res["trials"]) == 2 and all(t["runs"] == 1 for t in res["trials"])
     fragment = yaml.safe_load(res["fragment"])
     assert set(fragment["control"]["ladrc"]) == {"wc_rad_s", "wo_rad_s"}

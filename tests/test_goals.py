@@ -183,6 +183,7 @@ def test_a_campaigns_default_limits_follow_its_project(tmp_path: Path) -> None:
         ("walk", "max_leg_force_ratio", 1.2),
         ("ring_cycle", "max_gap_mm", 7),
     ]:
-        spec = {"project": "p.yaml", "run": {"kind": kind}, "requirement": {"runs": 2}}
+        spec = {"project": "p.yaml", "kind": "nominal", "run": {"kind": kind}}
+        spec["requirement"] = {"runs": 2}
         c = load_campaign(write_spec(tmp_path, spec, f"{kind}.yaml"))
         assert c.limits[figure] == limit, kind

@@ -72,6 +72,23 @@ def test_drop_rate_exactly_as_counted(bench_of: Any) -> None:
     assert b.seen["PLC_Status"] > 0 and wire.counts[("drop", "PLC_Status")] == 0
 
 
+def test_drop_with_max_burst_loses_single_frames_the_ipc_accepts(bench_of: Any) -> None:
+    """A healthy bus's isolated losses: at most ``max_burst`` frames of one message in a
+    row, so the alive counter never jumps beyond ``can.max_delta_counter`` and the rod
+    positions never go stale."""
+    b = bench_of({"kind": "drop", "rate": 0.5, "max_burst": 1, "messages": ["PLC_RodPos_*"]})
+    b.run(0.1, U_UPPER)  # the link up
+    stale = 0
+    for _ in range(200):
+        b.run(0.005, U_UPPER)
+        stale += int(not b.ipc.positions_m().valid[8:12].all())
+    assert b.sim.wire.total("drop") > 100  # about half of them lost
+    for k in range(10):
+        h = msg_health(b, f"PLC_RodPos_{k}")
+        assert h.get("counter_wrong_sequence", 0) == 0, (k, h)
+    assert stale == 0
+
+
 def test_bad_crc_counted_by_the_ipc_and_status_lost(bench_of: Any) -> None:
     b = bench_of(
         {"kind": "bad_crc", "rate": 1.0, "messages": ["PLC_Status"], "start_s": 0.2, "end_s": 0.5}

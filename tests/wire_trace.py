@@ -29,7 +29,16 @@ from pathlib import Path
 from typing import Any
 
 WALL_CLOCK_KEYS = frozenset(
-    {"solve_time_s", "elapsed_s", "first_t_s", "last_t_s", "wall_time_s", "db", "note"}
+    {
+        "solve_time_s",
+        "solve_time_share_of_task_percent",
+        "elapsed_s",
+        "first_t_s",
+        "last_t_s",
+        "wall_time_s",
+        "db",
+        "note",
+    }
 )
 
 

@@ -384,6 +384,7 @@ class Harness:
             },
             "final_mode": str(self.core.modes.mode),
             "fault_reasons": list(self.core.modes.fault_reasons),
+            "fault_interlocks": [str(i) for i in self.core.modes.fault_interlocks],
             "ride_through": ride_through(self.core.snapshot()),
             "bus_load_percent": self.core.bus_load.load_percent,
             "simulator_realtime_factor": self.sim.realtime_factor,

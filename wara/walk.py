@@ -202,6 +202,7 @@ def _finish(
     rig = h.sim.rig
     out["final_mode"] = str(core.modes.mode)
     out["fault_reasons"] = list(core.modes.fault_reasons)
+    out["fault_interlocks"] = [str(i) for i in core.modes.fault_interlocks]
     out["directions"] = list(directions)
     assert cfg.walking is not None
     step_m = cfg.walking.step_length_m

@@ -261,12 +261,25 @@ def plots(c: Campaign, rows: list[dict[str, Any]], s: dict[str, Any]) -> list[tu
     return images
 
 
-def histogram(ax: Any, v: np.ndarray, limit: float) -> None:
-    """``v``'s histogram on ``ax``, its 30 bins spanning the values and the limit: values
-    far below the limit (1e-5 on a 0-0.01 axis) are one visible bar, not 30 bars too
-    thin to see beside the limit's line."""
+#: Values spanning less than this share of the axis (which reaches the limit) get an
+#: inset of their own, its axis scaled to them.
+INSET_SHARE = 0.1
+
+
+def histogram(ax: Any, v: np.ndarray, limit: float) -> Any:
+    """``v``'s histogram on ``ax``, its 30 bins spanning the values and the limit (values
+    far below the limit, 1e-5 on a 0-0.01 axis, are one visible bar beside the limit's
+    line); when the values span less than :data:`INSET_SHARE` of that axis, an inset with
+    their own 30 bins on an axis scaled to them (returned; else None)."""
     lo, hi = min([limit, *v]), max([limit, *v])
     ax.hist(v, bins=30, range=(lo, hi) if hi > lo else None, color="#4a78b0")
+    if not v.size or hi <= lo or np.ptp(v) >= INSET_SHARE * (hi - lo):
+        return None
+    inset = ax.inset_axes((0.45, 0.45, 0.5, 0.45))
+    inset.hist(v, bins=30, color="#4a78b0")
+    inset.set_title("the values alone", fontsize=8)
+    inset.tick_params(labelsize=7)
+    return inset
 
 
 def _png(fig: Any, plt: Any) -> bytes:

@@ -22,6 +22,7 @@ from config.schema import ProjectConfig
 from ipc_app.model.placement import Pose
 from ipc_app.service.modes import Mode
 from ipc_app.service.worker import PlannerWorker
+from wara.campaign.kinds import judge_fault, judge_nominal
 from wara.campaign.spec import (
     FIGURES_OF,
     HIGHER_IS_BETTER,
@@ -54,6 +55,8 @@ class RunOutcome:
     done: bool
     problem: str = ""
     fault_reasons: list[str] = field(default_factory=list)
+    #: the latched causes in order (:class:`~ipc_app.service.interlocks.Interlock` values)
+    fault_interlocks: list[str] = field(default_factory=list)
     final_mode: str = ""
     sim_time_s: float = 0.0
 
@@ -141,6 +144,7 @@ def _attitude(
                 break
         sim_t = h.sim.t_s
         fault_reasons = list(h.core.modes.fault_reasons)
+        interlocks = [str(i) for i in h.core.modes.fault_interlocks]
         final_mode = str(h.core.modes.mode)
         if plot_dir is not None:
             from wara.demo import plot_trace
@@ -157,6 +161,7 @@ def _attitude(
         done=not problem and len(held) == n and all(held),
         problem=problem or next((r.note for r in results if r.note), ""),
         fault_reasons=fault_reasons,
+        fault_interlocks=interlocks,
         final_mode=final_mode,
         sim_time_s=sim_t,
     )
@@ -200,6 +205,7 @@ def _walk(
         done=done and out.get("final_mode") == str(Mode.COMPLETE),
         problem=str(out.get("refused") or out.get("error") or ""),
         fault_reasons=list(out.get("fault_reasons") or []),
+        fault_interlocks=list(out.get("fault_interlocks") or []),
         final_mode=str(out.get("final_mode", "")),
         sim_time_s=float(out.get("sim_time_s", 0.0)),
     )
@@ -238,9 +244,21 @@ def _ring_cycle(
         done=done,
         problem=str(out.get("error") or ""),
         fault_reasons=list(out.get("fault_reasons") or []),
+        fault_interlocks=list(out.get("fault_interlocks") or []),
         final_mode=str(out.get("final_mode", "")),
         sim_time_s=float(out.get("sim_time_s", 0.0)),
     )
+
+
+def _happened(c: Campaign, draw: Draw) -> list[tuple[str, float]]:
+    """The (kind, duration s; NaN: to the run's end) of each event that happened in the
+    run."""
+    out = []
+    for j, ev in enumerate(c.spec.events):
+        tag = f"event{j}_{ev.event['kind']}"
+        if math.isfinite(draw.params[f"{tag}_start_s"]):
+            out.append((str(ev.event["kind"]), draw.params.get(f"{tag}_duration_s", math.nan)))
+    return out
 
 
 def row_of(
@@ -258,13 +276,19 @@ def row_of(
     margin = -1.0
     if outcome.done:
         margin = min(figure_margin(name, figures[name], limit) for name, limit in c.limits.items())
-    passed = outcome.done and not over
-    if passed:
-        status, note = "passed", ""
-    elif outcome.done:
-        status, note = "over_limit", "; ".join(over)
-    else:
-        status = "not_finished"
+    v = (
+        judge_fault(
+            _happened(c, draw),
+            outcome.done,
+            over,
+            outcome.fault_interlocks,
+            c.project.safety.max_suspend_ms,
+        )
+        if c.spec.kind == "fault"
+        else judge_nominal(outcome.done, over)
+    )
+    passed, status, note = v.passed, v.status, v.note
+    if status == "not_finished":
         note = outcome.problem or f"service {outcome.final_mode}"
     row: dict[str, Any] = {"run": draw.index, "seed": draw.sim_seed}
     row.update({f"p.{k}": v for k, v in draw.params.items()})

@@ -31,6 +31,7 @@ from config.hil_scenario import EVENT_KINDS, HilScenario
 from config.loader import default_project_path, read_yaml, validate_data
 from config.schema import Finite, ProjectConfig, Strict
 from ipc_app.service.cycle import RECORD_KEYS
+from wara.campaign.kinds import check_nominal
 from wara.goals import ATTITUDE_GOALS, HIGHER_IS_BETTER, limits, ring_goals, walk_step_goals
 
 #: Per-run figures a requirement may limit, by run kind: the worst over the run's
@@ -340,6 +341,9 @@ class Tune(Strict):
 
 class CampaignSpec(Strict):
     name: str = "campaign"
+    #: nominal: dispersions within the specification, judged on the run's goals; fault:
+    #: the faults, judged on the reaction (:mod:`wara.campaign.kinds`)
+    kind: Literal["nominal", "fault"]
     #: the project YAML, relative to the spec file (null: the shipped project)
     project: str | None = None
     seed: Annotated[int, Field(ge=0)] = 0
@@ -401,6 +405,11 @@ class Campaign:
             raise ConfigError(
                 f"{source}: run.kind: ring_cycle: the project has no cycle or placement section"
             )
+        if spec.kind == "nominal":
+            try:
+                check_nominal(spec.events, self.project)
+            except ValueError as exc:
+                raise ConfigError(f"{source}: kind: nominal: {exc}") from None
         #: figure -> limit: the spec's, or the run kind's goals
         self.limits: dict[str, float] = (
             dict(spec.requirement.limits)

@@ -101,6 +101,11 @@ def _run(args: argparse.Namespace) -> int:
     }
     if args.json:
         print(json.dumps(result, indent=2))
+    elif o.done_before == o.total:
+        print(
+            f"{o.out}: all {o.total} runs were already done, nothing to run; "
+            f"wara campaign report {o.out} gives the verdict"
+        )
     else:
         print(
             f"{o.written} runs written ({o.done_before} before) of {o.total} in "
