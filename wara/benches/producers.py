@@ -192,19 +192,23 @@ def _less_hold(rings: Sequence[Any]) -> list[Any]:
     return [r.get("cycle_time_s") for r in rings]
 
 
+def _table4(rings: Sequence[Any]) -> list[Figure]:
+    """Each ring's Table 4 items on the simulator's truth, one figure a ring."""
+    return [
+        Figure(
+            f"ring {r.get('ring')}: vertical / horizontal / gap / centreline x / y (truth)",
+            " / ".join(num(r.get(k), ".3f" if k == "max_gap_mm" else "+.3f") for k in _T4) + " mm",
+            "8 / 8 / 0-10 / 5 / 5 mm",
+        )
+        for r in rings
+    ]
+
+
 def demo(outs: Sequence[Output]) -> Measured:
     d = outs[0].data
     rings = get(d, "rings") or []
     figs = [Figure("rings passed", _count(rings), "all")]
-    for r in rings:
-        figs.append(
-            Figure(
-                f"ring {r.get('ring')}: vertical / horizontal / gap / centreline x / y (truth)",
-                " / ".join(num(r.get(k), ".3f" if k == "max_gap_mm" else "+.3f") for k in _T4)
-                + " mm",
-                "8 / 8 / 0-10 / 5 / 5 mm",
-            )
-        )
+    figs += _table4(rings)
     pos = [_off(r, ("x_mm", "y_mm", "z_mm")) for r in rings]
     ang = [_off(r, ("roll_deg", "pitch_deg", "yaw_deg")) for r in rings]
     walks = [w for r in rings for w in get(r, "walks.walk") or []]
@@ -365,15 +369,7 @@ def two_process_cycle(outs: Sequence[Output]) -> Measured:
     rings = get(d, "rings") or []
     pct = num(_percent(d, "loop.compute_p99_fraction"), ".1f")
     figs = [Figure("rings passed", _count(rings), "all")]
-    for r in rings:
-        figs.append(
-            Figure(
-                f"ring {r.get('ring')}: vertical / horizontal / gap / centreline x / y (truth)",
-                " / ".join(num(r.get(k), ".3f" if k == "max_gap_mm" else "+.3f") for k in _T4)
-                + " mm",
-                "8 / 8 / 0-10 / 5 / 5 mm",
-            )
-        )
+    figs += _table4(rings)
     for ph in get(d, "loop_phases.phases") or []:
         if ph.get("phase") in ("walk", "place", "walk_back"):
             figs.append(
