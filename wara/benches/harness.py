@@ -58,6 +58,7 @@ EXAMPLE = (2.0, 1.0)
 #: The campaign of the throughput figures: short targets, no dispersion that slows a run.
 _SPEC: dict[str, Any] = {
     "name": "bench",
+    "kind": "nominal",
     "seed": 3,
     "run": {"targets": 1, "roll_deg": [-1.0, 1.0], "pitch_deg": [-0.5, 0.5]},
     "dispersions": {
