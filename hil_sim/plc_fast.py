@@ -94,6 +94,7 @@ _STATUS_SOURCES = (
     "CommandTimeout",
     "FaultCode",
     "SupplyPressure",
+    "WalkAvailable",
 )
 _LIMIT_SOURCES = ("LimitRetractedMask", "LimitExtendedMask")
 # the control word's signals (plc_bridge.link.plc._control_word)
@@ -108,8 +109,8 @@ _CONTROL_SIGNALS = (
 )
 # constants, ints: the control word's record and its signals' positions, ...
 C_CTL, C_MODE, C_ENABLE, C_STOP, C_RESET, C_ACK_SEQ, C_ACK_STATUS, C_MASK = range(8)
-C_HOLDING, C_N_STUCK, C_ESTOP, C_IGNORE, C_PLANT = 8, 9, 10, 11, 12
-N_CI = 13
+C_HOLDING, C_N_STUCK, C_ESTOP, C_IGNORE, C_PLANT, C_WALK = 8, 9, 10, 11, 12, 13
+N_CI = 14
 # constants, floats
 CF_CYCLE, CF_IPC_TIMEOUT, CF_SUPPLY_MPA, CF_POS_RES, CF_POS_INV = 0, 1, 2, 3, 4
 CF_PRESS_RES, CF_PRESS_INV, CF_LIMIT_M, CF_MM, CF_MPA, CF_FAULT_HOLD = 5, 6, 7, 8, 9, 10
@@ -138,7 +139,12 @@ NOISE_EXHAUSTED = -2
 _NO_FRAMES = np.frombuffer(b"", dtype=np.uint8).reshape(0, FRAME.size)
 
 _MOTION = (int(Mode.MANUAL), int(Mode.ATTITUDE_ADJUST), int(Mode.WALK), int(Mode.HOMING))
-if set(_MOTION) != {1, 2, 3, 4} or int(Fault.IPC_TIMEOUT) != 6 or int(Fault.ESTOP) != 1:
+if (
+    set(_MOTION) != {1, 2, 3, 4}
+    or _MOTION[2] != 3
+    or int(Fault.IPC_TIMEOUT) != 6
+    or int(Fault.ESTOP) != 1
+):
     raise ImportError("hil_sim.plc_fast: the DBC's modes or faults changed; renumber them")
 
 
@@ -358,8 +364,10 @@ def run_scans(
                         values[f] = 1 if (st_i[S_ST_TIMEOUT] or timeout) else 0
                     elif src == 5:
                         values[f] = st_i[S_ST_FAULT]
-                    else:
+                    elif src == 6:
                         values[f] = st_f[SF_ST_SUPPLY]
+                    else:
+                        values[f] = cfg_i[C_WALK]
             elif kind == KIND_LIMITS:
                 for f in range(tx_msg[m, 3]):
                     values[f] = st_i[S_PLC_RET] if tx_src[m, f] == 0 else st_i[S_PLC_EXT]
@@ -407,6 +415,8 @@ def run_scans(
         mode = np.int64(0)
         if have_ctl and st_i[S_LATCHED] == 0:
             mode = np.int64(rx_vals[c, cfg_i[C_MODE]])
+        if mode == 3 and not cfg_i[C_WALK]:  # WALK refused: not echoed, the drives stay off
+            mode = np.int64(0)
         drives = (
             have_ctl
             and rx_vals[c, cfg_i[C_ENABLE]] != 0
@@ -567,6 +577,7 @@ class FastPlc:
         # the plant in line where the rig's advance is its kernel's call (rig.Rig's)
         self._plant_inline = type(sim.rig) is Rig and sim.rig.kernel_call(1)[0] is _advance
         self.cfg_i[C_PLANT] = int(self._plant_inline)
+        self.cfg_i[C_WALK] = int(sim.walk_available)
         self._rows_left = 0
         self.cfg_f = np.zeros(N_CF)
         self.cfg_f[CF_CYCLE] = sim.cycle_s
@@ -804,6 +815,7 @@ class FastPlc:
                 command_timeout=bool(st[S_ST_TIMEOUT]),
                 fault=Fault(int(st[S_ST_FAULT])),
                 supply_pressure_pa=sim.cfg.hydraulics.supply_pressure_pa,
+                walk_available=sim.walk_available,
             )
             sim._status = status
             plc._status = status

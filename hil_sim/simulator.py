@@ -15,8 +15,9 @@ One PLC scan (``plant.plc_cycle_ms``):
 2. sample the transducers (at their sample times), apply sensor faults, hand
    positions, pressures and limit switches to the link;
 3. ``poll``: read IPC frames, supervise, send what is due (status, sensors, HMI);
-4. PLC logic: mode handshake, E-stop, command timeout, latched faults, drives;
-   valve commands applied only with the drives on, never further into a limit switch;
+4. PLC logic: mode handshake (WALK refused by a rig that cannot walk), E-stop,
+   command timeout, latched faults, drives; valve commands applied only with the
+   drives on, never further into a limit switch;
 5. integrate the plant over the scan with commands held.
 
 Over 500 lines because the emulated PLC's scan (frames in, interlocks, frames out) and
@@ -198,7 +199,13 @@ class HilSimulator:
         self._latched = Fault.NONE
         self._drives = False
         self._applied = np.zeros(N_CYLINDERS)
-        self._status = PlcStatus(supply_pressure_pa=cfg.hydraulics.supply_pressure_pa)
+        #: the rig can walk (the walking rig): the PLC says so in its status and refuses
+        #: WALK otherwise (``WalkAvailable``)
+        self.walk_available = isinstance(self.rig, WalkingRig)
+        self._status = PlcStatus(
+            supply_pressure_pa=cfg.hydraulics.supply_pressure_pa,
+            walk_available=self.walk_available,
+        )
         self._pos_reading = self.rig.rod_positions_m
         self._press_reading = self.rig.pressures_pa
         self._wall_s = 0.0
@@ -345,8 +352,11 @@ class HilSimulator:
         on_status: Callable[[HilSimulator], None] | None = None,
         status_interval_s: float = 0.5,
         should_stop: Callable[[], bool] | None = None,
+        between_scans: Callable[[], None] | None = None,
     ) -> dict[str, Any]:
-        """Run PLC scans paced by the wall clock until ``duration_s`` or ``should_stop()``.
+        """Run PLC scans paced by the wall clock until ``duration_s`` or ``should_stop()``;
+        ``between_scans()`` after each scan (the site's acts from another thread:
+        :class:`hil_sim.site.SiteServer`).
 
         Behind schedule, scans run back to back to catch up; more than 0.1 s behind,
         the schedule is reset and counted in ``overruns`` (the plant never skips time).
@@ -374,6 +384,8 @@ class HilSimulator:
                 self.wire.set_arrival_horizon(start + to_epoch + k * self.cycle_s)
                 stall.arm()
                 self.step(self.cycle_s)
+                if between_scans is not None:
+                    between_scans()
                 k += 1
                 if on_status is not None and time.monotonic() >= next_status:
                     on_status(self)
@@ -640,6 +652,8 @@ class HilSimulator:
         ):
             self._latched = Fault.NONE
         mode = ctl.mode if ctl is not None and self._latched is Fault.NONE else Mode.IDLE
+        if mode is Mode.WALK and not self.walk_available:
+            mode = Mode.IDLE  # WALK refused: not echoed, the drives stay off
         drives = (
             ctl is not None
             and ctl.enable
@@ -687,6 +701,7 @@ class HilSimulator:
                 command_timeout=timeout,
                 fault=fault,
                 supply_pressure_pa=self.cfg.hydraulics.supply_pressure_pa,
+                walk_available=self.walk_available,
             )
             plc.set_status(self._status)
 

@@ -15,7 +15,7 @@ from typing import Any
 import pytest
 
 from tests.cli_helpers import run_main, run_wara, run_wara_observed
-from wara import demo_two_process as d2
+from wara import two_process_examples as ex
 from wara.demo import RING_DEMO_RINGS
 from wara.examples import (
     ATTITUDE_TOL_DEG,
@@ -176,7 +176,9 @@ def test_ring_demo_options_are_checked() -> None:
     assert main(["demo", "--rings", "0"]) == 2
     assert main(["demo", "--rings", "21"]) == 2
     assert main(["demo", "--attitude", "--rings", "2"]) == 2  # rings: the ring cycles'
-    assert main(["demo", "--two-process", "--out", "x"]) == 2
+    assert main(["demo", "--two-process", "--rings", "1", "--examples", "1"]) == 2
+    assert main(["demo", "--two-process", "--out", "x", "--settle-s", "3"]) == 2
+    assert main(["demo", "--two-process", "--rings", "1", "--opcua"]) == 2
     assert main(["demo", "--examples", "1"]) == 2  # examples: the attitude demo's
     assert main(["demo", "--plot", "x"]) == 2
     assert main(["demo", "--opcua"]) == 2
@@ -217,10 +219,10 @@ def test_both_demo_forms_judge_alike() -> None:
         "duration_s": 6.1,
         "hold_samples": 600,
     }
-    two = d2._judge({"mode": "COMPLETE", "motion": motion}, ExampleResult(2.0, 1.0))
+    two = ex.judge({"mode": "COMPLETE", "motion": motion}, ExampleResult(2.0, 1.0))
     one = judge_example(_result(sync_mm=0.08))
     assert (two.passed, two.note) == (one.passed, one.note) == (False, "sync_error_mm 0.08 > 0.07")
-    no_hold = d2._judge({"mode": "COMPLETE", "motion": {**motion, "hold_samples": 0}}, _result())
+    no_hold = ex.judge({"mode": "COMPLETE", "motion": {**motion, "hold_samples": 0}}, _result())
     assert not no_hold.passed and no_hold.note.startswith("no standstill samples")
-    faulted = d2._judge({"mode": "ABORTED", "fault_reasons": ["x"]}, _result())
+    faulted = ex.judge({"mode": "ABORTED", "fault_reasons": ["x"]}, _result())
     assert not faulted.passed and faulted.note == "mode ABORTED: ['x']"

@@ -347,8 +347,15 @@ def _ipc(project: ProjectConfig) -> tuple[IpcLink, QueueBus, Clock]:
 
 def _status(counter: int, **over: Any) -> can.Message:
     codec = FrameCodec(CAT.by_name("PLC_Status"))
-    vals = dict(zip(codec.signal_names, [2, 0, 1, 1, 0, 0, 16.0], strict=True)) | over
-    return frame(codec.frame_id, codec.encode(counter, list(vals.values())))
+    vals = _STATUS | over
+    return frame(codec.frame_id, codec.encode(counter, [vals[n] for n in codec.signal_names]))
+
+
+#: A PLC status in ATTITUDE_ADJUST, pump and drives on, 16 MPa supply (by signal name).
+_STATUS: dict[str, float] = {
+    "ModeActual": 2, "EStop": 0, "PumpRunning": 1, "DrivesEnabled": 1, "CommandTimeout": 0,
+    "WalkAvailable": 0, "FaultCode": 0, "SupplyPressure": 16.0,
+}  # fmt: skip
 
 
 def test_crc_error_is_rejected_counted_and_logged_once(
@@ -406,7 +413,7 @@ def test_counter_jump_and_lost_frames(project: ProjectConfig) -> None:
 def test_value_out_of_range_rejects_the_word(project: ProjectConfig) -> None:
     ipc, bus, _clock = _ipc(project)
     codec = FrameCodec(CAT.by_name("PLC_Status"))
-    raws = [2, 0, 1, 1, 0, 0, 3200]
+    raws = [int(_STATUS[n]) for n in codec.signal_names[:-1]] + [3200]  # 16 MPa raw
     bus.inject(frame(0x090, codec.encode_raw(0, raws)))
     bus.inject(frame(0x090, codec.encode_raw(1, raws)))
     bus.inject(frame(0x090, codec.encode_raw(2, [9, *raws[1:]])))  # mode 9 does not exist

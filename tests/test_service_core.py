@@ -697,7 +697,7 @@ def test_status_carries_the_link_receive_counters(
     # A PLC_Status with a wrong CRC and a frame of an id nobody sends, from a third node.
     ch = core.link.bus.channel_id  # type: ignore[attr-defined]  # the virtual bus
     with can.Bus(interface="virtual", channel=ch) as third:
-        good = rig.plc._codec_by_name["PLC_Status"].encode(7, [1, 0, 1, 1, 0, 0, 16.0])
+        good = rig.plc._codec_by_name["PLC_Status"].encode(7, [1, 0, 1, 1, 0, 0, 0, 16.0])
         third.send(can.Message(arbitration_id=0x090, data=bytes([good[0] ^ 0x5A]) + good[1:],
                                is_extended_id=False))  # fmt: skip
         third.send(can.Message(arbitration_id=0x191, data=bytes(8), is_extended_id=False))

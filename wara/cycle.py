@@ -184,32 +184,49 @@ class _Cycle:
             raise RuntimeError(cyc.error)
         assert cyc.plan is not None and cyc.surveyed is not None and as_built is not None
         plan, fit = cyc.plan, cyc.fit
-        times = dict(cyc.phase_times_s)
         prev_t = to_ring_frame(cfg, previous_truth, ring - 1, ring)
-        placed = placed_figures(cfg, plan, prev_t, as_built)
-        machine_s = sum(v for k, v in times.items() if k != "fixing")
-        truth_dev = deviation(as_built, plan.design)
-        row: dict[str, Any] = {
-            "ring": ring,
-            **placed,
-            "surveyed": dict(cyc.table4),  # what the service recorded from the survey
-            "target_deviation": plan.to_dict()["target_deviation"],
-            "as_built_deviation": {
-                "y_mm": units.to_mm(truth_dev.y),
-                "z_mm": units.to_mm(truth_dev.z),
-            },
-            "survey_rms_residual_mm": units.to_mm(fit.rms_residual_m) if fit else None,
-            "cycle_time_s": machine_s,
-            "fixing_hold_s": times["fixing"],
-            "place_settled": settled,
-            "phase_times_s": times,
-            "release": cyc.release_figures,
-            "walks": cyc.walk_figures,
-            "platform_part_load_kn": part_load_kn,
-        }
-        row.update(judge(ring_goals(cfg), ring_figures(row)).to_dict())
+        row = ring_row(
+            cfg, ring, placed_figures(cfg, plan, prev_t, as_built),
+            design=plan.design, as_built=as_built,
+            surveyed=dict(cyc.table4),  # what the service recorded from the survey
+            target_deviation=plan.to_dict()["target_deviation"],
+            survey_rms_residual_mm=units.to_mm(fit.rms_residual_m) if fit else None,
+            times=dict(cyc.phase_times_s), place_settled=settled,
+            release=cyc.release_figures, walks=cyc.walk_figures,
+            platform_part_load_kn=part_load_kn,
+        )  # fmt: skip
         self._surveyed, self._truth = cyc.surveyed, as_built
         return row
+
+
+def ring_row(
+    cfg: ProjectConfig,
+    ring: int,
+    placed: dict[str, Any],
+    *,
+    design: Pose,
+    as_built: Pose,
+    times: dict[str, float],
+    **figures: Any,
+) -> dict[str, Any]:
+    """One ring's row of the cycle's result, judged: the placed part's figures on the
+    truth (:func:`~wara.place.placed_figures`), its deviation from ``design``, the machine
+    time (``times`` less the fixing hold) and ``figures`` (``surveyed``,
+    ``target_deviation``, ``survey_rms_residual_mm``, ``place_settled``, ``release``,
+    ``walks``, ``platform_part_load_kn``), as the one-process and the two-process
+    forms give them."""
+    truth_dev = deviation(as_built, design)
+    row: dict[str, Any] = {
+        "ring": ring,
+        **placed,
+        "as_built_deviation": {"y_mm": units.to_mm(truth_dev.y), "z_mm": units.to_mm(truth_dev.z)},
+        "cycle_time_s": sum(v for k, v in times.items() if k != "fixing"),
+        "fixing_hold_s": times.get("fixing"),
+        "phase_times_s": times,
+        **figures,
+    }
+    row.update(judge(ring_goals(cfg), ring_figures(row)).to_dict())
+    return row
 
 
 def run_cycle(
@@ -279,6 +296,15 @@ def run_cycle(
         out["valves_enabled"] = h.core.modes.valves_enabled
         out["stopped_in_phase"] = cyc.phase if (cyc and out["error"]) else None
         h.close()
+    out["db"] = str(db_path)
+    out["wall_time_s"] = time.perf_counter() - wall0
+    return conclude(cfg, out, dev, rings)
+
+
+def conclude(cfg: ProjectConfig, out: dict[str, Any], dev: Pose, rings: int) -> dict[str, Any]:
+    """``out`` (``rings``: the rows built, ``error``) with the steering back from
+    ``dev`` (the first ring's previous part off its design), ``passed`` (every one of the
+    ``rings`` built and passed, no error) and ``missed`` (why not)."""
     rows = out["rings"]
     last = [units.to_mm(dev.y), units.to_mm(dev.z)]
     corrections: list[float] = []
@@ -294,8 +320,6 @@ def run_cycle(
         "last_as_built_deviation_mm": last,
         "returned_within_1_mm": bool(rows) and max(abs(v) for v in last) <= POSITION_TOL_MM,
     }
-    out["db"] = str(db_path)
-    out["wall_time_s"] = time.perf_counter() - wall0
     out["passed"] = bool(
         out["error"] is None and len(rows) == rings and all(r["passed"] for r in rows)
     )

@@ -1,45 +1,42 @@
-"""The two-process form of the end-to-end demo: ``wara demo --two-process``.
+"""The two-process form: the simulator and the service as two processes, as on site.
 
 The HIL simulator (``wara hil --realtime``) and the IPC service (``wara serve``) run as
 two processes on a UDP multicast CAN bus (``wara_udp`` by default, python-can's
 ``udp_multicast`` with ``--transport udp_multicast``), inside a private network namespace
-so the multicast traffic never reaches the host's network:
+so the multicast traffic never reaches the host's network. What runs on the pair:
+the attitude examples (:mod:`wara.two_process_examples`, ``wara demo --two-process``),
+the ring cycle (:mod:`wara.two_process_cycle`, ``wara demo --two-process --rings N``),
+the soak (``wara soak``) and the OPC UA bench. This module is the pair itself:
 
-1. :func:`run_two_process` (the command, in the caller's namespace) writes a copy of the
+1. :func:`run_in_netns` (the command, in the caller's namespace) writes a copy of the
    project YAML with ``can.interface`` the transport on :data:`MULTICAST_GROUP`, makes
    the namespace with ``unshare --user --map-root-user --net``, gives it a loopback with
-   multicast routed to it (:data:`NETNS_SETUP`) and re-executes ``wara demo --two-process
-   --inside-netns`` in it. No namespace (no user namespaces, no ``unshare``/``ip``):
-   :class:`NetnsUnavailable`, one line, exit 2.
-2. :func:`run_inside_netns` starts the simulator, then the service, and drives the
-   service only through its control socket (as ``wara ctl`` does): waits for IDLE, runs
-   the examples one after another (``adjust`` -> COMPLETE -> ``settle_s`` of standstill ->
-   the status ``motion`` block), keeps the run going until the measured window spans
-   ``min_run_s`` of loop cycles, then stops both with SIGTERM (kill after a timeout).
+   multicast routed to it (:data:`NETNS_SETUP`) and re-executes the command with
+   ``--inside-netns`` in it; from outside, every thread of both processes gets SCHED_FIFO.
+   No namespace (no user namespaces, no ``unshare``/``ip``): :class:`NetnsUnavailable`,
+   one line, exit 2.
+2. :func:`service_and_simulator` (inside) starts the simulator, then the service, and
+   hands the caller the service's control socket (as ``wara ctl`` drives it); on exit
+   both are stopped with SIGTERM (kill after a timeout).
 
-Figures and decisions (documented in docs/service.md, "Two processes over udp_multicast"):
+Decisions (docs/realtime.md, "Two processes"):
 
-- achieved attitude: the service's ``motion.achieved_deg``, i.e. from the measured rod
-  positions (the sensor view); the simulator's truth is in another process. The goals
-  and the judge are the in-process demo's (:func:`wara.examples.judge_example`).
 - readiness: the simulator says ``READY=1`` on ``$NOTIFY_SOCKET`` (sd_notify, a socket
   of the demo's) after a status interval of steady running; the service is ready when
   its status over the control socket says IDLE.
 - the loop: the service publishes :meth:`FixedRateLoop.stats` every 5 s (p50/p99/max
   over the last 4096 cycles = 20.5 s at 200 Hz; ``overruns`` counts from the loop's
   start). Start-up is the time up to the stats report in force once the service is IDLE
-  (the first one if none was published yet): that report is the *baseline*. The goal
-  counts ``overruns - baseline overruns`` (the total since the loop started is reported
-  too, nothing is dropped), and the measured window must span ``min_run_s`` of cycles
-  after the baseline. ``compute_p99_ms`` and
-  ``jitter_p99_ms`` are the *worst* of all reports after the baseline (the windows
-  overlap, so every cycle of the run is in at least one), not just the last one.
+  (the first one if none was published yet): that report is the *baseline*
+  (:class:`LoopWatch`). Overruns are counted from it (the total since the loop started
+  is reported too, nothing is dropped). ``compute_p99_ms`` and ``jitter_p99_ms`` are the
+  *worst* of all reports after the baseline (the windows overlap, so every cycle of the
+  run is in at least one), not just the last one.
 """
 
 from __future__ import annotations
 
 import contextlib
-import math
 import os
 import re
 import select
@@ -52,7 +49,6 @@ import tempfile
 import threading
 import time
 from collections.abc import Callable, Iterator, Sequence
-from dataclasses import asdict
 from pathlib import Path
 from typing import IO, Any
 
@@ -61,11 +57,7 @@ import yaml
 from config import load_project, units
 from config.loader import default_project_path, read_yaml
 from config.schema import ProjectConfig
-from ipc_app.service.core import ServiceCore
 from ipc_app.service.ctl import CtlError, request
-from plc_bridge.busload import bus_load
-from wara.examples import EXAMPLES, HOLD_MEASURE_S, ExampleResult, judge_example
-from wara.goals import ATTITUDE_GOALS, limits
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -78,13 +70,8 @@ MULTICAST_GROUP = "239.74.163.2"
 NETNS_SETUP = "ip link set lo up && ip link set lo multicast on && ip route add 239.0.0.0/8 dev lo"
 UNSHARE = ("unshare", "--user", "--map-root-user", "--net")
 
-#: The loop goal: compute p99 below this fraction of the period, no overruns.
+#: The loop goal: compute p99 below this fraction of the period.
 COMPUTE_P99_GOAL_FRACTION = 0.20
-#: Real-time run the loop goal is judged on (seconds of loop cycles after start-up).
-MIN_RUN_S = 60.0
-#: Default time each target is held before its figures are read.
-DEFAULT_SETTLE_S = ServiceCore.HOLD_SETTLE_S + HOLD_MEASURE_S
-
 Progress = Callable[[str], None]
 
 
@@ -175,40 +162,6 @@ def _env() -> dict[str, str]:
     paths = [str(REPO), *filter(None, env.get("PYTHONPATH", "").split(os.pathsep))]
     env["PYTHONPATH"] = os.pathsep.join(dict.fromkeys(paths))
     return env
-
-
-def run_two_process(
-    config_path: str | None,
-    *,
-    json_out: bool,
-    settle_s: float,
-    examples: int,
-    min_run_s: float,
-    keep_dir: Path | None = None,
-    transport: str = DEFAULT_TRANSPORT,
-    pin: bool = True,
-) -> int:
-    """``wara demo --two-process``: make the namespace and re-run inside it; exit code.
-
-    ``pin``: the service's loop thread and the simulator on CPUs of their own (see
-    :func:`multicast_config`); ``False`` leaves the placement to the scheduler.
-
-    The inner run prints the table / JSON on this process's stdout. Raises
-    :class:`NetnsUnavailable` when the namespace cannot be made.
-    """
-    inner = [
-        "demo",
-        "--two-process",
-        "--settle-s",
-        repr(settle_s),
-        "--examples",
-        str(examples),
-        "--min-run-s",
-        repr(min_run_s),
-    ]
-    if json_out:
-        inner.append("--json")
-    return run_in_netns(inner, config_path, keep_dir=keep_dir, transport=transport, pin=pin)
 
 
 def run_in_netns(
@@ -312,7 +265,7 @@ def _quote(arg: str) -> str:
 # --------------------------------------------------------------------------- inside
 
 
-class _Child:
+class Child:
     """One child process with its stderr in a log file."""
 
     def __init__(
@@ -361,10 +314,10 @@ class _Child:
         return ""
 
 
-class _Service:
+class Service:
     """The service seen through its control socket."""
 
-    def __init__(self, child: _Child, socket_path: Path) -> None:
+    def __init__(self, child: Child, socket_path: Path) -> None:
         self.child = child
         self.socket_path = socket_path
 
@@ -389,11 +342,14 @@ class _Service:
             time.sleep(poll_s)
 
 
+#: The simulator's site socket and the service's run records, in the work directory.
+SITE_SOCKET = "site.sock"
+RUNS_DIR = "runs"
 #: How long the simulator may take to start (first numba compile on a fresh machine).
 SIM_START_TIMEOUT_S = 240.0
 
 
-class _NotifySocket:
+class NotifySocket:
     """A socket of ours to give a child as ``$NOTIFY_SOCKET`` (sd_notify's datagrams)."""
 
     def __init__(self, path: Path) -> None:
@@ -401,7 +357,7 @@ class _NotifySocket:
         self.sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
         self.sock.bind(str(path))
 
-    def wait_ready(self, child: _Child, timeout_s: float) -> None:
+    def wait_ready(self, child: Child, timeout_s: float) -> None:
         """Until ``child`` sends ``READY=1``; :class:`TwoProcessError` if it exits first or
         does not within ``timeout_s``."""
         end = time.monotonic() + timeout_s
@@ -418,7 +374,7 @@ class _NotifySocket:
             self.path.unlink()
 
 
-def _wait_socket(child: _Child, path: Path, timeout_s: float) -> None:
+def _wait_socket(child: Child, path: Path, timeout_s: float) -> None:
     end = time.monotonic() + timeout_s
     while time.monotonic() < end:
         child.check_alive()
@@ -430,7 +386,7 @@ def _wait_socket(child: _Child, path: Path, timeout_s: float) -> None:
     raise TwoProcessError(f"the service's control socket {path} did not answer in {timeout_s} s")
 
 
-class _LoopWatch:
+class LoopWatch:
     """Collects the service's loop reports (one per ``stats_every_s``) after a baseline."""
 
     def __init__(self) -> None:
@@ -447,6 +403,16 @@ class _LoopWatch:
             self.baseline = loop
         else:
             self.reports.append(loop)
+
+    def wait_reports(self, svc: Service, n: int, timeout_s: float) -> bool:
+        """Read the status until the baseline and ``n`` reports after it are seen;
+        False after ``timeout_s``."""
+
+        def enough(st: dict[str, Any]) -> bool:
+            self.see(st)
+            return self.baseline is not None and len(self.reports) >= n
+
+        return svc.wait(enough, timeout_s, poll_s=0.2) is not None
 
     def measured_s(self, period_s: float) -> float:
         if self.baseline is None or not self.reports:
@@ -495,68 +461,31 @@ class _LoopWatch:
         }
 
 
-def _judge(st: dict[str, Any], res: ExampleResult) -> ExampleResult:
-    """The example's figures from the service's status ``motion`` block, judged."""
-    m = st.get("motion") or {}
-    achieved = m.get("achieved_deg")
-    if achieved is not None:
-        res.set_achieved(float(achieved[0]), float(achieved[1]))
-    res.take_motion(m)
-    mode = st.get("mode")
-    problem = ""
-    if mode != "COMPLETE":
-        problem = f"mode {mode}: {st.get('fault_reasons') or st.get('message', '')}"
-    elif not m.get("hold_samples"):
-        problem = "no standstill samples (settle time too short)"
-    elif achieved is None:
-        problem = "no valid rod positions"
-    return judge_example(res, problem=problem)
-
-
-def _run_example(
-    svc: _Service, watch: _LoopWatch, roll: float, pitch: float, settle_s: float, say: Progress
-) -> ExampleResult:
-    res = ExampleResult(roll, pitch)
-    reply = svc.call("adjust", roll_deg=roll, pitch_deg=pitch)
-    if not reply.get("ok"):
-        res.note = f"refused: {reply.get('error') or reply.get('reasons')}"
-        return res
-    say(f"adjusting to ({roll:+.1f}, {pitch:+.1f}) deg")
-
-    def done(st: dict[str, Any]) -> bool:
-        watch.see(st)
-        if st.get("mode") == "COMPLETE":  # holding *this* target, not the previous one
-            target = (st.get("motion") or {}).get("target_deg") or [math.nan, math.nan]
-            return abs(target[0] - roll) < 1e-9 and abs(target[1] - pitch) < 1e-9
-        return st.get("mode") in ("ABORTED", "IDLE")
-
-    st = svc.wait(done, timeout_s=300.0)
-    if st is None or st.get("mode") != "COMPLETE":
-        mode = None if st is None else st.get("mode")
-        reasons = None if st is None else st.get("fault_reasons")
-        res.note = f"did not finish: mode {mode} {reasons or ''}".strip()
-        return res
-    end = time.monotonic() + settle_s
-    while time.monotonic() < end:
-        watch.see(svc.status())
-        time.sleep(min(0.2, max(0.0, end - time.monotonic())))
-    st = svc.status()
-    watch.see(st)
-    return _judge(st, res)
-
-
-def _sim_realtime_factor(log_text: str) -> float | None:
+def sim_realtime_factor(log_text: str) -> float | None:
     found = re.findall(r"compute realtime factor ([0-9.]+)x", log_text)
     return float(found[-1]) if found else None
 
 
 @contextlib.contextmanager
 def service_and_simulator(
-    workdir: Path, config_path: str, say: Progress, codes: dict[str, int]
-) -> Iterator[tuple[_Service, _Child, dict[str, Any]]]:
+    workdir: Path,
+    config_path: str,
+    say: Progress,
+    codes: dict[str, int],
+    *,
+    rig: str = "attitude",
+    site: bool = False,
+    db: Path | None = None,
+    service_env: dict[str, str] | None = None,
+) -> Iterator[tuple[Service, Child, dict[str, Any]]]:
     """Start the simulator, then the service (once the simulated PLC runs), wait for the
     service's IDLE; yields (service, simulator, placement). On exit both are stopped
-    with SIGTERM and their exit codes are put into ``codes``."""
+    with SIGTERM and their exit codes are put into ``codes``.
+
+    ``rig``: the simulator's (``wara hil --rig``); ``site``: it serves the crane's and
+    the crew's acts on ``workdir/site.sock`` (:data:`SITE_SOCKET`); ``db``: the
+    service's acceptance store (default ``workdir/acceptance.sqlite``);
+    ``service_env``: set in the service's environment."""
     cfg = load_project(config_path)
     if cfg.can.interface not in TRANSPORTS:
         raise TwoProcessError(f"{config_path}: can.interface must be one of {TRANSPORTS}")
@@ -571,18 +500,21 @@ def service_and_simulator(
     if sim_cpus:
         say(f"service loop on CPU {placement['service_loop_cpus']}, simulator on {sim_cpus}")
     sim_argv = [*wara, "hil", "--realtime", "--config", config_path, "--status-interval", "2"]
+    sim_argv += ["--rig", rig]
+    if site:
+        sim_argv += ["--site-socket", str(workdir / SITE_SOCKET)]
     if sim_cpus:
         sim_argv += ["--cpus", ",".join(map(str, sim_cpus))]
-    notify = _NotifySocket(workdir / "hil-notify.sock")
-    sim = _Child("simulator", sim_argv, workdir / "hil.log", {"NOTIFY_SOCKET": str(notify.path)})
-    svc_child: _Child | None = None
+    notify = NotifySocket(workdir / "hil-notify.sock")
+    sim = Child("simulator", sim_argv, workdir / "hil.log", {"NOTIFY_SOCKET": str(notify.path)})
+    svc_child: Child | None = None
     try:
         # The simulator compiles its plant on first use (numba; tens of seconds on a fresh
         # machine): start the service only once the simulated PLC is on the wire, or the
         # service's start-up window would rightly end ABORTED.
         say("waiting for the simulator to run")
         notify.wait_ready(sim, SIM_START_TIMEOUT_S)
-        svc_child = _Child(
+        svc_child = Child(
             "service",
             [
                 *wara,
@@ -592,11 +524,14 @@ def service_and_simulator(
                 "--socket",
                 str(sock),
                 "--record-dir",
-                str(workdir / "runs"),
+                str(workdir / RUNS_DIR),
+                "--db",
+                str(db if db is not None else workdir / "acceptance.sqlite"),
             ],
             workdir / "service.log",
+            service_env,
         )
-        svc = _Service(svc_child, sock)
+        svc = Service(svc_child, sock)
         _wait_socket(svc_child, sock, 60.0)
         say("waiting for the service to be IDLE")
         st = svc.wait(lambda s: s.get("mode") in ("IDLE", "ABORTED"), 60.0)
@@ -614,127 +549,22 @@ def service_and_simulator(
         say(f"stopped: service exit {codes.get('service')}, simulator exit {codes['simulator']}")
 
 
-def run_inside_netns(
-    workdir: Path,
-    config_path: str,
-    *,
-    settle_s: float = DEFAULT_SETTLE_S,
-    examples: Sequence[tuple[float, float]] = EXAMPLES,
-    min_run_s: float = MIN_RUN_S,
-    progress: Progress | None = None,
-) -> dict[str, Any]:
-    """Simulator + service as two processes; the JSON-ready summary (``passed``)."""
-    say = progress or (lambda _s: None)
-    cfg = load_project(config_path)
-    period = cfg.control.period_s
-    results: list[ExampleResult] = []
-    watch = _LoopWatch()
-    codes: dict[str, int] = {}
-    with service_and_simulator(workdir, config_path, say, codes) as (svc, sim, placement):
-
-        def first_report(s: dict[str, Any]) -> bool:
-            watch.see(s)
-            return watch.baseline is not None
-
-        if svc.wait(first_report, 15.0, poll_s=0.2) is None:
-            raise TwoProcessError("the service published no loop statistics in 15 s")
-        for roll, pitch in examples:
-            results.append(_run_example(svc, watch, roll, pitch, settle_s, say))
-            r = results[-1]
-            say(
-                f"example ({roll:+.1f}, {pitch:+.1f}) deg: "
-                f"{'passed' if r.passed else 'FAILED ' + r.note}"
-            )
-        if min_run_s > 0:
-            say(f"keeping the run going until {min_run_s:g} s of loop cycles are measured")
-
-        def long_enough(s: dict[str, Any]) -> bool:
-            watch.see(s)
-            return bool(watch.reports) and watch.measured_s(period) >= min_run_s
-
-        # At least one report after the examples, so the last motion is in the figures.
-        n_before = len(watch.reports)
-        if (
-            svc.wait(
-                lambda s: long_enough(s) and len(watch.reports) > n_before,
-                timeout_s=max(min_run_s, 0.0) + 30.0,
-                poll_s=0.5,
-            )
-            is None
-        ):
-            raise TwoProcessError(
-                f"loop reports stopped: {watch.measured_s(period):.1f} s measured"
-            )
-        final = svc.status()
-    loop = watch.summary(period)
-    frac = loop["compute_p99_fraction"]
-    loop_ok = (
-        frac is not None
-        and frac < COMPUTE_P99_GOAL_FRACTION
-        and loop["overruns"] == 0
-        and loop["measured_s"] >= min_run_s
-    )
-    examples_ok = bool(results) and all(r.passed for r in results)
-    lo, up = cfg.layers.lower.cylinders, cfg.layers.upper.cylinders
-    active = [c.can_index for c in cfg.cylinders if c.id in (*lo, *up)]
-    return {
-        "mode": "two-process",
-        "bus": f"{cfg.can.interface} {cfg.can.channel}:{cfg.can.udp_port} (private netns)",
-        "placement": placement,
-        "examples": [asdict(r) for r in results],
-        "loop": loop,
-        "loop_goal": {
-            "compute_p99_fraction_below": COMPUTE_P99_GOAL_FRACTION,
-            "overruns_after_startup": 0,
-            "min_run_s": min_run_s,
-            "passed": loop_ok,
-        },
-        "final_mode": final.get("mode"),
-        "final_fault_reasons": list(final.get("fault_reasons") or []),
-        "exit_codes": codes,
-        "bus_load_percent": bus_load(cfg, active).load_percent,
-        "simulator_realtime_factor": _sim_realtime_factor(sim.log_path.read_text(errors="replace")),
-        "tolerances": limits(ATTITUDE_GOALS),
-        "passed": examples_ok and loop_ok,
-    }
+def setting_lines(out: dict[str, Any]) -> list[str]:
+    """A two-process run's bus, its load, the simulator's real-time factor and the
+    placement of the processes, as lines of its table."""
+    rtf = out.get("simulator_realtime_factor")
+    return [
+        f"bus: {out['bus']}; bus load {out['bus_load_percent']:.1f} %; simulator "
+        + ("n/a" if rtf is None else f"{rtf:.1f}x")
+        + " real time (compute)",
+        placement_line(out.get("placement") or {}),
+    ]
 
 
-def _placement_line(pl: dict[str, Any]) -> str:
+def placement_line(pl: dict[str, Any]) -> str:
     if pl.get("simulator_cpus"):
         return (
             f"placement: service loop thread on CPU {pl['service_loop_cpus']}, "
             f"simulator on CPU {pl['simulator_cpus']}"
         )
     return "placement: left to the scheduler (--no-pin, or one CPU)"
-
-
-def render_table(summary: dict[str, Any]) -> str:
-    """The in-process demo's table plus the loop goal of the two-process run."""
-    from wara.demo import example_rows
-
-    lines = example_rows(summary)
-    lp, goal = summary["loop"], summary["loop_goal"]
-
-    def ms(v: float | None) -> str:
-        return "n/a" if v is None else f"{v:.3f} ms"
-
-    frac = lp.get("compute_p99_fraction")
-    rtf = summary.get("simulator_realtime_factor")
-    lines += [
-        "",
-        f"bus: {summary['bus']}; bus load {summary['bus_load_percent']:.1f} %; simulator "
-        + ("n/a" if rtf is None else f"{rtf:.1f}x")
-        + " real time (compute)",
-        _placement_line(summary.get("placement") or {}),
-        f"loop: {lp['period_ms']:.1f} ms period, {lp['measured_s']:.1f} s measured after "
-        f"start-up ({lp['measured_cycles']} cycles, {lp['reports']} reports); worst p99 of "
-        f"the reports: compute {ms(lp['compute_p99_ms'])} "
-        + ("" if frac is None else f"({100 * frac:.1f} % of the period) ")
-        + f"jitter {ms(lp['jitter_p99_ms'])}; compute max {ms(lp['compute_max_ms'])}",
-        f"overruns after start-up {lp['overruns']} (start-up {lp['overruns_startup']}, "
-        f"total {lp['overruns_total']}); goal: compute p99 < "
-        f"{100 * goal['compute_p99_fraction_below']:.0f} % of the period, 0 overruns in "
-        f"{goal['min_run_s']:g} s: {'met' if goal['passed'] else 'NOT MET'}",
-        "PASSED" if summary["passed"] else "FAILED",
-    ]
-    return "\n".join(lines)

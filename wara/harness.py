@@ -393,8 +393,7 @@ class Harness:
 
     def part_pose(self, ring: int) -> Pose:
         """The part's pose on the simulator's truth, in ring ``ring``'s tunnel frame."""
-        r, t = pose_from_home(self.cfg, self.sim.rig)
-        return compose(home_pose(self.cfg, ring), Pose.from_matrix(r, t))
+        return ring_pose(self.cfg, ring, *pose_from_home(self.cfg, self.sim.rig))
 
     def faulted(self) -> bool:
         return self.core.modes.mode is Mode.ABORTED
@@ -446,6 +445,13 @@ class Harness:
         res.take_motion(self.core.snapshot()["motion"])  # the service's status
         holding = self.core.modes.mode == Mode.COMPLETE
         return judge_example(res, problem="" if holding else self.fault_note())
+
+
+def ring_pose(cfg: ProjectConfig, ring: int, r: np.ndarray, t: np.ndarray) -> Pose:
+    """The part's pose ``(r, t)`` from its home (the simulator's truth:
+    :func:`hil_sim.placement.pose_from_home`, or the site socket's answer) in ring
+    ``ring``'s tunnel frame."""
+    return compose(home_pose(cfg, ring), Pose.from_matrix(np.asarray(r), np.asarray(t)))
 
 
 def ride_through(status: dict[str, Any]) -> dict[str, int]:

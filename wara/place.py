@@ -41,12 +41,25 @@ def placed_figures(
     acceptance keys, signed), its error from ``plan``'s target (``x_mm`` ... ``yaw_deg``),
     the gap's error from the planned gap, and ``table4_truth`` (each item with its
     limit and verdict, as the planner judges a plan). All poses in the ring's T."""
-    fig = joint_figures(cfg, previous, as_built, plan.design)
+    return placed_against(cfg, plan.design, plan.target, plan.figures.max_gap_m, previous, as_built)
+
+
+def placed_against(
+    cfg: ProjectConfig,
+    design: Pose,
+    target: Pose,
+    planned_gap_m: float,
+    previous: Pose,
+    as_built: Pose,
+) -> dict[str, Any]:
+    """:func:`placed_figures` from a plan's poses and planned gap (a plan read back from
+    its acceptance record)."""
+    fig = joint_figures(cfg, previous, as_built, design)
     table4 = fig.to_dict()
     return {
         **{k: table4[k] for k in RECORD_KEYS},
-        "error_from_target": deviation(as_built, plan.target).to_dict(),
-        "gap_error_mm": units.to_mm(fig.max_gap_m - plan.figures.max_gap_m),
+        "error_from_target": deviation(as_built, target).to_dict(),
+        "gap_error_mm": units.to_mm(fig.max_gap_m - planned_gap_m),
         "table4_truth": judge_table4(cfg, fig),
     }
 

@@ -56,7 +56,7 @@ from ipc_app.service.motion import Motion, Planner, Ticket
 from ipc_app.service.motions.place import PlaceMotion
 from ipc_app.service.motions.release import ReleaseMotion
 from ipc_app.service.motions.walk import WalkMotion
-from ipc_app.service.requests import Code, Reply, cycle_refusal
+from ipc_app.service.requests import Code, Reply, cycle_refusal, plc_walk_refusal
 from ipc_app.service.worker import PLAN_TARGET_FN, PlannerCallError
 
 log = structlog.get_logger("wara.service")
@@ -204,6 +204,11 @@ class RingCycle:
         if core.modes.mode not in (Mode.IDLE, Mode.COMPLETE):
             why = f"cycle refused: the service is {core.modes.mode} (IDLE or COMPLETE needed)"
             return Reply.refused(why)
+        if steps > 0:  # it walks: the PLC must be able to
+            inp = core.inputs
+            bad = plc_walk_refusal(inp.status if inp is not None else None)
+            if bad is not None:
+                return bad
         core.event(
             "cycle", ring=ring, previous=previous.to_dict(), walk_steps=steps,
             walk_back_unloaded=walk_back_unloaded,

@@ -26,7 +26,7 @@ from typing import TYPE_CHECKING, Any
 
 from config import units
 from config.numbers import check_name, check_text
-from plc_bridge.link import HmiTarget, TargetAck, TargetRequest
+from plc_bridge.link import HmiTarget, PlcStatus, TargetAck, TargetRequest
 
 if TYPE_CHECKING:
     from ipc_app.service.modes import Outcome
@@ -235,6 +235,20 @@ def walk_refusal(steps: int, directions: tuple[str, ...], direction: str) -> Rep
     if why is None and direction not in directions:
         why = f"direction must be one of {', '.join(directions)}, got {direction!r}"
     return None if why is None else Reply.bad_request(why)
+
+
+def plc_walk_refusal(status: PlcStatus | None) -> Reply | None:
+    """A walk the PLC would not take: its status says the machine cannot walk
+    (``PLC_Status.WalkAvailable`` 0: it refuses WALK and keeps the drives off), or there
+    is no status to say it can. Checked before anything is planned or moved."""
+    if status is None:
+        return Reply.refused("walk refused: no PLC status (WalkAvailable unknown)")
+    if not status.walk_available:
+        return Reply.refused(
+            "walk refused: the PLC reports that the machine cannot walk "
+            "(PLC_Status WalkAvailable 0); nothing moved"
+        )
+    return None
 
 
 def hmi_walk_refusal(steps: int) -> str | None:

@@ -255,6 +255,7 @@ def _plc_status(d: dict[str, float]) -> PlcStatus:
         command_timeout=bool(d["CommandTimeout"]),
         fault=Fault(code) if code in Fault._value2member_map_ else code,
         supply_pressure_pa=units.mpa(d["SupplyPressure"]),
+        walk_available=bool(d["WalkAvailable"]),
     )
 
 

@@ -236,6 +236,7 @@ class PlcLink(LinkSide):
             "CommandTimeout": int(s.command_timeout or self.command_timeout(now)),
             "FaultCode": int(s.fault),
             "SupplyPressure": units.to_mpa(s.supply_pressure_pa),
+            "WalkAvailable": int(s.walk_available),
         }
         return [d[n] for n in names]
 

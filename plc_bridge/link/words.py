@@ -87,6 +87,8 @@ class PlcStatus:
     command_timeout: bool = False
     fault: int = Fault.NONE
     supply_pressure_pa: float = math.nan
+    #: the machine can walk (``WalkAvailable``); False: the PLC refuses WALK
+    walk_available: bool = False
 
 
 @dataclass(frozen=True)

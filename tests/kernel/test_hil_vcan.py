@@ -93,8 +93,11 @@ SLOW: dict[str, dict[str, Any]] = {
     "can": {"interface": "socketcan", "channel": "vcan0", "stale_cycles": 100.0},
 }
 #: The simulator's plant at its coarsest allowed step, the PLC scan at 5 ms (the
-#: service's loop runs at 20 ms here).
-SCENARIO = {"name": "kernel-vm", "plant": {"step_ms": 0.5, "plc_cycle_ms": 5.0}}
+#: service's loop runs at 20 ms here); the attitude rig (the example does not walk).
+SCENARIO = {
+    "name": "kernel-vm",
+    "plant": {"step_ms": 0.5, "plc_cycle_ms": 5.0, "contact": False},
+}
 
 
 @dataclass
@@ -172,7 +175,11 @@ def _frames_to_inject() -> tuple[list[tuple[int, bytes, str]], dict[str, int]]:
     each frame with its kind."""
     status = FrameCodec(CAT.by_name("PLC_Status"))
     # ModeActual ATTITUDE_ADJUST, EStop 1, pump, drives, no timeout, no fault, 16 MPa
-    estop = [2, 1, 1, 1, 0, 0, 16.0]
+    values = {
+        "ModeActual": 2, "EStop": 1, "PumpRunning": 1, "DrivesEnabled": 1,
+        "CommandTimeout": 0, "WalkAvailable": 0, "FaultCode": 0, "SupplyPressure": 16.0,
+    }  # fmt: skip
+    estop = [values[n] for n in status.signal_names]
     frames: list[tuple[int, bytes, str]] = []
     for counter in (3, 4, 5):
         bad = bytearray(status.encode(counter, estop))

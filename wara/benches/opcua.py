@@ -394,7 +394,7 @@ def inside(work: Path, config_path: str, cycles: int, rounds: int = ROUNDS) -> d
             phases: dict[str, Any] = {}
             for phase in order:
                 say(f"round {r + 1}/{rounds}: {phase}")
-                watch = d2._LoopWatch()
+                watch = d2.LoopWatch()
                 if phase == "with":
                     timing, got = _phase_with(
                         svc, watch, work, config_path, prepared, cycles, say, r

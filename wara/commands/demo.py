@@ -8,18 +8,22 @@ if every ring met its goals on the simulator's truth (``wara cycle``'s), 3 when 
 target is unreachable. ``--attitude``: Examples 1-3 of the attitude adjustment, in real time
 (``--lockstep``: simulated time); exit 0
 only if every example met its tolerances (attitude error <= 0.01 deg, twist <= 0.5 mm
-during motion, sync error at standstill <= 0.07 mm). ``--two-process`` runs the attitude
-examples with the simulator and the service as two processes over UDP multicast in a
-private network namespace (:mod:`wara.demo_two_process`; ``--transport``: ``wara_udp`` by
-default, or python-can's ``udp_multicast``); it also needs the loop goal (compute p99
-under 20 % of the period, no overruns after start-up in a 60 s run); exit 2 when the
-namespace cannot be made here.
+during motion, sync error at standstill <= 0.07 mm). ``--two-process``: the simulator and
+the service as two processes over UDP multicast in a private network namespace
+(:mod:`wara.demo_two_process`; ``--transport``: ``wara_udp`` by default, or python-can's
+``udp_multicast``); exit 2 when the namespace cannot be made here. With ``--rings N``
+(or ``--out``) it runs the ring cycles on the wall clock (:mod:`wara.two_process_cycle`:
+every ring's goals, and the loop's compute p99 under 20 % of the period; its figures per
+phase and each overrun explained); without, the attitude examples
+(:mod:`wara.two_process_examples`), which also need no overrun after start-up in a 60 s
+run.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -79,7 +83,8 @@ def register(sub: argparse._SubParsersAction) -> None:
         "--two-process",
         action="store_true",
         help="simulator and service as two processes over UDP multicast in a private "
-        "network namespace (needs unshare and ip; at least 60 s)",
+        "network namespace, on the wall clock (needs unshare and ip): with --rings N the "
+        "ring cycles (some 5 min a ring), else the attitude examples (at least 60 s)",
     )
     p.add_argument(
         "--transport",
@@ -119,20 +124,34 @@ def register(sub: argparse._SubParsersAction) -> None:
     # Hidden: for tests and the re-execution inside the namespace.
     p.add_argument("--min-run-s", type=decimal, default=None, help=argparse.SUPPRESS)
     p.add_argument("--inside-netns", default=None, metavar="DIR", help=argparse.SUPPRESS)
-    p.add_argument("--keep-dir", default=None, metavar="DIR", help=argparse.SUPPRESS)
+    p.add_argument(
+        "--keep-dir",
+        default=None,
+        metavar="DIR",
+        help="--two-process: keep the run's files in DIR (the project copy, both processes' "
+        "logs, the service's run record)",
+    )
     p.set_defaults(func=_run)
 
 
 def _run(args: argparse.Namespace) -> int:
-    attitude = args.attitude or args.two_process
+    rings_asked = args.rings is not None or args.out is not None
+    # --two-process: the attitude examples, or the ring cycles with --rings / --out
+    attitude = args.attitude or (args.two_process and not rings_asked)
     if not attitude:
         for opt, name in _ATTITUDE_ONLY:
             if getattr(args, opt) not in (None, False):
                 raise UsageError(f"{name} goes with --attitude (the attitude examples)")
-    elif args.rings is not None or args.out is not None:
+        for opt in ("settle_s", "min_run_s"):
+            if getattr(args, opt) is not None:
+                raise UsageError(
+                    f"--{opt.replace('_', '-')} goes with the attitude examples "
+                    "(--two-process without --rings)"
+                )
+    elif rings_asked:
         raise UsageError(
             f"--{'rings' if args.rings is not None else 'out'} goes with the ring cycles, "
-            "not with --attitude or --two-process"
+            "not with --attitude"
         )
     if not args.two_process:
         if args.no_pin:
@@ -143,11 +162,11 @@ def _run(args: argparse.Namespace) -> int:
     # the ring cycles walk 2 m to each ring and back (some 4 min of machine time a ring):
     # simulated time unless asked; the attitude examples (a minute) on the wall clock
     if not attitude:
-        args.lockstep = not args.realtime
+        args.lockstep = not (args.realtime or args.two_process)
     if not args.lockstep:
         require_realtime_simulator()
     if not attitude:
-        return _run_rings(args)
+        return _run_rings_two_process(args) if args.two_process else _run_rings(args)
     if args.opcua:
         if args.two_process or args.lockstep:
             raise UsageError("--opcua goes with the real-time one-process demo")
@@ -183,16 +202,7 @@ def _run(args: argparse.Namespace) -> int:
 
 def _run_rings(args: argparse.Namespace) -> int:
     """The ring cycles, then the acceptance report of their records."""
-    from config import load_project
-    from wara.demo import RING_DEMO_RINGS
-
-    rings = RING_DEMO_RINGS if args.rings is None else args.rings
-    if not 1 <= rings <= MAX_RINGS:
-        raise UsageError(f"--rings must be within 1..{MAX_RINGS}, got {rings}")
-    cfg = load_project(args.config)
-    if cfg.placement is None or cfg.cycle is None:
-        raise UsageError("the project has no placement and cycle sections: it cannot place")
-    require("matplotlib", "wara demo (its acceptance report)")
+    rings = _ring_count(args)
     from ipc_app.service.logs import configure_logging
     from wara.demo import ring_failure_reason, run_ring_demo, stderr_progress
 
@@ -219,6 +229,91 @@ def _run_rings(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+def _ring_count(args: argparse.Namespace) -> int:
+    """``--rings`` (default :data:`wara.demo.RING_DEMO_RINGS`), checked; the project must
+    be able to place."""
+    from config import load_project
+    from wara.demo import RING_DEMO_RINGS
+
+    rings = RING_DEMO_RINGS if args.rings is None else args.rings
+    if not 1 <= rings <= MAX_RINGS:
+        raise UsageError(f"--rings must be within 1..{MAX_RINGS}, got {rings}")
+    cfg = load_project(args.config)
+    if cfg.placement is None or cfg.cycle is None:
+        raise UsageError("the project has no placement and cycle sections: it cannot place")
+    require("matplotlib", "wara demo (its acceptance report)")
+    return rings
+
+
+def _run_rings_two_process(args: argparse.Namespace) -> int:
+    """The ring cycles with the simulator and the service as two processes
+    (:mod:`wara.two_process_cycle`): the namespace from outside, the run inside it."""
+    from wara import demo_two_process as d2
+    from wara import two_process_cycle as tpc
+    from wara.demo import stderr_progress
+
+    rings = _ring_count(args)
+    out_dir = Path(args.out or DEFAULT_OUT)
+    got = _in_two_processes(
+        args,
+        lambda: tpc.run_two_process_cycle(
+            args.config,
+            rings=rings,
+            out_dir=out_dir,
+            json_out=args.json,
+            keep_dir=Path(args.keep_dir) if args.keep_dir else None,
+            transport=args.transport or d2.DEFAULT_TRANSPORT,
+            pin=not args.no_pin,
+        ),
+        lambda: tpc.run_inside(
+            Path(args.inside_netns), args.config, rings=rings, out_dir=out_dir,
+            progress=stderr_progress,
+        ),
+    )  # fmt: skip
+    if isinstance(got, int):
+        return got
+    print(json.dumps(got, indent=2) if args.json else tpc.render_table(got))
+    if got["refused"] is not None:
+        stderr_progress(f"refused: {got['refused']}")
+        return EXIT_INFEASIBLE
+    if not got["passed"]:
+        stderr_progress("FAILED: " + "; ".join(got["missed"]))
+        return EXIT_FAILED
+    return EXIT_OK
+
+
+def _in_two_processes(
+    args: argparse.Namespace,
+    outside: Callable[[], int],
+    inside: Callable[[], dict[str, Any]],
+) -> dict[str, Any] | int:
+    """``--two-process``: outside the namespace ``outside()`` (the command again inside
+    it; its exit code, 2 when the namespace cannot be made), inside it ``inside()``'s
+    result; a run whose processes or control socket failed: one line on stderr (and the
+    verdict with ``--json``), exit 1."""
+    import sys
+
+    from ipc_app.service.ctl import CtlError
+    from wara import demo_two_process as d2
+
+    if args.inside_netns is None:
+        try:
+            return outside()
+        except d2.NetnsUnavailable as exc:
+            print(
+                f"wara demo: --two-process needs a private network namespace: {exc}",
+                file=sys.stderr,
+            )
+            return EXIT_USAGE
+    try:
+        return inside()
+    except (d2.TwoProcessError, CtlError) as exc:
+        print(f"wara demo: two-process run failed: {exc}", file=sys.stderr)
+        if args.json:  # the verdict stays machine-readable
+            print(json.dumps({"mode": "two-process", "passed": False, "error": str(exc)}))
+        return EXIT_FAILED
+
+
 def _run_demo(*args: Any, **kwargs: Any) -> dict[str, Any]:
     """:func:`wara.demo.run_demo`; an OPC UA server that does not start is one line."""
     from wara.demo import run_demo
@@ -242,53 +337,44 @@ def _examples(n: int | None, available: int) -> int:
 
 
 def _run_two_process(args: argparse.Namespace) -> int:
-    import sys
 
-    from ipc_app.service.ctl import CtlError
+    from ipc_app.service.core import ServiceCore
     from wara import demo_two_process as d2
+    from wara import two_process_examples as ex
     from wara.demo import EXAMPLES, stderr_progress
 
     if args.plot:
         raise UsageError("--plot is not available with --two-process (see the run record)")
-    settle = d2.DEFAULT_SETTLE_S if args.settle_s is None else args.settle_s
-    if not settle > d2.ServiceCore.HOLD_SETTLE_S:
+    settle = ex.DEFAULT_SETTLE_S if args.settle_s is None else args.settle_s
+    if not settle > ServiceCore.HOLD_SETTLE_S:
         raise UsageError(
-            f"--settle-s must be above {d2.ServiceCore.HOLD_SETTLE_S:g} s (the hold settles "
+            f"--settle-s must be above {ServiceCore.HOLD_SETTLE_S:g} s (the hold settles "
             "first, then the standstill sync error is measured)"
         )
     n = _examples(args.examples, len(EXAMPLES))
-    min_run = d2.MIN_RUN_S if args.min_run_s is None else args.min_run_s
-    if args.inside_netns is None:
-        try:
-            return d2.run_two_process(
-                args.config,
-                json_out=args.json,
-                settle_s=settle,
-                examples=n,
-                min_run_s=min_run,
-                keep_dir=Path(args.keep_dir) if args.keep_dir else None,
-                transport=args.transport or d2.DEFAULT_TRANSPORT,
-                pin=not args.no_pin,
-            )
-        except d2.NetnsUnavailable as exc:
-            print(
-                f"wara demo: --two-process needs a private network namespace: {exc}",
-                file=sys.stderr,
-            )
-            return EXIT_USAGE
-    try:
-        summary = d2.run_inside_netns(
+    min_run = ex.MIN_RUN_S if args.min_run_s is None else args.min_run_s
+    summary = _in_two_processes(
+        args,
+        lambda: ex.run_two_process(
+            args.config,
+            json_out=args.json,
+            settle_s=settle,
+            examples=n,
+            min_run_s=min_run,
+            keep_dir=Path(args.keep_dir) if args.keep_dir else None,
+            transport=args.transport or d2.DEFAULT_TRANSPORT,
+            pin=not args.no_pin,
+        ),
+        lambda: ex.run_inside_netns(
             Path(args.inside_netns),
             args.config,
             settle_s=settle,
             examples=EXAMPLES[:n],
             min_run_s=min_run,
             progress=stderr_progress,
-        )
-    except (d2.TwoProcessError, CtlError) as exc:
-        print(f"wara demo: two-process run failed: {exc}", file=sys.stderr)
-        if args.json:  # the verdict stays machine-readable
-            print(json.dumps({"mode": "two-process", "passed": False, "error": str(exc)}))
-        return EXIT_FAILED
-    print(json.dumps(summary, indent=2) if args.json else d2.render_table(summary))
+        ),
+    )
+    if isinstance(summary, int):
+        return summary
+    print(json.dumps(summary, indent=2) if args.json else ex.render_table(summary))
     return EXIT_OK if summary["passed"] else EXIT_FAILED

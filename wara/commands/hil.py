@@ -10,6 +10,10 @@ Examples::
 Real time (default) is for a controller in another process (``can.interface:
 udp_multicast`` or ``socketcan`` vcan0); lockstep runs in virtual time, deterministic
 from the seed (in-process controllers use :class:`hil_sim.simulator.HilSimulator`).
+The rig (:func:`rig_scenario`): ``--rig``, else the scenario's ``plant.contact`` where it
+sets one, else the walking rig for a project that walks (``frames`` and ``walking``),
+the attitude rig otherwise. ``--site-socket PATH``: the crane and the crew's acts from
+another process (:mod:`hil_sim.site`).
 A status line shows simulated time, realtime factor, PLC state and the faults active.
 Under ``$NOTIFY_SOCKET`` (systemd ``Type=notify``, ``wara demo --two-process``) it says
 ``READY=1`` with the second status line: after its first PLC scans (and the plant's
@@ -27,7 +31,7 @@ import threading
 import time
 from typing import Any
 
-from config import load_project
+from config import ProjectConfig, load_project
 from config.hil_scenario import EVENT_KINDS, HilScenario, load_hil_scenario
 from config.loader import parse_yaml_text, validate_data
 from config.numbers import decimal, integer
@@ -58,6 +62,21 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--quiet", action="store_true", help="no status line")
     p.add_argument(
+        "--rig",
+        choices=RIGS,
+        default=None,
+        help="walking: the body on its eight legs, feet on the invert; attitude: the two "
+        "layers on rigid legs, which cannot walk (default: the scenario's plant.contact if it "
+        "sets it, else walking for a project with frames and walking sections)",
+    )
+    p.add_argument(
+        "--site-socket",
+        default=None,
+        metavar="PATH",
+        help="serve the crane's and the crew's acts (part, bolt, load) on this Unix socket, "
+        "one JSON object a line (docs/hil.md)",
+    )
+    p.add_argument(
         "--cpus",
         default=None,
         metavar="N[,N...]",
@@ -80,6 +99,21 @@ def set_cpus(spec: str) -> list[int]:
         allowed = sorted(os.sched_getaffinity(0))
         raise UsageError(f"--cpus {spec!r}: {exc} (this process may use {allowed})") from None
     return cpus
+
+
+#: The rigs ``--rig`` chooses between.
+RIGS = ("walking", "attitude")
+
+
+def rig_scenario(cfg: ProjectConfig, scenario: HilScenario, rig: str | None) -> HilScenario:
+    """``scenario`` with its rig: ``rig`` when given, else the scenario's own
+    ``plant.contact`` when it sets one, else the walking rig for a project that walks."""
+    if rig is None:
+        if "contact" in scenario.plant.model_fields_set:
+            return scenario
+        rig = "walking" if cfg.walking is not None and cfg.frames is not None else "attitude"
+    plant = scenario.plant.model_copy(update={"contact": rig == "walking"})
+    return scenario.model_copy(update={"plant": plant})
 
 
 def parse_fault(spec: str) -> dict[str, Any]:
@@ -113,6 +147,13 @@ def _run(args: argparse.Namespace) -> int:
         set_cpus(args.cpus)  # first, so every thread started later inherits it
     cfg = load_project(args.config)
     scenario = scenario_with_faults(load_hil_scenario(args.scenario), args.fault)
+    scenario = rig_scenario(cfg, scenario, args.rig)
+    if scenario.plant.contact and (cfg.walking is None or cfg.frames is None):
+        raise UsageError(
+            "the walking rig needs the project's frames and walking sections "
+            f"({cfg.project.name} has {'no walking' if cfg.walking is None else 'no frames'}); "
+            "--rig attitude"
+        )
     duration = args.duration if args.duration is not None else scenario.duration_s
     if args.lockstep and duration is None:
         raise UsageError("--lockstep needs --duration (or duration_s in the scenario)")
@@ -122,6 +163,17 @@ def _run(args: argparse.Namespace) -> int:
         sim = HilSimulator(cfg, None, scenario, seed=args.seed)
     except (ValueError, BridgeError) as exc:  # a scenario mistake; a bus that cannot open
         raise UsageError(str(exc)) from None
+    site = None
+    if args.site_socket is not None:
+        from hil_sim.site import SiteServer
+
+        site = SiteServer(sim, args.site_socket)
+        try:
+            site.start()
+        except OSError as exc:
+            sim.close()
+            raise UsageError(f"--site-socket {args.site_socket}: {exc.strerror or exc}") from None
+    between = site.between_scans if site is not None else None
     tty = sys.stderr.isatty()
     notifier = SystemdNotifier.from_env()
     shown = 0
@@ -138,7 +190,7 @@ def _run(args: argparse.Namespace) -> int:
     print(
         f"wara hil: {cfg.project.name} on can {cfg.can.interface}:{cfg.can.channel}, "
         f"{'lockstep' if args.lockstep else 'real time'}, scenario {scenario.name!r}, "
-        f"seed {sim.seed}",
+        f"{'walking' if scenario.plant.contact else 'attitude'} rig, seed {sim.seed}",
         file=sys.stderr,
     )
     t0 = time.monotonic()
@@ -154,13 +206,22 @@ def _run(args: argparse.Namespace) -> int:
             while done < n:
                 k = min(chunk, n - done)
                 sim.step(k * sim.cycle_s)
+                if between is not None:
+                    between()
                 done += k
                 show(sim)
         else:
-            sim.run_realtime(duration, on_status=show, status_interval_s=args.status_interval)
+            sim.run_realtime(
+                duration,
+                on_status=show,
+                status_interval_s=args.status_interval,
+                between_scans=between,
+            )
     except KeyboardInterrupt:
         pass
     finally:
+        if site is not None:
+            site.close()
         sim.close()
         notifier.close()
     if tty and not args.quiet:

@@ -43,6 +43,7 @@ from config import units
 from config.numbers import decimal, integer
 from wara.cli import EXIT_FAILED, EXIT_OK, EXIT_USAGE, UsageError
 from wara.extras import require_realtime_simulator
+from wara.loop_phases import latency_ms, record_times
 
 #: The workspace the targets are drawn from (the planner bench's), degrees.
 ROLL_DEG = 8.0
@@ -168,22 +169,6 @@ class TargetDrawer:
         raise NoTarget(f"no feasible target in {MAX_DRAWS} draws, nor the move to level")
 
 
-def latency_ms(t_s: np.ndarray, period_s: float) -> np.ndarray:
-    """Each cycle's wake-up latency (ms) above its deadline on the grid t0 + n*period."""
-    if t_s.size == 0:
-        return np.zeros(0)
-    rel = (t_s - t_s[0]) / period_s
-    out = np.empty(t_s.size)
-    n_prev = -1
-    for i, r in enumerate(rel):
-        n = max(n_prev + 1, math.floor(r + 1e-6))
-        if n > r + 1e-6:  # never before its deadline: a rounding of the record
-            n = n_prev + 1
-        out[i] = units.to_ms(max(r - n, 0.0) * period_s)
-        n_prev = n
-    return out
-
-
 def jitter_figures(
     latency_ms_: np.ndarray, reported_max_ms: float | None
 ) -> tuple[float | None, float | None]:
@@ -200,16 +185,7 @@ def _record_latency(workdir: Path, period_s: float) -> np.ndarray:
     runs = sorted((workdir / "runs").glob("*/samples.csv"))
     if not runs:
         return np.zeros(0)
-    ts: list[float] = []
-    with open(runs[-1], encoding="utf-8") as f:
-        next(f, None)
-        for line in f:
-            head = line.split(",", 1)[0]
-            try:
-                ts.append(float(head))
-            except ValueError:
-                break  # a half-written last line
-    return latency_ms(np.asarray(ts), period_s)
+    return latency_ms(record_times(runs[-1].parent), period_s)
 
 
 def soak(workdir: Path, config_path: str, duration_s: float, seed: int) -> dict[str, Any]:
@@ -221,7 +197,7 @@ def soak(workdir: Path, config_path: str, duration_s: float, seed: int) -> dict[
     cfg = load_project(config_path)
     period = cfg.control.period_s
     drawer = TargetDrawer(cfg, seed)
-    watch = d2._LoopWatch()
+    watch = d2.LoopWatch()
     codes: dict[str, int] = {}
     moves: list[dict[str, Any]] = []
     refused: list[str] = []

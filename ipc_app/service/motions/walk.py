@@ -37,7 +37,7 @@ from ipc_app.service.motion import (
     Wait,
     event,
 )
-from ipc_app.service.requests import Code, Reply, walk_refusal
+from ipc_app.service.requests import Code, Reply, plc_walk_refusal, walk_refusal
 from ipc_app.service.walk_interlocks import WalkLimits, walk_causes, walk_resume_cause
 from ipc_app.service.worker import PLAN_WALK_FN, PlannerCallError
 from plc_bridge.link import Mode as PlcMode
@@ -128,6 +128,8 @@ class WalkMotion(Motion):
     def prepare(cls, svc: Service, *args: Any) -> Motion | Reply:
         steps, direction, unloaded = args
         bad = walk_refusal(steps, DIRECTIONS, direction)
+        if bad is None:
+            bad = plc_walk_refusal(svc.inputs.status if svc.inputs is not None else None)
         if bad is not None:
             return bad
         plan = plan_walk_here(svc, steps, direction, unloaded)
