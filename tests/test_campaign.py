@@ -558,31 +558,66 @@ def test_the_spec_says_which_kind_of_campaign_it_is(tmp_path: Path) -> None:
     del data["kind"]
     with pytest.raises(ConfigError, match=r"kind: .*required"):
         load_campaign(write_spec(tmp_path, data))
-    # the shipped campaigns are nominal: their events within the shipped project's bounds
+    # the shipped nominal campaigns' events are within the shipped project's bounds; the
+    # fault campaign's link losses reach past its ride-through
     for name in ("shanghai_airport_link", "shanghai_airport_link_walk"):
         assert load_campaign(REPO / f"config/campaigns/{name}.yaml").spec.kind == "nominal"
+    faults = load_campaign(REPO / "config/campaigns/shanghai_airport_link_faults.yaml")
+    assert faults.spec.kind == "fault"
+    kinds = {ev.event["kind"] for ev in faults.spec.events}
+    assert kinds >= {"plc_stall", "drop", "bus_off", "sensor", "holding_valve_leak"}
 
 
 def test_a_fault_run_is_judged_on_the_reaction() -> None:
     """Ridden through and within the goals; or the safe state with a cause the faults
-    that happened may latch, except after a link loss within safety.max_suspend_ms."""
+    that happened may latch, except after a link loss within the ride-through's bound."""
     from wara.campaign.kinds import judge_fault
 
     def judge(happened: list[tuple[str, float]], done: bool, *causes: str) -> tuple[bool, str]:
-        v = judge_fault(happened, done, [], list(causes), 250.0)
+        v = judge_fault(happened, done, [], list(causes), 80.0)
         return v.passed, v.status
 
     assert judge([("plc_stall", 0.1)], True) == (True, "ridden_through")
     assert judge([], True) == (True, "passed")
     assert judge([("plc_stall", 0.4)], False, "plc heartbeat") == (True, "safe_state")
     assert judge([("plc_silent", math.nan)], False, "sensor timeout") == (True, "safe_state")
-    assert judge([("plc_stall", 0.2)], False, "plc heartbeat") == (False, "not_ridden_through")
+    assert judge([("plc_stall", 0.06)], False, "plc heartbeat") == (False, "not_ridden_through")
+    # beyond the heartbeat's reach, though within safety.max_suspend_ms: the safe state
+    assert judge([("plc_stall", 0.139)], False, "plc heartbeat") == (True, "safe_state")
     assert judge([("stuck_valve", 1.0)], False, "tracking error") == (True, "safe_state")
     assert judge([("sensor", 1.0)], False, "overload") == (False, "wrong_cause")
+    # a stuck reading in valid frames: the loops' errors latch
+    assert judge([("sensor", 1.0)], False, "sync error") == (True, "safe_state")
     assert judge([("plc_stall", 0.4)], False, "planner") == (False, "wrong_cause")
     assert judge([("drop", 1.0)], False) == (False, "not_finished")
     over = judge_fault([("plc_stall", 0.1)], True, ["max_leg_force_ratio 1.12 > 1.1"], [], 250)
     assert (over.passed, over.status) == (False, "over_limit")  # a resume into an overload
+
+
+def test_the_ride_through_owed_is_bounded_by_the_timeouts_that_latch_while_suspended(
+    tmp_path: Path,
+) -> None:
+    """The heartbeat and the sensor timeout latch in every mode: a loss is owed a
+    ride-through only while the last frame's age stays within them (a 20 ms frame cycle
+    on the shipped bus: 80 ms), and never beyond safety.max_suspend_ms."""
+    import yaml
+
+    from config import load_project
+    from wara.campaign.kinds import ride_through_ms
+
+    assert ride_through_ms(load_project()) == pytest.approx(80.0)
+
+    def with_safety(**keys: float) -> float:
+        d = yaml.safe_load((REPO / "config/projects/shanghai_airport_link.yaml").read_text())
+        d["safety"].update(keys)
+        path = tmp_path / "p.yaml"
+        path.write_text(yaml.safe_dump(d))
+        return ride_through_ms(load_project(path))
+
+    assert with_safety(plc_heartbeat_timeout_ms=200) == pytest.approx(80.0)  # the sensors'
+    assert with_safety(plc_heartbeat_timeout_ms=200, sensor_timeout_ms=150) == pytest.approx(130)
+    loose = with_safety(plc_heartbeat_timeout_ms=400, sensor_timeout_ms=400)
+    assert loose == pytest.approx(250.0)  # safety.max_suspend_ms
 
 
 @pytest.mark.slow

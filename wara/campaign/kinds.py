@@ -8,7 +8,7 @@ meets its goals.
 **fault**: the faults. A run is judged on the reaction (:func:`judge_fault`): it rides
 the fault through and completes within its goals, or it ends in the safe state with a
 cause the faults that happened in it may latch (:data:`FAULT_CAUSES`), except that a
-link loss no longer than ``safety.max_suspend_ms`` must be ridden through.
+link loss no longer than :func:`ride_through_ms` must be ridden through.
 """
 
 from __future__ import annotations
@@ -24,8 +24,33 @@ from ipc_app.service.interlocks import Interlock as I
 #: The events a nominal campaign may draw; any other event kind is a fault.
 NOMINAL_EVENTS = ("delay", "drop", "plc_stall", "ground")
 
-#: The link losses the service rides through (SUSPENDED) up to ``safety.max_suspend_ms``.
+#: The link losses the service rides through (SUSPENDED) up to :func:`ride_through_ms`.
 RIDE_THROUGH = frozenset({"plc_stall", "wire_stall", "plc_silent"})
+
+#: The frames a link loss silences whose age the always-checked interlocks judge: the
+#: PLC's status (``safety.plc_heartbeat_timeout_ms``) and the rod positions
+#: (``safety.sensor_timeout_ms``).
+_WATCHED_FRAMES = ("PLC_Status", "PLC_RodPos_0")
+
+
+def ride_through_ms(project: ProjectConfig) -> float:
+    """The longest link loss the service owes a ride-through, ms: at most
+    ``safety.max_suspend_ms``, and short enough that the last frame before it (up to one
+    frame cycle old) plus the loss stay within the heartbeat and the sensor timeout,
+    which latch in every mode (SUSPENDED too)."""
+    from plc_bridge.catalog import load_catalog
+
+    catalog, period_s = load_catalog(), project.control.period_s
+    cycle_ms = 1e3 * max(
+        catalog.by_name(f).cycle_in_force_s(True, period_s) for f in _WATCHED_FRAMES
+    )
+    s = project.safety
+    return min(
+        s.max_suspend_ms,
+        s.plc_heartbeat_timeout_ms - cycle_ms,
+        s.sensor_timeout_ms - cycle_ms,
+    )
+
 
 _LINK = frozenset(
     {
@@ -50,7 +75,8 @@ FAULT_CAUSES: dict[str, frozenset[I]] = {
     "frozen_counter": _LINK,
     "ignore_commands": _MOTION,
     "stuck_valve": _MOTION,
-    "sensor": frozenset({I.SENSOR, I.SENSOR_TIMEOUT}),
+    # a transducer stuck, jumped or noisy sends valid frames: the loops' errors see it
+    "sensor": frozenset({I.SENSOR, I.SENSOR_TIMEOUT}) | _MOTION,
     "leakage": _MOTION | {I.OVERLOAD},
     "holding_valve_leak": _MOTION | {I.OVERLOAD, I.TOUCHDOWN, I.TRANSFER},
     "load_step": _MOTION | {I.OVERLOAD, I.PRESSURE},
@@ -172,7 +198,7 @@ def judge_fault(
     done: bool,
     over: list[str],
     interlocks: list[str],
-    max_suspend_ms: float,
+    ride_through_ms: float,
 ) -> Verdict:
     """A fault campaign's run: ``happened`` the (kind, duration s; NaN: to the end) of
     its events that happened, ``done`` whether the motion completed, ``over`` the goals
@@ -189,14 +215,14 @@ def judge_fault(
     short = [
         (k, d)
         for k, d in happened
-        if k in RIDE_THROUGH and math.isfinite(d) and d * 1e3 <= max_suspend_ms
+        if k in RIDE_THROUGH and math.isfinite(d) and d * 1e3 <= ride_through_ms
     ]
     if len(short) == len(happened):
         k, d = short[0]
         return Verdict(
             False,
             "not_ridden_through",
-            f"a {k} of {d * 1e3:.0f} ms (within safety.max_suspend_ms {max_suspend_ms:g}) "
+            f"a {k} of {d * 1e3:.0f} ms (within the ride-through's {ride_through_ms:g} ms) "
             f"ended in the safe state: {cause}",
         )
     return Verdict(True, "safe_state", f"{cause}")

@@ -22,7 +22,7 @@ from config.schema import ProjectConfig
 from ipc_app.model.placement import Pose
 from ipc_app.service.modes import Mode
 from ipc_app.service.worker import PlannerWorker
-from wara.campaign.kinds import judge_fault, judge_nominal
+from wara.campaign.kinds import judge_fault, judge_nominal, ride_through_ms
 from wara.campaign.spec import (
     FIGURES_OF,
     HIGHER_IS_BETTER,
@@ -282,7 +282,7 @@ def row_of(
             outcome.done,
             over,
             outcome.fault_interlocks,
-            c.project.safety.max_suspend_ms,
+            ride_through_ms(c.project),
         )
         if c.spec.kind == "fault"
         else judge_nominal(outcome.done, over)
