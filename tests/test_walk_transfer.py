@@ -36,7 +36,8 @@ def test_the_releasing_legs_rates_keep_the_body_in_equilibrium_without_twist(key
     receiving, releasing = (SUB, MAIN) if key == "4" else (MAIN, SUB)
     f = seq.forces_n(p)
     ramp = np.zeros(8)
-    ramp[list(receiving)] = (run.target_force_n - f)[list(receiving)] / run.duration_s
+    assert run.ramp is not None  # at full rate: its line's time, blended in and out
+    ramp[list(receiving)] = (run.target_force_n - f)[list(receiving)] / run.ramp.linear_s
     rate = run.release_rate_n_s
     assert np.all(rate[list(receiving)] == 0.0)
     pts = seq.machine.legs_xy(seq.x_s(x))
@@ -66,6 +67,7 @@ def test_the_releasing_loops_are_told_their_oil_columns_decompression(key: str) 
             return float(real(r, y, rate, d))
 
         ctrl.update = spy  # type: ignore[method-assign]
+    run.clock_s = 0.5 * run.duration_s  # the ramp at its full rate
     seq.update(1.0 + PERIOD_S, x, p, set(range(seq.n)))
     cfg = seq.cfg
     if key == "4":
@@ -111,7 +113,8 @@ def test_after_a_resume_the_line_goes_on_from_where_it_stood() -> None:
     assert np.allclose(run.plan_start_n, p0 + 0.5 * (run.target_force_n - p0))
     f = seq.forces_n(p)
     ramp = np.zeros(8)
-    ramp[list(MAIN)] = (run.target_force_n - f)[list(MAIN)] / run.duration_s
+    assert run.ramp is not None
+    ramp[list(MAIN)] = (run.target_force_n - f)[list(MAIN)] / run.ramp.linear_s
     pts = seq.machine.legs_xy(seq.x_s(x))
     a = np.vstack([np.ones(8), pts[:, 1], -pts[:, 0]])
     assert np.abs(a @ (ramp + run.release_rate_n_s)).max() < 1e-3
@@ -137,7 +140,9 @@ def test_the_releasing_references_follow_the_plans_release_not_the_measured_forc
         tau = run.clock_s - PERIOD_S  # the clock went on after the references were set
         for j in releasing:
             i = seq.legs[j]
-            follow = run.release_rate_n_s[j] * tau / seq.k_contact
+            assert run.ramp is not None
+            released_n = run.release_rate_n_s[j] * run.ramp.linear_s * run.ramp.fraction(tau)
+            follow = released_n / seq.k_contact
             assert refs[i] == pytest.approx(x[i] + follow, abs=1e-12)
         run.clock_s = 0.4 * run.duration_s
     seq.resume(x, p_swing)
@@ -145,7 +150,9 @@ def test_the_releasing_references_follow_the_plans_release_not_the_measured_forc
     seq.update(3.0, x, p_swing, set(range(seq.n)))
     rel = list(releasing)
     want = run.release_from_n[rel] - run.start_force_n[rel]
-    want = (want + run.release_rate_n_s[rel] * (run.clock_s - PERIOD_S)) / seq.k_contact
+    assert run.ramp is not None
+    along = run.ramp.linear_s * run.ramp.fraction(run.clock_s - PERIOD_S)
+    want = (want + run.release_rate_n_s[rel] * along) / seq.k_contact
     want -= TWIST * float(TWIST @ want) / 4  # not in the twist mode
     assert np.allclose(
         seq.last_refs[[seq.legs[j] for j in rel]],
@@ -153,3 +160,48 @@ def test_the_releasing_references_follow_the_plans_release_not_the_measured_forc
         rtol=0,
         atol=1e-12,
     )
+
+
+def test_a_force_ramp_starts_and_ends_at_rest_and_runs_at_full_rate_between() -> None:
+    """The receiving legs' force references: their rate rises from zero over the blend
+    (one period of the slowest leg loop's crossover), runs at ``walking.force_ramp_kn_s``
+    (the leg with the largest change), falls to zero at the end; the releasing legs are
+    told their decompression at the same share of its rate (docs/walking.md)."""
+    seq, x, p = in_transfer("7c")
+    run = seq.run
+    assert run is not None and run.ramp is not None
+    assert run.ramp.blend_s == pytest.approx(seq.ramp_blend_s)
+    assert run.ramp.blend_s < run.ramp.linear_s
+    full_n_s = seq.walk.force_ramp_n_s
+    k_oil = run.k_oil_n_m[SUB[0]]
+
+    def rates_at(t_s: float) -> tuple[float, float]:
+        """The receiving legs' largest force-reference rate, N/s, and what the first
+        releasing leg's loop is told, m/s, at ``t_s`` on the ramp's clock."""
+        run.clock_s = t_s
+        seen: dict[int, tuple[float, float]] = {}
+        spied = [seq.legs[SUB[0]]] + [seq.legs[j] for j in MAIN]
+        for i in spied:
+            ctrl = seq.force[i] if i != seq.legs[SUB[0]] else seq.pos[i]
+
+            def spy(
+                r: float, y: float, rate: float = 0.0, d: float = 0.0, i: int = i, real=ctrl.update
+            ) -> float:
+                seen[i] = (rate, d)
+                return float(real(r, y, rate, d))
+
+            ctrl.update = spy  # type: ignore[method-assign]
+        seq.update(2.0, x, p, set(range(seq.n)))
+        for i in spied:
+            ctrl = seq.force[i] if i != seq.legs[SUB[0]] else seq.pos[i]
+            del ctrl.update  # the instance's spy: the class's method again
+        largest = max(abs(seen[seq.legs[j]][0]) for j in MAIN)
+        return largest, seen[seq.legs[SUB[0]]][1]
+
+    blend = run.ramp.blend_s
+    for t_s, share in [(0.0, 0.0), (blend / 2, 0.5), (blend, 1.0), (run.duration_s / 2, 1.0)]:
+        largest, told = rates_at(t_s)
+        assert largest == pytest.approx(share * full_n_s, rel=1e-9, abs=1e-6), t_s
+        assert told == pytest.approx(-run.release_rate_n_s[SUB[0]] * share / k_oil, abs=1e-15)
+    run.clock_s = run.duration_s
+    assert run.progress == 1.0 and run.rate_share == 0.0

@@ -188,7 +188,9 @@ def test_a_force_ramp_restarts_from_the_forces_at_the_resume() -> None:
     assert run.clock_s == 0.0
     assert np.allclose(run.start_force_n[list(MAIN)], f[list(MAIN)])
     delta = max(abs(run.target_force_n[j] - f[j]) for j in MAIN)
-    assert run.duration_s == pytest.approx(delta / seq.walk.force_ramp_n_s)
+    assert run.ramp is not None  # at full rate over its line, blended in and out
+    assert run.ramp.linear_s == pytest.approx(delta / seq.walk.force_ramp_n_s)
+    assert run.duration_s == run.ramp.linear_s + min(seq.ramp_blend_s, run.ramp.linear_s)
 
 
 @pytest.mark.parametrize("speed_mm_s", [0.05, 0.25, 0.5, 2.0])

@@ -15,8 +15,9 @@ Choices where walking.md is silent:
   ``walking.travel_speed_mm_s`` and ``walking.travel_accel_mm_s2``, the legs at
   ``planner.trajectory.max_rod_speed_mm_s`` and ``max_rod_accel_mm_s2``.
 - Preload and transfer ramp the leg forces at ``walking.force_ramp_kn_s`` (the largest
-  change of any leg sets the duration). During a transfer the forces move on the straight
-  line from the preloaded to the new standing distribution (every point of it is an
+  change of any leg sets the duration), the rate blended in and out
+  (:mod:`ipc_app.planner.force_ramp`: one blend longer; the samples are the line's).
+  During a transfer the forces move on the straight line from the preloaded to the new standing distribution (every point of it is an
   equilibrium); the transfer ends when every releasing leg is at ``unloaded_percent`` of
   its standing share, the rest is shed as it lifts.
 - Rails and guides take no travel force: the travel force is what moves the free frame
@@ -41,6 +42,7 @@ from ipc_app.model.support import (
     stability_margin,
     support_forces,
 )
+from ipc_app.planner.force_ramp import ForceRamp, blend_s
 from ipc_app.planner.capacity import Duty, pressure_limit_pa, pressure_reason
 
 _SAMPLES = 41  # samples per phase (the margin and forces are checked at each)
@@ -345,6 +347,7 @@ class _Planner:
         traj = cfg.planner.trajectory
         self.travel_move = (self.walk.travel_speed_m_s, self.walk.travel_accel_m_s2)
         self.leg_move = (traj.max_rod_speed_m_s, traj.max_rod_accel_m_s2)
+        self.ramp_blend_s = blend_s(cfg)
         self.g = self.machine.g_base
         self.weight_n = self.machine.mass_kg * -float(self.g.z)
         self.plan = WalkPlan(
@@ -519,7 +522,8 @@ class _Planner:
     def ramp(
         self, step: int, key: str, x_s: float, f0: Array, f1: Array, support: list[int]
     ) -> None:
-        duration = float(np.abs(f1 - f0).max()) / self.walk.force_ramp_n_s
+        linear_s = float(np.abs(f1 - f0).max()) / self.walk.force_ramp_n_s
+        duration = ForceRamp.of(linear_s, self.ramp_blend_s).duration_s
         lam = np.linspace(0.0, 1.0, _SAMPLES)[:, None]
         forces = f0[None, :] * (1 - lam) + f1[None, :] * lam
         ids = tuple(self.leg_ids[i] for i in support)

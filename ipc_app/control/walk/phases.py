@@ -18,6 +18,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from config.schema import ProjectConfig
+from ipc_app.planner.force_ramp import ForceRamp
 from ipc_app.planner.walk import Move, Phase
 
 FloatArray = NDArray[np.float64]
@@ -138,6 +139,8 @@ class PhaseRun:
     target_force_n: FloatArray = field(default_factory=lambda: np.zeros(0))
     #: its planned duration on the reference clock, s
     duration_s: float = 0.0
+    #: a preload's or transfer's ramp in time (its duration is ``duration_s``)
+    ramp: ForceRamp | None = None
     #: a lowering's legs (in its frame's order): touched down
     touched: list[bool] = field(default_factory=list)
     #: ... their free rod's cap pressure (low-passed while it moves), Pa
@@ -172,8 +175,16 @@ class PhaseRun:
 
     @property
     def progress(self) -> float:
-        """The reference clock's share of the duration, 0 to 1."""
+        """The reference clock's share of the duration, 0 to 1; a force ramp's: how far
+        along its line."""
+        if self.ramp is not None:
+            return self.ramp.fraction(self.clock_s)
         return 1.0 if self.duration_s <= 0 else min(1.0, self.clock_s / self.duration_s)
+
+    @property
+    def rate_share(self) -> float:
+        """A force ramp's rate now as a share of its full rate, 0 to 1."""
+        return 0.0 if self.ramp is None else self.ramp.rate_share(self.clock_s)
 
 
 @dataclass

@@ -58,6 +58,7 @@ from ipc_app.control.walk.phases import (
     walk_active_group,
 )
 from ipc_app.model.support import cap_side_forces_n
+from ipc_app.planner.force_ramp import ForceRamp, blend_s
 from ipc_app.planner.walk import Move, Phase, WalkPlan
 
 FloatArray = NDArray[np.float64]
@@ -97,6 +98,7 @@ class WalkSequencer(WalkLoops):
         self.touch_force_n = [float(v) for v in self.touch_rise_pa * self.cap_area_m2[self.legs]]
         self.touchdown_travel_m = units.mm(self.walk.touchdown_travel_mm)
         self.touchdown_speed_m_s = touchdown_speed_m_s(cfg)
+        self.ramp_blend_s = blend_s(cfg)
         traj = cfg.planner.trajectory
         self.leg_speed_m_s = traj.max_rod_speed_m_s
         self.leg_accel_m_s2 = traj.max_rod_accel_m_s2
@@ -178,7 +180,7 @@ class WalkSequencer(WalkLoops):
                 run.k_oil_n_m[j] = hydraulic_stiffness_n_m(
                     cyl, self.cfg.plant_of(cyl), self.cfg.hydraulics, float(x[self.legs[j]])
                 )
-        run.duration_s = self._ramp_duration_s(run, f)
+        self._set_ramp(run, f)
         if run.kind is PhaseKind.TRANSFER:
             run.plan_start_n = run.phase.leg_forces_n[0].copy()
         self._set_release_rate(run, x_s, f)
@@ -224,10 +226,12 @@ class WalkSequencer(WalkLoops):
     def _lift(self) -> Move:
         return Move(-self.walk.clearance_m, self.leg_speed_m_s, self.leg_accel_m_s2)
 
-    def _ramp_duration_s(self, run: PhaseRun, f: FloatArray) -> float:
-        """A force ramp's duration from the receiving legs' forces ``f`` to their target."""
+    def _set_ramp(self, run: PhaseRun, f: FloatArray) -> None:
+        """A force ramp from the receiving legs' forces ``f`` to their target: its line's
+        time at full rate (the largest change of any leg), blended in and out."""
         delta = max(abs(float(run.target_force_n[j] - f[j])) for j in run.role.frame)
-        return delta / self.walk.force_ramp_n_s
+        run.ramp = ForceRamp.of(delta / self.walk.force_ramp_n_s, self.ramp_blend_s)
+        run.duration_s = run.ramp.duration_s
 
     def _margin_ahead(self, ph: Phase, x_s: float) -> float:
         """The least margin along the phase's commanded motion, from the measured start,
@@ -276,7 +280,8 @@ class WalkSequencer(WalkLoops):
                 run.plan_start_n = run.plan_start_n + run.progress * line_n
             for j in run.role.frame:
                 run.start_force_n[j] = f[j]
-            run.clock_s, run.duration_s = 0.0, self._ramp_duration_s(run, f)
+            run.clock_s = 0.0
+            self._set_ramp(run, f)
             self._set_release_rate(run, self.x_s(x), f)
 
     # ----------------------------------------------------------------- the cycle
@@ -484,7 +489,7 @@ class WalkSequencer(WalkLoops):
         progress = run.progress
         for j in run.role.frame:
             f0, f1 = float(run.start_force_n[j]), float(run.target_force_n[j])
-            rate_n_s = 0.0 if progress >= 1.0 else (f1 - f0) / run.duration_s
+            rate_n_s = (f1 - f0) / self._linear_s(run) * run.rate_share
             cyc.force_ref[self.legs[j]] = (f0 + progress * (f1 - f0), rate_n_s)
 
     def _hold_body(self, run: PhaseRun, cyc: PhaseCycle) -> None:
@@ -494,7 +499,7 @@ class WalkSequencer(WalkLoops):
         through the receiving legs' force loops that rang in the pitch pattern, some
         1.2 s a period), not in the twist mode."""
         releasing = list(run.role.standing)
-        released_n = run.release_rate_n_s[releasing] * min(run.clock_s, run.duration_s)
+        released_n = run.release_rate_n_s[releasing] * self._linear_s(run) * run.progress
         unloaded_n = run.release_from_n[releasing] + released_n - run.start_force_n[releasing]
         follow_m = unloaded_n / self.k_contact
         follow_m -= twist_part(follow_m)
@@ -502,7 +507,7 @@ class WalkSequencer(WalkLoops):
         # it changed the state M's touch-downs meet in 7a: at 5 mm/s 7b's trip went from
         # 110.26 to 110.75 %)
         told = run.progress < 1.0 and run.role.decompression_feedforward
-        told_rate_n_s = run.release_rate_n_s[releasing] * (1.0 if told else 0.0)
+        told_rate_n_s = run.release_rate_n_s[releasing] * (run.rate_share if told else 0.0)
         follow_m_s = told_rate_n_s / self.k_contact
         follow_m_s -= twist_part(follow_m_s)
         for k, (j, follow) in enumerate(zip(releasing, follow_m, strict=True)):
@@ -626,6 +631,11 @@ class WalkSequencer(WalkLoops):
 
     # ----------------------------------------------------------------- shared pieces
 
+    @staticmethod
+    def _linear_s(run: PhaseRun) -> float:
+        """A force ramp's line at full rate, s."""
+        return run.ramp.linear_s if run.ramp is not None else run.duration_s
+
     def _set_release_rate(self, run: PhaseRun, x_s: float, f: FloatArray) -> None:
         """A preload's or transfer's releasing legs' force rates (``run.release_rate_n_s``,
         N/s) while the receiving legs' references ramp from ``f`` to
@@ -636,9 +646,9 @@ class WalkSequencer(WalkLoops):
         receiving, releasing = list(run.role.frame), list(run.role.standing)
         run.release_rate_n_s = np.zeros(8)
         run.release_from_n = np.array(f, dtype=float)
-        if run.duration_s <= 0:
+        if self._linear_s(run) <= 0:
             return
-        ramp_n_s = (run.target_force_n - f) / run.duration_s
+        ramp_n_s = (run.target_force_n - f) / self._linear_s(run)
         a = equilibrium_matrix(self.machine, x_s)
         run.release_rate_n_s[releasing] = -min_norm_forces(
             a, releasing, a[:, receiving] @ ramp_n_s[receiving]
