@@ -17,9 +17,10 @@ Choices where walking.md is silent:
 - Preload and transfer ramp the leg forces at ``walking.force_ramp_kn_s`` (the largest
   change of any leg sets the duration), the rate blended in and out
   (:mod:`ipc_app.planner.force_ramp`: one blend longer; the samples are the line's).
-  During a transfer the forces move on the straight line from the preloaded to the new standing distribution (every point of it is an
-  equilibrium); the transfer ends when every releasing leg is at ``unloaded_percent`` of
-  its standing share, the rest is shed as it lifts.
+  During a transfer the forces move on the straight line from the preloaded to the new
+  standing distribution (every point of it is an equilibrium); the transfer ends when
+  every releasing leg is at ``unloaded_percent`` of its standing share, the rest is shed
+  as it lifts.
 - Rails and guides take no travel force: the travel force is what moves the free frame
   (its mass times the acceleration, plus gravity along the base x).
 """
@@ -42,8 +43,8 @@ from ipc_app.model.support import (
     stability_margin,
     support_forces,
 )
-from ipc_app.planner.force_ramp import ForceRamp, blend_s
 from ipc_app.planner.capacity import Duty, pressure_limit_pa, pressure_reason
+from ipc_app.planner.force_ramp import ForceRamp, blend_s
 
 _SAMPLES = 41  # samples per phase (the margin and forces are checked at each)
 
