@@ -558,14 +558,17 @@ def test_the_spec_says_which_kind_of_campaign_it_is(tmp_path: Path) -> None:
     del data["kind"]
     with pytest.raises(ConfigError, match=r"kind: .*required"):
         load_campaign(write_spec(tmp_path, data))
-    # the shipped nominal campaigns' events are within the shipped project's bounds; the
-    # fault campaign's link losses reach past its ride-through
-    for name in ("shanghai_airport_link", "shanghai_airport_link_walk"):
-        assert load_campaign(REPO / f"config/campaigns/{name}.yaml").spec.kind == "nominal"
-    faults = load_campaign(REPO / "config/campaigns/shanghai_airport_link_faults.yaml")
-    assert faults.spec.kind == "fault"
-    kinds = {ev.event["kind"] for ev in faults.spec.events}
-    assert kinds >= {"plc_stall", "drop", "bus_off", "sensor", "holding_valve_leak"}
+    # the shipped nominal campaigns' events are within the shipped project's bounds; each
+    # fault campaign's link losses reach past its ride-through: a nominal and a fault
+    # campaign for each motion (the attitude adjustment, the walk, the ring cycle)
+    shipped = sorted((REPO / "config/campaigns").glob("*.yaml"))
+    pairs = {(c.spec.run.kind, c.spec.kind): c for c in map(load_campaign, shipped)}
+    assert len(pairs) == len(shipped) == 6
+    for run in ("attitude_targets", "walk", "ring_cycle"):
+        assert (run, "nominal") in pairs
+        faults = pairs[(run, "fault")]
+        kinds = {ev.event["kind"] for ev in faults.spec.events}
+        assert kinds >= {"plc_stall", "drop", "bus_off", "sensor", "holding_valve_leak"}, run
 
 
 def test_a_fault_run_is_judged_on_the_reaction() -> None:
