@@ -149,6 +149,10 @@ class PhaseRun:
     touch_force_n: list[float] = field(default_factory=list)
     #: the lowering is in its slow part (touch-down looked for)
     in_touchdown_window: bool = False
+    #: a lowering's legs (in its frame's order): their expected ground's shift from
+    #: ``clearance`` below their start, m (the body's motion since they lifted,
+    #: :mod:`ipc_app.control.walk.ground`), applied over the lowering's fast part
+    ground_shift_m: FloatArray = field(default_factory=lambda: np.zeros(4))
     #: machine time its group left its sync band, s (None: inside)
     out_of_band_since_s: float | None = None
     #: what the standing frame's legs carry alone (a preload's or transfer's), N

@@ -49,6 +49,7 @@ from ipc_app.control.sync import sync_errors
 from ipc_app.control.tuning import touchdown_speed_m_s
 from ipc_app.control.walk.figures import StepFigures, WalkFigures
 from ipc_app.control.walk.forces import equilibrium_matrix, min_norm_forces
+from ipc_app.control.walk.ground import LiftMark, invert_plane, surface_z_m
 from ipc_app.control.walk.loops import WalkLoops, twist_part
 from ipc_app.control.walk.phases import (
     PHASES,
@@ -113,6 +114,8 @@ class WalkSequencer(WalkLoops):
         self.leg_force_n = np.zeros(8)
         #: force references of the legs in force control this cycle (NaN: not), N
         self.force_ref_n = np.full(8, math.nan)
+        #: each frame's last lift (its legs' indices -> where they left the invert)
+        self.lift_marks: dict[tuple[int, ...], LiftMark] = {}
 
     def active_group(self) -> list[int]:
         """The present phase's active group (:func:`walk_active_group`)."""
@@ -158,11 +161,34 @@ class WalkSequencer(WalkLoops):
         run.touched = [False] * 4
         run.free_cap_pa = [float(p[self.legs[j], 0]) for j in run.role.frame]
         run.touch_force_n = [0.0] * 4
+        mark = self.lift_marks.get(tuple(run.role.frame))
+        if mark is not None:  # the expected ground follows the body since the lift
+            touch = mark.touch_rods_now(*self._invert_now(run, x, p, x_s))
+            start = np.array([x[self.legs[j]] for j in run.role.frame])
+            shift = touch - (start + self.walk.clearance_m)
+            run.ground_shift_m = np.clip(shift, -self.touchdown_travel_m, self.touchdown_travel_m)
         self._legs_to_position_control(x)
 
     def _start_lift(self, run: PhaseRun, x: FloatArray, p: FloatArray, x_s: float) -> None:
         run.duration_s = self._lift().duration_s
+        xy, surface, _ = self._invert_now(run, x, p, x_s)
+        lifting = list(run.role.frame)
+        self.lift_marks[tuple(lifting)] = LiftMark(
+            invert_plane(xy, surface),
+            x[[self.legs[j] for j in lifting]] - self.forces_n(p)[lifting] / self.k_contact,
+        )
         self._legs_to_position_control(x)
+
+    def _invert_now(
+        self, run: PhaseRun, x: FloatArray, p: FloatArray, x_s: float
+    ) -> tuple[FloatArray, FloatArray, FloatArray]:
+        """The standing feet's body coordinates and the invert's surface under them
+        (:mod:`~ipc_app.control.walk.ground`), and the moving frame's feet's coordinates."""
+        xy = self.machine.legs_xy(x_s)
+        standing = list(run.role.standing)
+        rods = x[[self.legs[j] for j in standing]]
+        surface = surface_z_m(rods, self.forces_n(p)[standing], self.k_contact)
+        return xy[standing], surface, xy[list(run.role.frame)]
 
     def _start_force_ramp(self, run: PhaseRun, x: FloatArray, p: FloatArray, x_s: float) -> None:
         """A preload or a transfer: the receiving legs' ramp to their target in force
@@ -368,12 +394,18 @@ class WalkSequencer(WalkLoops):
         stops and holds its touch force."""
         lowered_m, rate_m_s = self._lowering(run.clock_s)
         frame = run.role.frame
+        # each leg's expected ground shift taken in over the fast part, with its rate
+        fast_m = self._fast_lowering().distance_m
+        in_fast = lowered_m < fast_m
+        share = min(1.0, lowered_m / fast_m) if fast_m > 0 else 1.0
         for k, j in enumerate(frame):
             i = self.legs[j]
             if run.touched[k]:  # touched: it holds its touch force
                 cyc.force_ref[i] = (run.touch_force_n[k], 0.0)
                 continue
-            self._move_leg(run, cyc, i, lowered_m, rate_m_s)
+            shift = float(run.ground_shift_m[k])
+            rate = rate_m_s * (1.0 + shift / fast_m) if in_fast and fast_m > 0 else rate_m_s
+            self._move_leg(run, cyc, i, lowered_m + share * shift, rate)
         cyc.sync_band_m = self.leg_sync_band_m
         # touch-down is looked for from touchdown_travel above the expected ground
         window_from_m = self.walk.clearance_m - self.touchdown_travel_m
@@ -399,7 +431,8 @@ class WalkSequencer(WalkLoops):
         obstacle = not in_window and float(cyc.body_force_n[j]) > self.touch_force_n[j]
         if obstacle:
             lowered_m = float(cyc.position_m[i] - run.start_position_m[i])
-            self.figures.obstacle = (self.leg_ids[j], self.walk.clearance_m - lowered_m)
+            above_m = self.walk.clearance_m + float(run.ground_shift_m[k]) - lowered_m
+            self.figures.obstacle = (self.leg_ids[j], above_m)
         if obstacle or (in_window and rise_pa > self.touch_rise_pa):
             run.touched[k] = True
             run.touch_force_n[k] = float(cyc.leg_force_n[j])
