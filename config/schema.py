@@ -357,6 +357,14 @@ class Workpiece(Strict):
     #: its mass, for a project without an upper body ``workpiece``; left out, the body's
     #: (which the statics and the simulator carry; config.crosscheck: the same if both)
     mass_kg: MassKg | None = None
+    #: the difference in width between the part's two ends (a tapered part closes a
+    #: curve's joints: w L / R); positive: the left end (+y) narrower, for a curve to the
+    #: left; negative: the right end; 0: rectangular
+    taper_mm: Annotated[Finite, Field(ge=-500, le=500)] = 0.0
+
+    @property
+    def taper_m(self) -> float:
+        return units.mm(self.taper_mm)
 
 
 class Robot(Strict):

@@ -10,9 +10,22 @@ import numpy as np
 import pytest
 from pydantic import ValidationError
 
+from config import ProjectConfig, load_project, units
 from config.schema import Alignment
 from ipc_app.model.alignment import along_axis_m
-from ipc_app.model.placement import axis_pose, chainage_along
+from ipc_app.model.placement import (
+    Pose,
+    axis_pose,
+    chainage_along,
+    compose,
+    design_pose,
+    face_corners,
+    face_points,
+    ring_chainage_m,
+    to_ring_frame,
+    tunnel_frame,
+)
+from ipc_app.planner.placement import joint_opening, plan_from_deviation
 
 R = 400.0
 
@@ -159,7 +172,10 @@ CONTIGUITY = [
     ),
     (  # a vertical curve not between two grades
         [{"start_chainage_m": 0, "kind": "straight"}],
-        [{"start_chainage_m": 0, "gradient_percent": 0.3}, {"start_chainage_m": 9, "radius_m": 3e3}],
+        [
+            {"start_chainage_m": 0, "gradient_percent": 0.3},
+            {"start_chainage_m": 9, "radius_m": 3e3},
+        ],
         r"vertical\.elements\[1\] .*joins a grade before it to one after it",
     ),
 ]
@@ -184,7 +200,9 @@ def test_elements_that_do_not_join_are_refused_naming_the_element(
 )
 def test_an_elements_keys_match_its_kind(element: dict[str, Any], message: str) -> None:
     with pytest.raises(ValidationError, match=message):
-        _axis([{"start_chainage_m": 0, **element}], [{"start_chainage_m": 0, "gradient_percent": 0}])
+        _axis(
+            [{"start_chainage_m": 0, **element}], [{"start_chainage_m": 0, "gradient_percent": 0}]
+        )
 
 
 def test_one_form_of_the_axis_and_horizontal_with_vertical() -> None:
@@ -207,3 +225,89 @@ def test_the_straight_forms_are_unchanged() -> None:
     t = np.array([1.0, 0.0, -0.003]) / math.hypot(1.0, 0.003)
     assert p.position == pytest.approx(10.0 * t) and p.yaw == 0.0
     assert chainage_along(straight, 4.0, 2.0) == 6.0
+
+
+# --------------------------------------------------------------------------- the parts' taper
+
+
+def _on_curve(radius: float, taper_mm: float, grade: float = 0.0) -> ProjectConfig:
+    cfg = load_project()
+    tunnel = cfg.tunnel.model_copy(update={"alignment": _curve(radius, grade)})
+    part = cfg.workpiece.model_copy(update={"taper_mm": taper_mm})
+    return cfg.model_copy(update={"tunnel": tunnel, "workpiece": part})
+
+
+def _design_gaps_mm(cfg: ProjectConfig, ring: int) -> np.ndarray:
+    design = design_pose(cfg, ring)
+    prev = to_ring_frame(cfg, design_pose(cfg, ring - 1), ring - 1, ring)
+    d = design.apply(face_corners(cfg, front=False)) - prev.apply(face_corners(cfg, front=True))
+    return np.asarray(units.to_mm(d[:, 0]))
+
+
+@pytest.mark.parametrize("radius", [R, -R, 300.0])
+def test_rectangular_parts_open_w_l_over_r_and_the_matching_taper_closes_it(
+    radius: float,
+) -> None:
+    w, length = 2.0, 9.5
+    opening = units.to_mm(w * length / abs(radius))  # 47.5 mm at 400 m
+    gaps = _design_gaps_mm(_on_curve(radius, 0.0), 4)
+    # corners (+y, -y) bottom and top: the outside of the curve opens, the inside overlaps
+    assert gaps.max() - gaps.min() == pytest.approx(opening, rel=1e-3)
+    outside = 1 if radius > 0 else 0
+    assert gaps[outside] > 0 > gaps[1 - outside]
+    # the taper that closes it has the sign of the radius: the inner end narrower
+    closed = _design_gaps_mm(_on_curve(radius, math.copysign(opening, radius)), 4)
+    assert np.ptp(closed) < 1e-3 * opening and abs(closed).max() < 1e-3 * opening
+    wrong = _design_gaps_mm(_on_curve(radius, -math.copysign(opening, radius)), 4)
+    assert np.ptp(wrong) == pytest.approx(2 * opening, rel=1e-3)
+
+
+def test_a_tapered_parts_faces_are_its_width_less_taper_y_over_l() -> None:
+    cfg = _on_curve(R, 40.0)
+    front = face_points(cfg, [(4.75, 0.0), (-4.75, 0.0), (0.0, 1.0)])
+    rear = face_points(cfg, [(4.75, 0.0), (-4.75, 0.0), (0.0, 1.0)], front=False)
+    widths = front[:, 0] - rear[:, 0]
+    assert widths == pytest.approx([2.0 - 0.02, 2.0 + 0.02, 2.0])  # left end narrower
+    assert face_corners(cfg, front=True)[:, 0] == pytest.approx([0.99, 1.01, 0.99, 1.01])
+
+
+def test_on_a_curve_the_target_yaw_follows_the_axis_and_tapered_parts_close_the_joint() -> None:
+    cfg = _on_curve(R, 47.5, grade=3.0)
+    plan = plan_from_deviation(cfg, 3, Pose())
+    assert plan.feasible, plan.reasons
+    # in the project frame the target's yaw is the axis's heading at the part's mid-width
+    al = cfg.tunnel.alignment
+    assert al is not None
+    mid = chainage_along(al, ring_chainage_m(cfg, 3), 1.0)
+    heading = axis_pose(al, mid).yaw
+    assert compose(tunnel_frame(cfg, 3), plan.design).yaw == pytest.approx(heading, abs=1e-12)
+    # the target: within the planner's evening of the gap (0.05 mm at the part's ends)
+    assert compose(tunnel_frame(cfg, 3), plan.target).yaw == pytest.approx(heading, abs=2e-5)
+    assert axis_pose(al, mid).yaw == pytest.approx(mid / R)
+    t4 = plan.judged
+    assert t4["min_gap_mm"]["value"] >= 0.0 and t4["min_gap_mm"]["passed"]
+    assert t4["max_gap_mm"]["value"] <= cfg.acceptance.max_gap_mm
+    assert t4["max_gap_mm"]["value"] - t4["min_gap_mm"]["value"] < 0.1
+
+
+def test_rectangular_parts_on_a_curve_are_refused_naming_the_curve_and_the_taper() -> None:
+    cfg = _on_curve(R, 0.0)
+    plan = plan_from_deviation(cfg, 3, Pose())
+    assert not plan.feasible
+    assert plan.binding is not None and plan.binding.name.startswith(("max_gap", "no overlap"))
+    assert plan.reasons[0].startswith(
+        "the joint opens 47.5 mm on a 400 m curve to the left with rectangular parts "
+        "(workpiece.taper_mm); a taper of 47.5 mm closes it: "
+    )
+    j = joint_opening(cfg, 3)
+    assert j.radius_m == pytest.approx(R) and j.taper_needed_mm == pytest.approx(47.5, abs=0.01)
+    # a part tapered the wrong way round: the curve to the right needs the negative taper
+    wrong = plan_from_deviation(_on_curve(-R, 47.5), 3, Pose())
+    assert (
+        "the joint opens 95.0 mm on a 400 m curve to the right with parts tapered 47.5 mm"
+        in (wrong.reasons[0])
+    )
+    assert "a taper of -47.5 mm closes it" in wrong.reasons[0]
+    # a refusal that is no curve's doing says nothing of one
+    straight = plan_from_deviation(load_project(), 3, Pose(y=units.mm(9.0)))
+    assert not straight.feasible and "the joint opens" not in straight.reasons[0]

@@ -118,6 +118,7 @@ _TABLE = (
     AlignmentPoint(chainage_m=100.0, x_m=100.0, y_m=0.0, z_m=-1.0),
 )
 
+
 def heading(cfg: ProjectConfig) -> Any:
     return round(tunnel_frame(cfg, 5).yaw, 12)
 

@@ -29,6 +29,7 @@ element goes on.
 
 from __future__ import annotations
 
+import itertools
 import math
 from typing import NamedTuple
 
@@ -79,14 +80,11 @@ def _advance(p: PlanPoint, k0: float, k1: float, length: float, u: float) -> Pla
         )
     rate = (k1 - k0) / length
 
-    def theta(s: np.ndarray | float) -> np.ndarray | float:
-        return p.heading + k0 * s + 0.5 * rate * s * s
-
     s = 0.5 * u * (_NODES + 1.0)
-    th = theta(s)
-    dx = 0.5 * u * float(np.sum(_WEIGHTS * np.cos(th)))
-    dy = 0.5 * u * float(np.sum(_WEIGHTS * np.sin(th)))
-    return PlanPoint(p.x + dx, p.y + dy, float(theta(u)))
+    ths = p.heading + k0 * s + 0.5 * rate * s * s
+    dx = 0.5 * u * float(np.sum(_WEIGHTS * np.cos(ths)))
+    dy = 0.5 * u * float(np.sum(_WEIGHTS * np.sin(ths)))
+    return PlanPoint(p.x + dx, p.y + dy, p.heading + k0 * u + 0.5 * rate * u * u)
 
 
 def plan_point(h: HorizontalAlignment, chainage_m: float) -> PlanPoint:
@@ -113,9 +111,8 @@ def _grades(v: VerticalAlignment) -> list[tuple[float, float]]:
     out = []
     for i, e in enumerate(el):
         if e.radius_m is not None:
-            out.append(
-                ((el[i - 1].gradient_percent or 0.0) / 100, (el[i + 1].gradient_percent or 0.0) / 100)
-            )
+            g0, g1 = el[i - 1].gradient_percent or 0.0, el[i + 1].gradient_percent or 0.0
+            out.append((g0 / 100.0, g1 / 100.0))
         else:
             g = (e.gradient_percent or 0.0) / 100.0
             out.append((g, g))
@@ -150,7 +147,7 @@ def along_axis_m(v: VerticalAlignment, c0: float, c1: float) -> float:
         return -along_axis_m(v, c1, c0)
     cuts = [c0, *(e.start_chainage_m for e in v.elements if c0 < e.start_chainage_m < c1), c1]
     total = 0.0
-    for a, b in zip(cuts, cuts[1:], strict=False):
+    for a, b in itertools.pairwise(cuts):
         s = a + 0.5 * (b - a) * (_NODES + 1.0)
         g = np.array([level(v, float(c)).grade for c in s])
         total += 0.5 * (b - a) * float(np.sum(_WEIGHTS * np.sqrt(1.0 + g * g)))

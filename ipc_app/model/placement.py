@@ -222,15 +222,29 @@ def _placement(cfg: ProjectConfig) -> Any:
 # --------------------------------------------------------------------------- joint figures
 
 
+def face_points(cfg: ProjectConfig, faces: Any, front: bool = True) -> Array:
+    """Points ``(y, z)`` of a joint face (part frame, e.g. a survey's ``face_y_m,
+    face_z_m``) as part-frame points (n, 3).
+
+    A tapered part (``workpiece.taper_mm`` t) is ``w - t y / L`` wide at ``y`` (``w`` its
+    width, ``L`` its length), each face taking half: the front face at
+    ``x = (w - t y / L) / 2``, the rear at its negative. ``t > 0`` makes the left end
+    (+y) the narrower, the inside of a left-hand curve (``radius_m > 0``); ``t < 0`` the
+    right end; ``t = w L / R`` puts both faces on the curve's radii (docs/curves.md)."""
+    w = cfg.workpiece
+    f = np.asarray(faces, dtype=float).reshape(-1, 2)
+    x = (w.width_m - w.taper_m * f[:, 0] / w.length_m) / 2.0
+    return np.column_stack([x if front else -x, f[:, 0], f[:, 1]])
+
+
 def face_corners(cfg: ProjectConfig, front: bool) -> Array:
     """The four corners of a joint face in the part frame (a rectangle of the part's
-    length and height, at ``x = ±width/2``): order (+y, bottom), (-y, bottom), (+y, top),
-    (-y, top)."""
+    length and height, at ``x = ±width/2``, tapered as :func:`face_points` says): order
+    (+y, bottom), (-y, bottom), (+y, top), (-y, top)."""
     w = cfg.workpiece
-    x = w.width_m / 2.0 if front else -w.width_m / 2.0
     half = w.length_m / 2.0
-    return np.array(
-        [[x, half, 0.0], [x, -half, 0.0], [x, half, w.height_m], [x, -half, w.height_m]]
+    return face_points(
+        cfg, [(half, 0.0), (-half, 0.0), (half, w.height_m), (-half, w.height_m)], front
     )
 
 
