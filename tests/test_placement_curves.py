@@ -26,6 +26,7 @@ from ipc_app.model.placement import (
     tunnel_frame,
 )
 from ipc_app.planner.placement import joint_opening, plan_from_deviation
+from ipc_app.planner.survey import fit_survey, format_survey, parse_survey_text
 
 R = 400.0
 
@@ -311,3 +312,14 @@ def test_rectangular_parts_on_a_curve_are_refused_naming_the_curve_and_the_taper
     # a refusal that is no curve's doing says nothing of one
     straight = plan_from_deviation(load_project(), 3, Pose(y=units.mm(9.0)))
     assert not straight.feasible and "the joint opens" not in straight.reasons[0]
+
+
+def test_a_survey_of_a_tapered_part_on_the_curve_fits_its_pose() -> None:
+    """The survey's points on the front face lie on the tapered face (face_points): the
+    fit recovers the part's pose in its ring's tunnel frame on the curve and the grade."""
+    cfg = _on_curve(R, 47.5, grade=3.0)
+    pose = design_pose(cfg, 4).deviated(Pose(0.0, 0.002, -0.001, 0.0, 0.0, units.deg(0.02)))
+    faces = [(4.0, 0.3), (-4.0, 0.3), (3.5, 2.5), (-3.5, 2.5), (0.0, 1.4)]
+    fit = fit_survey(cfg, 4, parse_survey_text(format_survey(cfg, 4, pose, faces)))
+    assert fit.accepted, fit.reasons
+    assert np.allclose(fit.pose, pose, atol=1e-4)
