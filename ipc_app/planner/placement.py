@@ -21,9 +21,11 @@ from the design centreline and ``w`` the ``placement.weights``. Limits:
 SLSQP solves it from the previous part's deviation. When it finds no feasible point,
 a second solve keeps the steering-back bound and minimizes the squared Table 4
 violations: the largest left is the binding limit, reported with how much it is
-exceeded, and the plan is refused.
+exceeded, and the plan is refused. A gap limit that binds is explained first by the
+design joint's opening on a curve against the parts' taper (:func:`curve_reason`,
+docs/curves.md).
 
-Just over 500 lines because the target's optimization, its refusal with the binding
+Over 500 lines because the target's optimization, its refusal with the binding
 limit and the six-DOF moves that check it against strokes and pressures are one plan.
 """
 
