@@ -21,15 +21,18 @@ imported, the others not.
 
 from __future__ import annotations
 
+import itertools
 import math
-from collections.abc import Callable, Collection
+from collections.abc import Callable, Collection, Sequence
 from dataclasses import dataclass
+from typing import TypeVar
 
 from config import derived
-from config.schema import WORKPIECE_BODY, ProjectConfig
+from config.schema import WORKPIECE_BODY, HorizontalElement, ProjectConfig, VerticalElement
 
 #: A rule's check: ``None`` if the project keeps the rule, else the one-line reason.
 Check = Callable[[ProjectConfig], str | None]
+_E = TypeVar("_E", HorizontalElement, VerticalElement)
 
 #: ``workpiece.mass_kg``, when given beside the workpiece body, must equal it within this.
 MASS_TOLERANCE_KG = 1.0
@@ -44,6 +47,12 @@ ROBOT_MASS_TOLERANCE = 0.01
 #: A cylinder's action point may lie this far outside the robot's envelope (its feet and
 #: the envelope's rounding).
 ENVELOPE_TOLERANCE_M = 0.001
+#: The tightest horizontal radius the machine is built for (curves.md section 5: each
+#: 2 m step turns the frames by step / R, which walking.md's pivot must take).
+TIGHTEST_RADIUS_M = 300.0
+#: The steepest grade the machine is built for (curves.md section 5); the statics on it
+#: are the static-pressure rule's (``base.pitch_deg`` is the grade's).
+STEEPEST_GRADE_PERCENT = 5.0
 
 
 @dataclass(frozen=True)
@@ -185,12 +194,111 @@ def _pitch_range_deg(cfg: ProjectConfig) -> tuple[float, float] | None:
     if al.gradient_percent is not None:
         p = gradient_pitch_deg(al.gradient_percent)
         return p, p
+    if al.vertical is not None:
+        grades = [
+            e.gradient_percent for e in al.vertical.elements if e.gradient_percent is not None
+        ]
+        return min(map(gradient_pitch_deg, grades)), max(map(gradient_pitch_deg, grades))
     pitches = []
     for a, b in zip(al.points, al.points[1:], strict=False):
         run = math.hypot(b.x_m - a.x_m, b.y_m - a.y_m)
         if run > 0:
             pitches.append(-math.degrees(math.atan2(b.z_m - a.z_m, run)))
     return (min(pitches), max(pitches)) if pitches else None
+
+
+def _ring_elements(elements: Sequence[_E], first_ring_m: float) -> list[tuple[int, _E]]:
+    """The elements (with their index) the rings lie on: those ending after ring 1's
+    chainage (the last goes on)."""
+    out = []
+    for i, e in enumerate(elements):
+        end = elements[i + 1].start_chainage_m if i + 1 < len(elements) else math.inf
+        if end > first_ring_m:
+            out.append((i, e))
+    return out
+
+
+def _arcs(cfg: ProjectConfig) -> list[tuple[str, str, float | None]]:
+    """(key, what it is, signed radius or None for a straight) of each horizontal element
+    the rings lie on; a straight axis (``gradient_percent``) as one straight; a table's:
+    none (its polyline has no radius)."""
+    al = cfg.tunnel.alignment
+    if al is None or al.points:
+        return []
+    if al.horizontal is None:
+        return [("tunnel.alignment.gradient_percent", "a straight axis", None)]
+    out: list[tuple[str, str, float | None]] = []
+    for i, e in _ring_elements(al.horizontal.elements, al.first_ring_chainage_m):
+        key = f"tunnel.alignment.horizontal.elements[{i}]"
+        if e.radius_m:
+            out.append((f"{key}.radius_m", f"{_g(e.radius_m)} m", e.radius_m))
+        elif e.kind == "straight":  # a clothoid lies between its neighbours: theirs bound it
+            out.append((key, "a straight", None))
+    return out
+
+
+def _radius_and_taper(cfg: ProjectConfig) -> str | None:
+    part, gap = cfg.workpiece, cfg.acceptance.max_gap_mm
+    w_l = 1000.0 * part.width_m * part.length_m  # mm m: the opening is w L / R
+    t = part.taper_mm
+    for key, what, radius in _arcs(cfg):
+        curve = 0.0 if radius is None else w_l / radius
+        opening = abs(curve - t)
+        if opening <= gap + 1e-9:
+            continue
+        fix = f"a workpiece.taper_mm of {_g(round(curve - gap, 1))}..{_g(round(curve + gap, 1))}"
+        if radius is not None and t * radius > 0:
+            fix += f", or a radius of at least {w_l / (abs(t) + gap):.0f} m"
+        return (
+            f"{key}: {what} opens the joint {opening:.1f} mm with workpiece.taper_mm {_g(t)} "
+            f"(w L / R less the taper: workpiece.width_m {_g(part.width_m)} x length_m "
+            f"{_g(part.length_m)}), beyond acceptance.max_gap_mm {_g(gap)}; expected {fix}"
+        )
+    return None
+
+
+def _tightest_radius(cfg: ProjectConfig) -> str | None:
+    for key, _, radius in _arcs(cfg):
+        if radius is not None and abs(radius) < TIGHTEST_RADIUS_M:
+            return (
+                f"{key}: {_g(radius)} m is tighter than the machine is built for (its "
+                f"walk turns the frames by step / R: curves.md); expected |radius_m| >= "
+                f"{_g(TIGHTEST_RADIUS_M)}"
+            )
+    return None
+
+
+def _grades(cfg: ProjectConfig) -> list[tuple[str, float]]:
+    """(key, grade in percent) of the axis: its gradient, a table's segments, the grade
+    elements the rings lie on."""
+    al = cfg.tunnel.alignment
+    if al is None:
+        return []
+    if al.gradient_percent is not None:
+        return [("tunnel.alignment.gradient_percent", al.gradient_percent)]
+    if al.vertical is not None:
+        return [
+            (f"tunnel.alignment.vertical.elements[{i}].gradient_percent", e.gradient_percent)
+            for i, e in _ring_elements(al.vertical.elements, al.first_ring_chainage_m)
+            if e.gradient_percent is not None
+        ]
+    out = []
+    for i, (a, b) in enumerate(itertools.pairwise(al.points)):
+        run = math.hypot(b.x_m - a.x_m, b.y_m - a.y_m)
+        if run > 0:
+            out.append((f"tunnel.alignment.points[{i + 1}]", 100.0 * (b.z_m - a.z_m) / run))
+    return out
+
+
+def _steepest_grade(cfg: ProjectConfig) -> str | None:
+    for key, grade in _grades(cfg):
+        if abs(grade) > STEEPEST_GRADE_PERCENT + 1e-9:
+            return (
+                f"{key}: a grade of {grade:.3g} % is steeper than the machine is built for "
+                f"(its walking and standing on the invert: curves.md); expected within "
+                f"±{_g(STEEPEST_GRADE_PERCENT)} %"
+            )
+    return None
 
 
 def _base_pitch(cfg: ProjectConfig) -> str | None:
@@ -206,6 +314,9 @@ def _base_pitch(cfg: ProjectConfig) -> str | None:
     if al.gradient_percent is not None:
         source = f"tunnel.alignment.gradient_percent {_g(al.gradient_percent)} %"
         want = f"{lo:.4f} within {_g(PITCH_TOLERANCE_DEG)}"
+    elif al.vertical is not None:
+        source = f"tunnel.alignment.vertical: grades {-hi:.4f}..{-lo:.4f} deg"
+        want = f"{lo:.4f}..{hi:.4f} within {_g(PITCH_TOLERANCE_DEG)}"
     else:
         source = f"tunnel.alignment.points: gradients {-hi:.4f}..{-lo:.4f} deg"
         want = f"{lo:.4f}..{hi:.4f} within {_g(PITCH_TOLERANCE_DEG)}"
@@ -348,8 +459,30 @@ RULES: tuple[Rule, ...] = (
         "base-pitch-is-the-gradient",
         ("base.pitch_deg", "tunnel.alignment"),
         f"`pitch_deg` = -atan(`gradient_percent` / 100) within {_g(PITCH_TOLERANCE_DEG)} "
-        "deg (a `points` table: within its segments' range)",
+        "deg (a `points` table: within its segments' range; `vertical`: its grades')",
         _base_pitch,
+    ),
+    Rule(
+        "radius-within-the-taper",
+        ("tunnel.alignment.horizontal", "workpiece.taper_mm", "acceptance.max_gap_mm"),
+        "on every element the rings lie on (a straight axis: one straight; not a `points` "
+        "table), the design joint's opening abs(`width_m` `length_m` / `radius_m` - "
+        "`taper_mm`) (a straight's: abs(`taper_mm`)) <= `max_gap_mm`",
+        _radius_and_taper,
+    ),
+    Rule(
+        "radius-the-machine-takes",
+        ("tunnel.alignment.horizontal",),
+        f"every arc the rings lie on: abs(`radius_m`) >= {_g(TIGHTEST_RADIUS_M)} m "
+        "(`TIGHTEST_RADIUS_M`, curves.md)",
+        _tightest_radius,
+    ),
+    Rule(
+        "grade-the-machine-takes",
+        ("tunnel.alignment",),
+        f"`gradient_percent`, a table's segments' grades, every grade element the rings lie "
+        f"on: within ±{_g(STEEPEST_GRADE_PERCENT)} % (`STEEPEST_GRADE_PERCENT`, curves.md)",
+        _steepest_grade,
     ),
     Rule(
         "legs-within-the-envelope",

@@ -139,11 +139,146 @@ class AlignmentPoint(Strict):
     z_m: Annotated[Finite, Field(ge=-1e4, le=1e4)]
 
 
+#: Adjoining elements of a chainage-form alignment must meet within this (m): a
+#: clothoid's or vertical curve's length against what its parameter or radius gives.
+CONTIGUITY_TOLERANCE_M = 0.01
+
+
+class HorizontalElement(Strict):
+    """One element of the horizontal alignment, from its start chainage to the next
+    element's (the last goes on). Chainage is measured along the axis in plan, as the
+    designers' drawings give it."""
+
+    #: the chainage where this element starts (increasing from element to element)
+    start_chainage_m: Annotated[Finite, Field(ge=-1e6, le=1e6)]
+    #: `straight`, `arc` (radius_m) or `clothoid` (clothoid_parameter_m: its curvature
+    #: changes linearly from the element before's to the element after's)
+    kind: Literal["straight", "arc", "clothoid"]
+    #: an arc's radius, signed: positive turns left (its centre on the axis's left, +y;
+    #: counter-clockwise seen from above), negative right
+    radius_m: Annotated[Finite, Field(ge=-1e6, le=1e6)] | None = None
+    #: a clothoid's parameter A: its length is A^2 times the change of curvature it
+    #: makes (A^2 = R x length from a straight into an arc of radius R)
+    clothoid_parameter_m: Annotated[Finite, Field(gt=0, le=1e5)] | None = None
+
+    @model_validator(mode="after")
+    def _its_keys(self) -> HorizontalElement:
+        has_r, has_a = self.radius_m is not None, self.clothoid_parameter_m is not None
+        if self.kind == "arc" and (not has_r or self.radius_m == 0 or has_a):
+            raise ValueError("an arc gives radius_m (signed, not 0) and no clothoid_parameter_m")
+        if self.kind == "clothoid" and (not has_a or has_r):
+            raise ValueError("a clothoid gives clothoid_parameter_m and no radius_m")
+        if self.kind == "straight" and (has_r or has_a):
+            raise ValueError("a straight gives neither radius_m nor clothoid_parameter_m")
+        return self
+
+    @property
+    def curvature_per_m(self) -> float:
+        """A straight's or arc's curvature (1/m, positive turning left); a clothoid's is
+        its neighbours'."""
+        return 1.0 / self.radius_m if self.radius_m else 0.0
+
+
+class HorizontalAlignment(Strict):
+    """The design axis in plan: where it starts and its elements."""
+
+    #: the axis's x at the first element's start chainage, project frame
+    x_m: Annotated[Finite, Field(ge=-1e7, le=1e7)] = 0.0
+    #: its y there
+    y_m: Annotated[Finite, Field(ge=-1e7, le=1e7)] = 0.0
+    #: its heading there, from the project's +x toward +y (counter-clockwise from above)
+    heading_deg: Annotated[Finite, Field(ge=-360, le=360)] = 0.0
+    #: the elements, each from its start chainage; before the first the axis is straight
+    elements: tuple[HorizontalElement, ...] = Field(min_length=1)
+
+
+class VerticalElement(Strict):
+    """One element of the vertical alignment: a constant grade, or a vertical curve that
+    joins the grades before and after it (its grade changes linearly with chainage)."""
+
+    #: the chainage where this element starts (increasing from element to element)
+    start_chainage_m: Annotated[Finite, Field(ge=-1e6, le=1e6)]
+    #: a constant grade, rising this much per 100 m of chainage (or radius_m)
+    gradient_percent: Annotated[Finite, Field(ge=-10, le=10)] | None = None
+    #: a vertical curve's radius: its length is this times the change of grade between
+    #: its neighbours (which set whether it is a sag or a crest)
+    radius_m: Annotated[Finite, Field(gt=0, le=1e6)] | None = None
+
+    @model_validator(mode="after")
+    def _one_kind(self) -> VerticalElement:
+        if (self.gradient_percent is None) == (self.radius_m is None):
+            raise ValueError("give either gradient_percent (a grade) or radius_m (a curve)")
+        return self
+
+
+class VerticalAlignment(Strict):
+    """The design axis's levels along the chainage."""
+
+    #: the axis's z at the first element's start chainage, project frame
+    z_m: Annotated[Finite, Field(ge=-1e4, le=1e4)] = 0.0
+    #: the grades and vertical curves, each from its start chainage; before the first
+    #: the first grade goes on
+    elements: tuple[VerticalElement, ...] = Field(min_length=1)
+
+
+def _contiguous_horizontal(h: HorizontalAlignment) -> None:
+    el = h.elements
+    for i, e in enumerate(el):
+        name = f"horizontal.elements[{i}] ({e.kind} from chainage {e.start_chainage_m:g} m)"
+        if i and e.start_chainage_m <= el[i - 1].start_chainage_m:
+            raise ValueError(
+                f"{name}: does not start after elements[{i - 1}] "
+                f"({el[i - 1].start_chainage_m:g} m): the elements must follow one another"
+            )
+        if e.kind != "clothoid" or e.clothoid_parameter_m is None:
+            continue
+        if i == 0 or i == len(el) - 1:
+            raise ValueError(f"{name}: a clothoid joins two elements: it cannot be first or last")
+        before, after = el[i - 1], el[i + 1]
+        if "clothoid" in (before.kind, after.kind):
+            raise ValueError(f"{name}: a clothoid joins a straight or arc to another")
+        dk = abs(after.curvature_per_m - before.curvature_per_m)
+        length = after.start_chainage_m - e.start_chainage_m
+        want = e.clothoid_parameter_m**2 * dk
+        if dk == 0 or abs(length - want) > CONTIGUITY_TOLERANCE_M:
+            raise ValueError(
+                f"{name}: is {length:g} m long but A^2 x the change of curvature "
+                f"({e.clothoid_parameter_m:g}^2 x {dk:.6g} 1/m) makes it {want:.3f} m: "
+                f"elements[{i + 1}] should start at {e.start_chainage_m + want:.3f} m"
+            )
+
+
+def _contiguous_vertical(v: VerticalAlignment) -> None:
+    el = v.elements
+    for i, e in enumerate(el):
+        kind = "grade" if e.radius_m is None else "vertical curve"
+        name = f"vertical.elements[{i}] ({kind} from chainage {e.start_chainage_m:g} m)"
+        if i and e.start_chainage_m <= el[i - 1].start_chainage_m:
+            raise ValueError(
+                f"{name}: does not start after elements[{i - 1}] "
+                f"({el[i - 1].start_chainage_m:g} m): the elements must follow one another"
+            )
+        if e.radius_m is None:
+            continue
+        if i == 0 or i == len(el) - 1 or el[i - 1].radius_m or el[i + 1].radius_m:
+            raise ValueError(f"{name}: a vertical curve joins a grade before it to one after it")
+        g0, g1 = el[i - 1].gradient_percent or 0.0, el[i + 1].gradient_percent or 0.0
+        length = el[i + 1].start_chainage_m - e.start_chainage_m
+        want = e.radius_m * abs(g1 - g0) / 100.0
+        if g0 == g1 or abs(length - want) > CONTIGUITY_TOLERANCE_M:
+            raise ValueError(
+                f"{name}: is {length:g} m long but radius_m x the change of grade "
+                f"({e.radius_m:g} m x {abs(g1 - g0):g} %) makes it {want:.3f} m: "
+                f"elements[{i + 1}] should start at {e.start_chainage_m + want:.3f} m"
+            )
+
+
 class Alignment(Strict):
-    """The design axis (placement.md section 1; docs/placement.md): a straight axis with a
-    gradient, or a table of centreline points (linear between rows), in project
+    """The design axis (placement.md section 1; docs/curves.md): a straight axis with a
+    gradient, a table of centreline points (linear between rows), or by chainage as the
+    designers hand it over (``horizontal`` and ``vertical`` elements), in project
     coordinates. ``first_ring_chainage_m``: the chainage of ring 1's rear joint face; ring
-    ``n``'s is ``n - 1`` ring widths further."""
+    ``n``'s is ``n - 1`` ring widths further along the axis."""
 
     #: the chainage of ring 1's rear joint face; ring n's is n - 1 ring widths further
     first_ring_chainage_m: Annotated[Finite, Field(ge=-1e6, le=1e6)] = 0.0
@@ -152,11 +287,25 @@ class Alignment(Strict):
     #: the design axis as a table of centreline points, linear between rows (instead of
     #: gradient_percent)
     points: tuple[AlignmentPoint, ...] = ()
+    #: the axis in plan by chainage: straights, arcs and clothoids (with ``vertical``;
+    #: instead of gradient_percent or points)
+    horizontal: HorizontalAlignment | None = None
+    #: the axis's levels by chainage: grades joined by vertical curves (with ``horizontal``)
+    vertical: VerticalAlignment | None = None
 
     @model_validator(mode="after")
     def _one_form(self) -> Alignment:
-        if (self.gradient_percent is None) == (not self.points):
-            raise ValueError("give either gradient_percent (a straight axis) or points (a table)")
+        if (self.horizontal is None) != (self.vertical is None):
+            raise ValueError("horizontal and vertical: give both (the axis by chainage)")
+        forms = (self.gradient_percent is not None) + bool(self.points) + self.by_chainage
+        if forms != 1:
+            raise ValueError(
+                "give either gradient_percent (a straight axis), points (a table) or "
+                "horizontal and vertical (the axis by chainage)"
+            )
+        if self.horizontal is not None and self.vertical is not None:
+            _contiguous_horizontal(self.horizontal)
+            _contiguous_vertical(self.vertical)
         if self.points:
             if len(self.points) < 2:
                 raise ValueError("points: a table needs at least two rows")
@@ -164,6 +313,11 @@ class Alignment(Strict):
             if any(b <= a for a, b in itertools.pairwise(ch)):
                 raise ValueError("points: chainage_m must increase from row to row")
         return self
+
+    @property
+    def by_chainage(self) -> bool:
+        """The axis by chainage (``horizontal`` and ``vertical``)."""
+        return self.horizontal is not None
 
 
 class Tunnel(Strict):
@@ -203,6 +357,14 @@ class Workpiece(Strict):
     #: its mass, for a project without an upper body ``workpiece``; left out, the body's
     #: (which the statics and the simulator carry; config.crosscheck: the same if both)
     mass_kg: MassKg | None = None
+    #: the difference in width between the part's two ends (a tapered part closes a
+    #: curve's joints: w L / R); positive: the left end (+y) narrower, for a curve to the
+    #: left; negative: the right end; 0: rectangular
+    taper_mm: Annotated[Finite, Field(ge=-500, le=500)] = 0.0
+
+    @property
+    def taper_m(self) -> float:
+        return units.mm(self.taper_mm)
 
 
 class Robot(Strict):

@@ -5,6 +5,7 @@ table lists them all."""
 from __future__ import annotations
 
 import copy
+import itertools
 import re
 from collections.abc import Callable
 from pathlib import Path
@@ -52,6 +53,37 @@ def _pitch_table(d: dict[str, Any]) -> None:
     }
 
 
+def _axis(radius_m: float, taper_mm: float, grades: tuple[float, ...] = (-0.3,)) -> Edit:
+    """The axis by chainage: a straight to chainage 0 (behind ring 1), then an arc of
+    ``radius_m``; ``grades`` from chainage -50, each joined to the next by a vertical curve
+    of 2000 m (the first is the shipped -0.3 %: the shipped base pitch); parts tapered
+    ``taper_mm``."""
+
+    def edit(d: dict[str, Any]) -> None:
+        vertical: list[dict[str, float]] = [
+            {"start_chainage_m": -50.0, "gradient_percent": grades[0]}
+        ]
+        at = 100.0
+        for g0, g1 in itertools.pairwise(grades):
+            vertical.append({"start_chainage_m": at, "radius_m": 2000.0})
+            at += 2000.0 * abs(g1 - g0) / 100.0
+            vertical.append({"start_chainage_m": at, "gradient_percent": g1})
+            at += 100.0
+        d["tunnel"]["alignment"] = {
+            "horizontal": {
+                "x_m": -50.0,
+                "elements": [
+                    {"start_chainage_m": -50.0, "kind": "straight"},
+                    {"start_chainage_m": 0.0, "kind": "arc", "radius_m": radius_m},
+                ],
+            },
+            "vertical": {"elements": vertical},
+        }
+        d["workpiece"]["taper_mm"] = taper_mm
+
+    return edit
+
+
 #: rule -> (a change to the shipped project that breaks it, the keys its line names)
 BREAKS: dict[str, tuple[Edit, tuple[str, ...]]] = {
     "pressure-limit-within-rating": (
@@ -93,6 +125,18 @@ BREAKS: dict[str, tuple[Edit, tuple[str, ...]]] = {
     "rods-within-their-bodies": (
         _set("hydraulics.rod_mass_kg", 1600),
         ("hydraulics.rod_mass_kg", "layers.upper.bodies", "upper_attitude"),
+    ),
+    "radius-within-the-taper": (
+        _set("workpiece.taper_mm", 20),
+        ("tunnel.alignment.gradient_percent", "workpiece.taper_mm", "acceptance.max_gap_mm"),
+    ),
+    "radius-the-machine-takes": (
+        _axis(250.0, 76.0),
+        ("tunnel.alignment.horizontal.elements[1].radius_m",),
+    ),
+    "grade-the-machine-takes": (
+        _axis(400.0, 47.5, (-0.3, -6.0)),
+        ("tunnel.alignment.vertical.elements[2].gradient_percent",),
     ),
     "legs-within-the-envelope": (
         _set("robot.length_mm", 5700),

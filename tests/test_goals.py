@@ -110,6 +110,7 @@ def _placed(**table4: float) -> dict[str, Any]:
         },
         "gap_error_mm": -0.2,
         "cycle_time_s": 300.0,
+        "min_gap_mm": 0.4,
     }
 
 
@@ -120,10 +121,13 @@ def test_a_placed_part_is_judged_against_the_projects_acceptance(project: Projec
     names = [g.figure for g in placement_goals(project)]
     assert names == [
         "vertical_misalignment_mm", "horizontal_misalignment_mm", "max_gap_mm",
-        "centreline_deviation_x_mm", "centreline_deviation_y_mm", "position_error_mm",
-        "angle_error_deg", "gap_error_mm",
+        "centreline_deviation_x_mm", "centreline_deviation_y_mm", "min_gap_mm",
+        "position_error_mm", "angle_error_deg", "gap_error_mm",
     ]  # fmt: skip
     assert judge(ring_goals(project), ring_figures(placed)).passed
+    # the gap at both ends of the joint: the largest within its limit, the smallest >= 0
+    overlap = judge(ring_goals(project), ring_figures({**placed, "min_gap_mm": -0.3}))
+    assert overlap.note == "min_gap_mm -0.3 < 0"
     tight = _with(project, "acceptance", vertical_misalignment_mm=7.0, pitch_angle_deg=0.003)
     verdict = judge(ring_goals(tight), ring_figures(placed))
     assert verdict.note == "vertical_misalignment_mm 7.5 > 7; pitch_angle_deg 0.5 > 0.003"

@@ -10,7 +10,14 @@ from typing import Any
 import pytest
 
 from config import ProjectConfig, load_project, units
-from config.schema import Alignment, AlignmentPoint, Placement, PlacementWeights
+from config.schema import (
+    Alignment,
+    AlignmentPoint,
+    HorizontalAlignment,
+    Placement,
+    PlacementWeights,
+    VerticalAlignment,
+)
 from ipc_app.model.placement import Pose, compose, design_pose, deviation, tunnel_frame
 from ipc_app.planner.placement import check_moves, plan_from_deviation
 from ipc_app.planner.survey import fit_survey, format_survey, parse_survey_text
@@ -28,6 +35,9 @@ def _with(cfg: ProjectConfig, key: str, value: Any) -> ProjectConfig:
         upd: dict[str, Any] = {rest[0]: value}
         if rest[0] == "points":
             upd["gradient_percent"] = None
+        if rest[0] in ("horizontal", "vertical"):  # the axis by chainage: both, in place
+            upd = {"gradient_percent": None, "horizontal": _STRAIGHT, "vertical": _SHIPPED_GRADE}
+            upd[rest[0]] = value
         tunnel = cfg.tunnel.model_copy(update={"alignment": al.model_copy(update=upd)})
         return cfg.model_copy(update={"tunnel": tunnel})
     pl = cfg.placement
@@ -108,6 +118,24 @@ _TABLE = (
     AlignmentPoint(chainage_m=100.0, x_m=100.0, y_m=0.0, z_m=-1.0),
 )
 
+
+def heading(cfg: ProjectConfig) -> Any:
+    return round(tunnel_frame(cfg, 5).yaw, 12)
+
+
+_STRAIGHT = HorizontalAlignment.model_validate(
+    {"elements": [{"start_chainage_m": 0.0, "kind": "straight"}]}
+)
+_SHIPPED_GRADE = VerticalAlignment.model_validate(
+    {"elements": [{"start_chainage_m": 0.0, "gradient_percent": -0.3}]}
+)
+_ARC = HorizontalAlignment.model_validate(
+    {"elements": [{"start_chainage_m": 0.0, "kind": "arc", "radius_m": 400.0}]}
+)
+_RISING = VerticalAlignment.model_validate(
+    {"elements": [{"start_chainage_m": 0.0, "gradient_percent": 1.0}]}
+)
+
 CASES: dict[str, tuple[Any, Callable[[ProjectConfig], Any]]] = {
     "placement.rotation_lever_arm_m": (2.0, lever_arm),
     "tunnel.inner_diameter_m": (10.0, reference_height),
@@ -123,6 +151,8 @@ CASES: dict[str, tuple[Any, Callable[[ProjectConfig], Any]]] = {
     "alignment.first_ring_chainage_m": (1.0, first_chainage),
     "alignment.gradient_percent": (0.5, gradient),
     "alignment.points": (_TABLE, points),
+    "alignment.horizontal": (_ARC, heading),
+    "alignment.vertical": (_RISING, points),
 }
 
 

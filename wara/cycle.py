@@ -45,7 +45,7 @@ import numpy as np
 from config import load_project, units
 from config.hil_scenario import HilScenario
 from config.schema import ProjectConfig
-from ipc_app.model.placement import Pose, deviation, to_ring_frame, tunnel_frame
+from ipc_app.model.placement import Pose, deviation, face_points, to_ring_frame, tunnel_frame
 from ipc_app.planner.survey import SurveyPoint
 from ipc_app.service.cycle import previous_from_deviation
 from ipc_app.service.modes import Mode
@@ -88,8 +88,7 @@ def simulated_survey(
     coordinate with the survey's noise: what a total station would export."""
     assert cfg.cycle is not None
     faces = survey_faces(cfg, cfg.cycle.survey_points)
-    half = cfg.workpiece.width_m / 2.0
-    local = truth.apply(np.array([[half, fy, fz] for fy, fz in faces]))
+    local = truth.apply(face_points(cfg, faces))
     world = tunnel_frame(cfg, ring).apply(local)
     world = world + rng.normal(0.0, cfg.cycle.survey_noise_m, world.shape)
     return [

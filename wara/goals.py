@@ -46,7 +46,7 @@ DISTANCE_TOL_MM = 5.0
 SIMULATION = "simulation goal"
 
 #: Figures whose limit is a lower bound (met at or above it); every other is an upper one.
-HIGHER_IS_BETTER = frozenset({"min_stability_margin_m"})
+HIGHER_IS_BETTER = frozenset({"min_stability_margin_m", "min_gap_mm"})
 
 
 @dataclass(frozen=True)
@@ -234,6 +234,7 @@ def placement_goals(cfg: ProjectConfig) -> tuple[Goal, ...]:
     )
     return (
         *table4,
+        Goal("min_gap_mm", 0.0, "no overlap: the joint's smallest gap >= 0"),
         Goal("position_error_mm", POSITION_TOL_MM),
         Goal("angle_error_deg", ATTITUDE_TOL_DEG),
         Goal("gap_error_mm", POSITION_TOL_MM),
@@ -244,8 +245,10 @@ def placement_figures(placed: Mapping[str, Any]) -> dict[str, float]:
     """A placed part's figures for its goals from a run's figures of it (``wara place
     run``'s result, a ``wara cycle`` ring): the Table 4 items (acceptance keys) as
     absolute values, the largest position and angle error of ``error_from_target``
-    (``x_mm`` ... ``yaw_deg``), the gap's error (``gap_error_mm``)."""
+    (``x_mm`` ... ``yaw_deg``), the gap's error (``gap_error_mm``) and the joint's smallest
+    gap (``min_gap_mm``; a run without it: NaN, not met)."""
     out = {k: abs(float(placed[k])) for k in RECORD_KEYS}
+    out["min_gap_mm"] = float(placed.get("min_gap_mm", math.nan))
     e = placed["error_from_target"]
     out["position_error_mm"] = max(abs(float(e[k])) for k in ("x_mm", "y_mm", "z_mm"))
     out["angle_error_deg"] = max(abs(float(e[k])) for k in ("roll_deg", "pitch_deg", "yaw_deg"))

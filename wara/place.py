@@ -58,6 +58,7 @@ def placed_against(
     table4 = fig.to_dict()
     return {
         **{k: table4[k] for k in RECORD_KEYS},
+        "min_gap_mm": table4["min_gap_mm"],
         "error_from_target": deviation(as_built, target).to_dict(),
         "gap_error_mm": units.to_mm(fig.max_gap_m - planned_gap_m),
         "table4_truth": judge_table4(cfg, fig),

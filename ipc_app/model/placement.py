@@ -34,6 +34,7 @@ import numpy as np
 
 from config import units
 from config.schema import Alignment, ProjectConfig
+from ipc_app.model.alignment import chainage_after, level, plan_point
 from ipc_app.model.kinematics import Array, attitude_matrix, rot_z
 
 #: Names of a pose's six coordinates, in order.
@@ -132,9 +133,17 @@ def axis_pose(alignment: Alignment, chainage_m: float) -> Pose:
 
     A straight axis runs through the project origin along +x, rising by
     ``gradient_percent``; a table is linear between its rows (its tangent is the row
-    segment's; beyond the ends the end segments go on).
+    segment's; beyond the ends the end segments go on); an axis by chainage has the
+    point, heading (the pose's yaw) and grade (its pitch: ``-atan(grade)``) of its
+    horizontal and vertical elements (:mod:`ipc_app.model.alignment`).
     """
-    if alignment.gradient_percent is not None:
+    if alignment.horizontal is not None and alignment.vertical is not None:
+        p = plan_point(alignment.horizontal, chainage_m)
+        lv = level(alignment.vertical, chainage_m)
+        t = np.array([math.cos(p.heading), math.sin(p.heading), lv.grade])
+        t /= float(np.linalg.norm(t))
+        origin = np.array([p.x, p.y, lv.z])
+    elif alignment.gradient_percent is not None:
         g = alignment.gradient_percent / 100.0
         t = np.array([1.0, 0.0, g]) / math.hypot(1.0, g)
         origin = chainage_m * t
@@ -154,10 +163,23 @@ def axis_pose(alignment: Alignment, chainage_m: float) -> Pose:
     return Pose.from_matrix(np.column_stack([t, y, z]), origin)
 
 
+def chainage_along(alignment: Alignment, chainage_m: float, along_m: float) -> float:
+    """The chainage ``along_m`` further along the axis than ``chainage_m``: for an axis by
+    chainage (measured in plan) the axis's length with its grades
+    (:func:`~ipc_app.model.alignment.chainage_after`), else ``chainage_m + along_m`` (the
+    straight axis's chainage runs along it; a table's is as its rows say)."""
+    if alignment.vertical is not None:
+        return chainage_after(alignment.vertical, chainage_m, along_m)
+    return chainage_m + along_m
+
+
 def ring_chainage_m(cfg: ProjectConfig, ring: int) -> float:
-    """Chainage of ring ``ring``'s rear joint face."""
+    """Chainage of ring ``ring``'s rear joint face: ``ring - 1`` ring widths along the
+    axis from ring 1's."""
     alignment = _alignment(cfg)
-    return alignment.first_ring_chainage_m + (ring - 1) * cfg.tunnel.ring_width_m
+    return chainage_along(
+        alignment, alignment.first_ring_chainage_m, (ring - 1) * cfg.tunnel.ring_width_m
+    )
 
 
 def tunnel_frame(cfg: ProjectConfig, ring: int) -> Pose:
@@ -179,7 +201,8 @@ def design_pose(cfg: ProjectConfig, ring: int) -> Pose:
     radius below the design centreline) at mid-width, its axes along the axis frame there."""
     _placement(cfg)
     half = cfg.workpiece.width_m / 2.0
-    at_mid = axis_pose(_alignment(cfg), ring_chainage_m(cfg, ring) + half)
+    alignment = _alignment(cfg)
+    at_mid = axis_pose(alignment, chainage_along(alignment, ring_chainage_m(cfg, ring), half))
     local = compose(at_mid, Pose(z=cfg.reference_height_m))
     return compose(inverse(tunnel_frame(cfg, ring)), local)
 
@@ -199,15 +222,29 @@ def _placement(cfg: ProjectConfig) -> Any:
 # --------------------------------------------------------------------------- joint figures
 
 
+def face_points(cfg: ProjectConfig, faces: Any, front: bool = True) -> Array:
+    """Points ``(y, z)`` of a joint face (part frame, e.g. a survey's ``face_y_m,
+    face_z_m``) as part-frame points (n, 3).
+
+    A tapered part (``workpiece.taper_mm`` t) is ``w - t y / L`` wide at ``y`` (``w`` its
+    width, ``L`` its length), each face taking half: the front face at
+    ``x = (w - t y / L) / 2``, the rear at its negative. ``t > 0`` makes the left end
+    (+y) the narrower, the inside of a left-hand curve (``radius_m > 0``); ``t < 0`` the
+    right end; ``t = w L / R`` puts both faces on the curve's radii (docs/curves.md)."""
+    w = cfg.workpiece
+    f = np.asarray(faces, dtype=float).reshape(-1, 2)
+    x = (w.width_m - w.taper_m * f[:, 0] / w.length_m) / 2.0
+    return np.column_stack([x if front else -x, f[:, 0], f[:, 1]])
+
+
 def face_corners(cfg: ProjectConfig, front: bool) -> Array:
     """The four corners of a joint face in the part frame (a rectangle of the part's
-    length and height, at ``x = ±width/2``): order (+y, bottom), (-y, bottom), (+y, top),
-    (-y, top)."""
+    length and height, at ``x = ±width/2``, tapered as :func:`face_points` says): order
+    (+y, bottom), (-y, bottom), (+y, top), (-y, top)."""
     w = cfg.workpiece
-    x = w.width_m / 2.0 if front else -w.width_m / 2.0
     half = w.length_m / 2.0
-    return np.array(
-        [[x, half, 0.0], [x, -half, 0.0], [x, half, w.height_m], [x, -half, w.height_m]]
+    return face_points(
+        cfg, [(half, 0.0), (-half, 0.0), (half, w.height_m), (-half, w.height_m)], front
     )
 
 

@@ -21,9 +21,11 @@ from the design centreline and ``w`` the ``placement.weights``. Limits:
 SLSQP solves it from the previous part's deviation. When it finds no feasible point,
 a second solve keeps the steering-back bound and minimizes the squared Table 4
 violations: the largest left is the binding limit, reported with how much it is
-exceeded, and the plan is refused.
+exceeded, and the plan is refused. A gap limit that binds is explained first by the
+design joint's opening on a curve against the parts' taper (:func:`curve_reason`,
+docs/curves.md).
 
-Just over 500 lines because the target's optimization, its refusal with the binding
+Over 500 lines because the target's optimization, its refusal with the binding
 limit and the six-DOF moves that check it against strokes and pressures are one plan.
 """
 
@@ -32,7 +34,7 @@ from __future__ import annotations
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 from scipy.optimize import minimize
@@ -162,11 +164,16 @@ def _dev_dict(d: Pose) -> dict[str, float]:
 
 
 def judge(cfg: ProjectConfig, figures: JointFigures) -> dict[str, dict[str, Any]]:
-    """Each Table 4 item of ``figures`` with its limit (None: not judged) and verdict."""
+    """Each Table 4 item of ``figures`` with its limit (None: not judged) and verdict.
+    The gap is judged at both ends of the joint: ``max_gap_mm`` (the largest corner's)
+    within its limit and ``min_gap_mm`` (the smallest) at least 0 (``at_least``: the
+    parts may not overlap)."""
     out: dict[str, dict[str, Any]] = {}
     tol = cfg.acceptance.model_dump()
     for key, value in figures.to_dict().items():
         if key == "min_gap_mm":
+            out[key] = {"value": value, "limit": 0.0, "passed": value >= -_TOL_MM}
+            out[key]["at_least"] = True
             continue
         limit = tol[key]
         passed = None if limit is None else abs(value) <= limit + _TOL_MM
@@ -324,6 +331,53 @@ def _smooth(p: _Problem, hard: bool) -> Callable[[np.ndarray], np.ndarray]:
     return fn
 
 
+#: The limits of the gap (at a corner of the joint): a curve's opening binds one of them.
+_GAP_LIMITS = ("max_gap_mm", "no overlap")
+#: A design joint opening less than this (mm) across the part is no curve's doing.
+_OPENING_MM = 0.1
+
+
+class JointOpening(NamedTuple):
+    """How the design joint of ring ``ring`` opens across the part: ``opening_mm`` the
+    gap at the part's left end (+y) less at its right end, bottom corners (designed
+    parts laid on the axis); ``radius_m`` the curve's (signed, positive turning left;
+    None on a straight); ``taper_needed_mm`` the ``workpiece.taper_mm`` that closes it."""
+
+    opening_mm: float
+    radius_m: float | None
+    taper_needed_mm: float
+
+
+def joint_opening(cfg: ProjectConfig, ring: int) -> JointOpening:
+    """The design joint's opening of ring ``ring`` against ring ``ring - 1``: with a taper
+    ``t`` the gap at ``y`` is ``t y / L - y w / R`` (docs/curves.md), so the two ends differ
+    by ``t - w L / R`` and ``t - opening`` closes it."""
+    design = design_pose(cfg, ring)
+    prev = to_ring_frame(cfg, design_pose(cfg, ring - 1), ring - 1, ring)
+    d = design.apply(face_corners(cfg, front=False)) - prev.apply(face_corners(cfg, front=True))
+    opening = units.to_mm(float(d[0, 0] - d[1, 0]))
+    turn = deviation(design, prev).yaw
+    radius = cfg.workpiece.width_m / turn if abs(turn) > 1e-12 else None
+    return JointOpening(opening, radius, cfg.workpiece.taper_mm - opening)
+
+
+def curve_reason(cfg: ProjectConfig, ring: int) -> str:
+    """Why the design joint of ring ``ring`` opens (a curve against the parts' taper),
+    as a refusal's first words, or empty when it does not open."""
+    j = joint_opening(cfg, ring)
+    if abs(j.opening_mm) < _OPENING_MM:
+        return ""
+    where = "a straight axis" if j.radius_m is None else f"a {abs(j.radius_m):.0f} m curve"
+    if j.radius_m is not None:
+        where += " to the left" if j.radius_m > 0 else " to the right"
+    t = cfg.workpiece.taper_mm
+    parts = "rectangular parts" if t == 0 else f"parts tapered {t:g} mm"
+    return (
+        f"the joint opens {abs(j.opening_mm):.1f} mm on {where} with {parts} "
+        f"(workpiece.taper_mm); a taper of {j.taper_needed_mm:.1f} mm closes it: "
+    )
+
+
 def plan_target(cfg: ProjectConfig, previous: Pose, ring: int) -> PlacementPlan:
     """The target of ring ``ring``'s part from the previous part's as-built pose (given
     in ring ``ring``'s T), with its expected Table 4 figures and actuator moves."""
@@ -365,8 +419,9 @@ def plan_target(cfg: ProjectConfig, previous: Pose, ring: int) -> PlacementPlan:
     figures = joint_figures(cfg, previous, target, design)
     reasons: list[str] = []
     if binding is not None:
+        curve = curve_reason(cfg, ring) if binding.name.startswith(_GAP_LIMITS) else ""
         reasons.append(
-            f"{binding.name}: {binding.value:.3f}, limit {binding.limit:g}, exceeded by "
+            curve + f"{binding.name}: {binding.value:.3f}, limit {binding.limit:g}, exceeded by "
             f"{binding.excess:.3f} (the steering back is bounded to "
             f"{cfg.placement.max_correction_per_ring_mm:g} mm, "
             f"{cfg.placement.max_correction_per_ring_deg:g} deg per ring)"

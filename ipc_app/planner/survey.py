@@ -48,6 +48,7 @@ from ipc_app.model.placement import (
     compose,
     design_pose,
     deviation,
+    face_points,
     fit_pose,
     inverse,
     tunnel_frame,
@@ -286,8 +287,7 @@ def fit_survey(cfg: ProjectConfig, ring: int, points: list[SurveyPoint]) -> Surv
     (each point checked as it is built: :class:`SurveyPoint`)."""
     if cfg.placement is None:
         raise ValueError("the project has no placement section")
-    half = cfg.workpiece.width_m / 2.0
-    nominal = np.array([[half, p.face[0], p.face[1]] for p in points])
+    nominal = face_points(cfg, [p.face for p in points])
     world = np.array([p.measured for p in points])
     try:
         with np.errstate(over="raise", invalid="raise", divide="raise"):
@@ -343,8 +343,7 @@ def format_survey(
 ) -> str:
     """A survey CSV of ``faces`` (part-frame y, z) on ring ``ring``'s part at ``pose``
     (the example file, tests and the simulator's survey)."""
-    half = cfg.workpiece.width_m / 2.0
-    local = pose.apply(np.array([[half, fy, fz] for fy, fz in faces]))
+    local = pose.apply(face_points(cfg, faces))
     world = compose(tunnel_frame(cfg, ring), Pose()).apply(local)
     out = [",".join(COLUMNS)]
     for i, ((fy, fz), p) in enumerate(zip(faces, world, strict=True), start=1):

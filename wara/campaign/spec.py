@@ -54,6 +54,7 @@ FIGURES_OF: dict[str, tuple[str, ...]] = {
     ),
     "ring_cycle": (
         *RECORD_KEYS,  # Table 4, absolute values (the acceptance record's keys)
+        "min_gap_mm",  # the joint's smallest gap (>= 0: no overlap)
         "position_error_mm",
         "angle_error_deg",
         "gap_error_mm",
@@ -69,7 +70,10 @@ DEMO_LIMITS: dict[str, float] = limits(ATTITUDE_GOALS)
 
 def figure_margin(name: str, value: float, limit: float) -> float:
     """How far ``value`` is inside ``limit``, relative: 0 at the limit, below 0 beyond it
-    (NaN for a NaN value)."""
+    (NaN for a NaN value). A limit of 0 (no overlap: ``min_gap_mm``) has no relative
+    margin: the value itself is it (in the figure's unit)."""
+    if limit == 0.0:
+        return value if name in HIGHER_IS_BETTER else -value
     return value / limit - 1.0 if name in HIGHER_IS_BETTER else 1.0 - value / limit
 
 

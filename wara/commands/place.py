@@ -201,6 +201,7 @@ def render(p: PlacementPlan) -> str:
     ]
     for key, item in d["table4"].items():
         lim = "-" if item["limit"] is None else f"{item['limit']:g}"
+        lim = f">={lim}" if item.get("at_least") else lim
         verdict = "not judged" if item["passed"] is None else ("ok" if item["passed"] else "OVER")
         lines.append(f"{key:<28} {item['value']:>10.3f} {lim:>8}  {verdict}")
     lines += ["", "moves from mid-stroke (mm):"]
@@ -262,5 +263,6 @@ def render_move(r: dict[str, Any]) -> str:
     lines += ["", f"{'Table 4 item (truth)':<28} {'value':>10} {'limit':>8}"]
     for key, item in r["table4_truth"].items():
         lim = "-" if item["limit"] is None else f"{item['limit']:g}"
+        lim = f">={lim}" if item.get("at_least") else lim
         lines.append(f"{key:<28} {item['value']:>10.3f} {lim:>8}")
     return "\n".join(lines)
