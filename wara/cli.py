@@ -47,6 +47,7 @@ COMMANDS: tuple[str, ...] = (
     "survey",
     "opcua",
     "campaign",
+    "commission",
 )
 
 
