@@ -132,6 +132,7 @@ def test_a_contradictory_key_is_not_fit_naming_it_the_other_items_judged(
     out = tmp_path / "dossier"
     code, stdout, err = run_main(["commission", str(path), "--quick", "--quiet", "--out", str(out)])
     assert code == 1, err
+    assert re.search(r"^cross-checks +not fit +: base\.pitch_deg", stdout, re.M), stdout
     lines = [ln for ln in err.splitlines() if ln.startswith("wara commission: not fit: ")]
     assert lines[0].startswith("wara commission: not fit: cross-checks: base.pitch_deg: 1 deg")
     d = json.loads((out / "commission.json").read_text())

@@ -130,19 +130,14 @@ def worst_cases(cfg: ProjectConfig) -> list[tuple[str, ProjectConfig]]:
     load is the project's heaviest, the machine with its part (the planners' statics
     carry the bodies of the YAML). A new kind of worst case (the tightest curve, when an
     alignment can have one) is a case more here."""
-    cases = [(f"as written (base.pitch_deg {cfg.base.pitch_deg:g})", cfg)]
+    cases = [(f"as written, base.pitch_deg {cfg.base.pitch_deg:g}", cfg)]
     rng = crosscheck.pitch_range_deg(cfg)
     if rng is not None:
         for pitch in sorted(set(rng)):
             if abs(pitch - cfg.base.pitch_deg) > 1e-6:
                 grade = -100.0 * math.tan(math.radians(pitch))
-                cases.append(
-                    (
-                        f"steepest grade {grade:+.3f} % (tunnel.alignment): base pitch "
-                        f"{pitch:.4f} deg",
-                        with_pitch(cfg, pitch),
-                    )
-                )
+                label = f"steepest grade {grade:+.3f} % (tunnel.alignment), pitch {pitch:.4f}"
+                cases.append((label, with_pitch(cfg, pitch)))
     return cases
 
 

@@ -59,7 +59,7 @@ def add_plots(items: Sequence[Item]) -> None:
         png: bytes | None = None
         if it.name == "capacity" and it.rows:
             bars = [
-                (f"{r['plan']} [{r['case'][:28]}]", r["peak_mpa"] / r["limit_mpa"])
+                (f"{r['plan']} [{r['case'].split(' (')[0]}]", r["peak_mpa"] / r["limit_mpa"])
                 for r in it.rows
                 if r["limit_mpa"]
             ]
