@@ -20,7 +20,17 @@ from config import default_project_path
 from config.loader import validate_data
 from config.schema import ProjectConfig
 from tests.cli_helpers import run_main, run_wara
-from wara.commission import FIT, ITEMS, NOT_FIT, SKIPPED, Item, budgets, capacity, worst_cases
+from wara.commission import (
+    FIT,
+    ITEMS,
+    NOT_FIT,
+    SKIPPED,
+    Item,
+    budgets,
+    campaign_spec,
+    capacity,
+    worst_cases,
+)
 
 METRO = default_project_path().with_name("metro_light_part.yaml")
 
@@ -107,6 +117,25 @@ def test_a_cycle_budget_the_walks_fill_is_not_fit() -> None:
     assert tight.status == NOT_FIT
     (reason,) = tight.reasons
     assert reason.startswith("cycle.max_cycle_time_min: 3 min leaves no time to place")
+
+
+def test_the_campaign_spec_loads_for_the_project_and_draws_within_its_values() -> None:
+    """The dossier's campaign (run by the default form, not here): a nominal spec of
+    the project that `wara campaign run` loads; its dispersions factors of the project's
+    own values; judged on the attitude goals."""
+    from wara.campaign.spec import campaign_from_data
+
+    cfg = validate_data(ProjectConfig, metro_data(), "metro")
+    c = campaign_from_data(campaign_spec(cfg, str(METRO), 5), "commission", METRO.parent)
+    assert c.run_count == 5 and c.spec.kind == "nominal"
+    assert set(c.limits) == {"attitude_error_deg", "max_twist_mm", "sync_error_mm"}
+    for i in range(5):
+        params = c.draw(i).params
+        part = params["layers.upper.bodies[0].mass_kg"] / cfg.workpiece_mass_kg
+        assert 0.9 < part < 1.1
+        bulk = params["hydraulics.bulk_modulus_mpa"] / cfg.hydraulics.bulk_modulus_mpa
+        assert 0.6 <= bulk <= 1.0
+        assert -3.0 <= params["target0_roll_deg"] <= 5.0
 
 
 # ------------------------------------------------------------------ the command

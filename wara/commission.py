@@ -528,13 +528,16 @@ def campaign_item(
         f"{v['lower_bound']:.3f} at {v['confidence']:.0%} confidence (a verification "
         f"campaign of {v['probability']} takes `wara campaign run`: docs/campaigns.md)"
     )
+    rows = read_results(camp)
     if find_spec("matplotlib") is not None:
-        item.images = plots(campaign_of_dir(camp), read_results(camp), sm)
+        item.images = plots(campaign_of_dir(camp), rows, sm)
     if v["runs"] < v["planned"]:
         item.refuse(f"{v['planned'] - v['runs']} of {v['planned']} runs did not complete")
-    for w in sm["worst_runs"]:
-        if w["status"] != "passed":
-            item.refuse(f"run {w['run']}: {w['note'] or w['status']}")
+    failed = [r for r in rows if not r["passed"]]
+    if failed:
+        item.refuse(f"{len(failed)} of {len(rows)} runs failed (at most 10 named)")
+    for r in failed[:10]:
+        item.refuse(f"run {r['run']}: {r['status']}: {r['note'] or r['fault_reasons']}")
 
 
 # ------------------------------------------------------------------ the dossier
