@@ -182,7 +182,7 @@ def metro_dossier(tmp_path_factory: pytest.TempPathFactory) -> tuple[int, str, s
     return run.returncode, run.stdout, run.stderr, out
 
 
-@pytest.mark.slow(seconds=120)
+@pytest.mark.slow(seconds=240)
 @pytest.mark.xdist_group("commission_metro")
 def test_the_metro_project_is_fit_to_commission(
     metro_dossier: tuple[int, str, str, Path],
@@ -225,7 +225,7 @@ def test_the_dossier_opens_in_a_browser(
     assert browser._check(dom) == "ok"
 
 
-@pytest.mark.slow(seconds=60)
+@pytest.mark.slow(seconds=90)
 def test_a_part_too_heavy_for_the_supply_is_exit_1_naming_the_leg(tmp_path: Path) -> None:
     path = write(tmp_path, "heavy.yaml", heavy_data(60_000))
     out = tmp_path / "dossier"

@@ -243,12 +243,18 @@ def capacity(cfg: ProjectConfig, item: Item) -> None:
 def delay_margin(cfg: ProjectConfig, item: Item) -> None:
     """Each loop's tuning and modelled margin (``wara sim delay-margin``'s table), and
     the project's check (:func:`ipc_app.control.tuning.delay_margin_problem`)."""
-    from ipc_app.control.tuning import delay_margin_problem
+    from ipc_app.control.tuning import delay_margin_problem, derive
     from wara.studies.delay_margin import loop_margins
 
     required = cfg.control.delay_margin_ms
     item.rows = loop_margins(cfg, required)
     item.figures["required_ms"] = required
+    t = derive(cfg)
+    if t.touchdown_speed_m_s is not None:
+        item.notes.append(
+            f"the walk's touch-down speed {units.to_mm(t.touchdown_speed_m_s):.2f} mm/s "
+            f"({t.touchdown_source})"
+        )
     problem = delay_margin_problem(cfg)
     if problem is not None:
         item.refuse(problem)
