@@ -225,7 +225,7 @@ def test_the_dossier_opens_in_a_browser(
     assert browser._check(dom) == "ok"
 
 
-@pytest.mark.slow(seconds=90)
+@pytest.mark.slow
 def test_a_part_too_heavy_for_the_supply_is_exit_1_naming_the_leg(tmp_path: Path) -> None:
     path = write(tmp_path, "heavy.yaml", heavy_data(60_000))
     out = tmp_path / "dossier"

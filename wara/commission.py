@@ -108,7 +108,7 @@ class Settings:
 
     steps: int = 3
     rings: int = 4
-    runs: int = 8
+    runs: int = 20
     workers: int | None = None
     scheduler: str | None = None
     delay_hold: bool = True

@@ -3,7 +3,7 @@ tunnel project (docs/commissioning.md).
 
     wara commission config/projects/metro_light_part.yaml --out dossier/
     wara commission my.yaml --quick --out dossier/           # 1 step, 1 ring, no campaign
-    wara commission my.yaml --runs 20 --workers 2 --out dossier/
+    wara commission my.yaml --runs 50 --workers 2 --out dossier/
 
 Writes ``DIR/commission.html`` (one self-contained page) and ``DIR/commission.json``
 (each item with its verdict); the children's output in ``DIR/logs/``. Exit 0 only if the
@@ -40,7 +40,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--steps", type=integer, default=None, help="steps of the walk (default 3)")
     p.add_argument("--rings", type=integer, default=None, help="rings of the cycle (default 4)")
     p.add_argument(
-        "--runs", type=integer, default=None, help="runs of the campaign (default 8; 0: skip)"
+        "--runs", type=integer, default=None, help="runs of the campaign (default 20; 0: skip)"
     )
     eng = p.add_mutually_exclusive_group()
     eng.add_argument("--scheduler", metavar="ADDR", help="the campaign on a running Dask scheduler")
@@ -63,7 +63,7 @@ def run(args: argparse.Namespace) -> int:
     s = Settings(
         steps=args.steps if args.steps is not None else (1 if quick else 3),
         rings=args.rings if args.rings is not None else (1 if quick else 4),
-        runs=args.runs if args.runs is not None else (0 if quick else 8),
+        runs=args.runs if args.runs is not None else (0 if quick else 20),
         workers=args.workers,
         scheduler=args.scheduler,
         delay_hold=not quick,
