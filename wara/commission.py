@@ -145,8 +145,8 @@ def worst_cases(cfg: ProjectConfig) -> list[tuple[str, ProjectConfig]]:
 
 
 def cross_checks(cfg: ProjectConfig, item: Item, path: str) -> None:
-    """Every rule of :data:`config.crosscheck.RULES` (the provided ones imported)."""
-    broken = crosscheck.problems(cfg)
+    """Every rule of :data:`config.crosscheck.RULES` (the provided ones imported), as
+    :func:`config.crosscheck.problems` runs them: a row each, a reason per rule broken."""
     for rule in crosscheck.RULES:
         check = crosscheck.check_of(rule)
         reason = check(cfg) if check is not None else None
@@ -158,8 +158,8 @@ def cross_checks(cfg: ProjectConfig, item: Item, path: str) -> None:
                 "reason": reason or ("" if check is not None else "no check available"),
             }
         )
-    for reason in broken:
-        item.refuse(reason)
+        if reason is not None:
+            item.refuse(reason)
     from config.loader import defaulted_sections, read_yaml
 
     defaulted = defaulted_sections(ProjectConfig, read_yaml(Path(path)))
