@@ -27,10 +27,10 @@ from wara.commission import (
     SKIPPED,
     Item,
     budgets,
-    campaign_spec,
     capacity,
     worst_cases,
 )
+from wara.commission_runs import campaign_spec
 
 METRO = default_project_path().with_name("metro_light_part.yaml")
 
@@ -182,7 +182,7 @@ def metro_dossier(tmp_path_factory: pytest.TempPathFactory) -> tuple[int, str, s
     return run.returncode, run.stdout, run.stderr, out
 
 
-@pytest.mark.slow(seconds=240)
+@pytest.mark.slow(seconds=120)
 @pytest.mark.xdist_group("commission_metro")
 def test_the_metro_project_is_fit_to_commission(
     metro_dossier: tuple[int, str, str, Path],
