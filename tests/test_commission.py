@@ -28,9 +28,10 @@ from wara.commission import (
     Item,
     budgets,
     capacity,
+    delay_margin,
     worst_cases,
 )
-from wara.commission_runs import campaign_spec
+from wara.commission_runs import campaign_spec, cycle_steps, goal_rows
 
 METRO = default_project_path().with_name("metro_light_part.yaml")
 
@@ -136,6 +137,40 @@ def test_the_campaign_spec_loads_for_the_project_and_draws_within_its_values() -
         bulk = params["hydraulics.bulk_modulus_mpa"] / cfg.hydraulics.bulk_modulus_mpa
         assert 0.6 <= bulk <= 1.0
         assert -3.0 <= params["target0_roll_deg"] <= 5.0
+
+
+def test_a_loop_tuned_past_its_delay_margin_is_not_fit_naming_the_keys() -> None:
+    data = metro_data()
+    data["control"]["ladrc"].update({"wc_rad_s": 40.0, "wo_rad_s": 80.0})
+    item = Item("delay-margin", "delay margin")
+    delay_margin(validate_data(ProjectConfig, data, "metro"), item)
+    assert item.status == NOT_FIT
+    (reason,) = item.reasons
+    assert reason.startswith("control.ladrc.wc_rad_s 40, control.ladrc.wo_rad_s 80: the ")
+    assert any(r["breaks"] for r in item.rows) and not all(r["breaks"] for r in item.rows)
+
+
+def test_the_cycles_walk_steps_are_judged_on_the_walks_goals() -> None:
+    """`wara cycle` judges the rings; the dossier judges their walks' steps too, on the
+    walk's goals that the steps' figures give."""
+    cfg = validate_data(ProjectConfig, metro_data(), "metro")
+    assert cfg.walking is not None
+    step = {
+        "index": 1, "duration_s": 90.0, "max_leg_sync_error_mm": 0.05,
+        "max_travel_sync_error_mm": 0.004, "min_stability_margin_m": 0.9,
+        "max_leg_force_ratio": 1.02, "transfer_time_s": 3.0,
+    }  # fmt: skip
+    over = {**step, "max_leg_force_ratio": cfg.walking.overload_percent / 100 + 0.01}
+    rings = [{"ring": 2, "walks": {"walk": [step], "walk_back": [over]}}]
+    judged = cycle_steps(cfg, rings)
+    assert [j["passed"] for j in judged] == [True, False]
+    assert judged[1]["missed"] == ["max_leg_force_ratio 1.11 > 1.1"]
+    assert set(judged[0]["goals"]) == {
+        "max_leg_sync_error_mm", "max_travel_sync_error_mm", "min_stability_margin_m",
+        "max_leg_force_ratio", "max_step_duration_s",
+    }  # fmt: skip
+    (force,) = [r for r in goal_rows(judged, "step") if r["figure"] == "max_leg_force_ratio"]
+    assert force["met"] is False and force["at"] == "step 1 of ring 2's walk_back"
 
 
 # ------------------------------------------------------------------ the command
