@@ -276,8 +276,9 @@ def campaign_item(
     ]
     item.notes.append(
         f"{v['runs']} of {v['planned']} runs, {v['failures']} failed; pass probability >= "
-        f"{v['lower_bound']:.3f} at {v['confidence']:.0%} confidence (a verification "
-        f"campaign of {v['probability']} takes `wara campaign run`: docs/campaigns.md)"
+        f"{v['lower_bound']:.3f} at {v['confidence']:.0%} confidence (the requirement "
+        f"{v['probability']} {'shown' if v['shown'] else 'not shown'}: a smoke test, not a "
+        "verification campaign: docs/commissioning.md)"
     )
     rows = read_results(camp)
     if find_spec("matplotlib") is not None:
