@@ -19,7 +19,7 @@ import sys
 from pathlib import Path
 
 from config.numbers import integer
-from wara.cli import EXIT_FAILED, EXIT_OK, UsageError, check_walk_steps
+from wara.cli import EXIT_FAILED, EXIT_OK, UsageError, check_walk_steps, stop_on_sigterm
 
 #: the most rings of a dossier's cycle (``wara cycle``'s limit)
 MAX_RINGS = 50
@@ -89,6 +89,7 @@ def run(args: argparse.Namespace) -> int:
     from wara.commission import NOT_FIT, commission
     from wara.commission_page import write
 
+    stop_on_sigterm()  # the child runs end with the command
     items, summary = commission(cfg, path, out, s)
     page, js = write(items, summary, out)
     for it in items:
