@@ -183,7 +183,21 @@ def test_a_yaml_that_does_not_parse_is_exit_2_in_one_line(tmp_path: Path) -> Non
     assert run.returncode == 2, run.stderr
     lines = run.stderr.strip().splitlines()
     assert len(lines) == 1 and "bad.yaml: YAML syntax error" in lines[0], lines
-    assert not (tmp_path / "o" / "commission.html").exists()
+    assert not (tmp_path / "o").exists()  # refused before anything was written
+
+
+def test_bad_arguments_are_exit_2_in_one_line(tmp_path: Path) -> None:
+    a_file = tmp_path / "a_file"
+    a_file.write_text("", encoding="utf-8")
+    for args, want in [
+        (["--out", str(a_file)], f"--out {a_file}: File exists"),
+        (["--out", str(tmp_path / "o"), "--rings", "0"], "--rings must be within 1..50, got 0"),
+        (["--out", str(tmp_path / "o"), "--runs", "-1"], "--runs must be within 0..10000"),
+    ]:
+        code, out, err = run_main(["commission", str(METRO), "--quick", *args])
+        assert (code, out) == (2, ""), err
+        (line,) = err.splitlines()
+        assert line.startswith(f"wara commission: error: {want}"), err
 
 
 @pytest.mark.slow

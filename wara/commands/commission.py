@@ -76,15 +76,17 @@ def run(args: argparse.Namespace) -> int:
         raise UsageError(f"--runs must be within 0..{MAX_RUNS}, got {s.runs}")
     if s.workers is not None and not 1 <= s.workers <= 256:
         raise UsageError(f"--workers must be 1..256, got {s.workers}")
-    out = Path(args.out)
-    if out.exists() and not out.is_dir():
-        raise UsageError(f"--out {out}: not a directory")
-    camp = out / "campaign"
-    if s.runs and camp.exists() and any(camp.iterdir()):
-        raise UsageError(f"--out {out}: holds a campaign of an earlier dossier: use a new --out")
     # the schema alone: a project that breaks a cross-check is that item's verdict
     path = args.project
     cfg = validate_data(ProjectConfig, read_yaml(Path(path)), path)
+    out = Path(args.out)
+    try:  # before anything runs: a directory the dossier cannot be written to refuses now
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise UsageError(f"--out {out}: {exc.strerror or exc}") from None
+    camp = out / "campaign"
+    if s.runs and camp.exists() and any(camp.iterdir()):
+        raise UsageError(f"--out {out}: holds a campaign of an earlier dossier: use a new --out")
 
     from wara.commission import NOT_FIT, commission
     from wara.commission_page import write
