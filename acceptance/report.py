@@ -138,7 +138,8 @@ def plot_item(summary: Summary, item: ItemSummary) -> bytes:
     return buf.getvalue()
 
 
-_CSS = """
+#: The report pages' style sheet (this report and ``wara commission``'s dossier).
+PAGE_CSS = """
 body{font-family:system-ui,-apple-system,"Segoe UI",Roboto,sans-serif;margin:2em auto;
 max-width:1100px;color:#1d1d1d;padding:0 1em}
 h1{font-size:1.5em;margin-bottom:.2em}h2{font-size:1.2em;margin-top:1.6em}
@@ -154,8 +155,8 @@ figure{margin:1em 0}img{max-width:100%;height:auto;border:1px solid #ddd}
 """
 
 # Marks the page as checked once every embedded plot decoded (used by the test suite's
-# headless-browser check; harmless for a reader).
-_SCRIPT = """
+# headless-browser check; harmless for a reader); the dossier of ``wara commission`` too.
+PAGE_SCRIPT = """
 window.addEventListener("load", function () {
   var bad = 0;
   for (var i = 0; i < document.images.length; i++) {
@@ -183,7 +184,7 @@ def render_html(summary: Summary, plots: dict[str, bytes], meta: ReportMeta) -> 
         "<!DOCTYPE html>",
         '<html lang="en"><head><meta charset="utf-8">',
         f"<title>Ring acceptance report: {e(meta.project)} ({e(rng)})</title>",
-        f"<style>{_CSS}</style><script>{_SCRIPT}</script></head><body>",
+        f"<style>{PAGE_CSS}</style><script>{PAGE_SCRIPT}</script></head><body>",
         f"<h1>Ring acceptance report: {e(meta.project)}</h1>",
         f'<p class="meta">{e(rng)} · tolerances from {e(meta.config_source)} · '
         f"database {e(meta.database)} · generated {e(meta.generated_at)}</p>",

@@ -187,7 +187,9 @@ def gradient_pitch_deg(gradient_percent: float) -> float:
     return -math.degrees(math.atan(gradient_percent / 100.0))
 
 
-def _pitch_range_deg(cfg: ProjectConfig) -> tuple[float, float] | None:
+def pitch_range_deg(cfg: ProjectConfig) -> tuple[float, float] | None:
+    """The base pitches of the design axis's gradients, ``(least, most)`` deg (one
+    gradient: both the same; ``None`` without an alignment)."""
     al = cfg.tunnel.alignment
     if al is None:
         return None
@@ -302,7 +304,7 @@ def _steepest_grade(cfg: ProjectConfig) -> str | None:
 
 
 def _base_pitch(cfg: ProjectConfig) -> str | None:
-    rng = _pitch_range_deg(cfg)
+    rng = pitch_range_deg(cfg)
     if rng is None:
         return None
     lo, hi = rng

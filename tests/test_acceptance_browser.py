@@ -95,6 +95,6 @@ def test_browser_check_catches_a_broken_page(tmp_path: Path) -> None:
 def _report_script_page() -> str:
     """A minimal page with the report's own load check (taken from the module)."""
     return (
-        f"<!DOCTYPE html><html><head><script>{report._SCRIPT}</script></head>"
+        f"<!DOCTYPE html><html><head><script>{report.PAGE_SCRIPT}</script></head>"
         "<body><!--IMG--></body></html>"
     )

@@ -13,6 +13,7 @@ from __future__ import annotations
 import argparse
 import importlib
 import os
+import signal
 import sys
 from collections.abc import Sequence
 from typing import Any
@@ -47,6 +48,7 @@ COMMANDS: tuple[str, ...] = (
     "survey",
     "opcua",
     "campaign",
+    "commission",
 )
 
 
@@ -77,6 +79,16 @@ def check_walk_steps(steps: int) -> None:
 
     if not 1 <= steps <= MAX_WALK_STEPS:
         raise UsageError(f"--steps must be within 1..{MAX_WALK_STEPS}, got {steps}")
+
+
+def stop_on_sigterm() -> None:
+    """SIGTERM as Ctrl-C, for a command with processes of its own (a campaign's cluster,
+    the child runs of ``wara commission``): they are shut down on the way out."""
+
+    def _raise(signum: int, frame: object) -> None:
+        raise KeyboardInterrupt
+
+    signal.signal(signal.SIGTERM, _raise)
 
 
 def verb_of(module: str) -> str:

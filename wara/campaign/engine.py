@@ -26,7 +26,6 @@ from __future__ import annotations
 import contextlib
 import hashlib
 import json
-import math
 import multiprocessing
 import os
 import signal
@@ -47,6 +46,7 @@ from config import ConfigError
 from config.schema import ProjectConfig
 from wara.campaign.spec import Campaign, CampaignSpec
 from wara.cli import UsageError
+from wara.progress import Progress
 
 RUNS_DIR = "runs"
 RESULTS = "results.parquet"
@@ -437,56 +437,6 @@ class Outcome:
     @property
     def complete(self) -> bool:
         return not self.missing
-
-
-class Progress:
-    """One line on stderr: runs done of total, ETA, failures so far."""
-
-    def __init__(self, total: int, done: int, failures: int, enabled: bool = True) -> None:
-        self.total, self.done, self.failures = total, done, failures
-        self.start_done = done
-        self.t0 = time.monotonic()
-        self.enabled = enabled
-        self.tty = sys.stderr.isatty()
-        self._last = 0.0
-
-    def update(self, failed: bool) -> None:
-        self.done += 1
-        self.failures += int(failed)
-        now = time.monotonic()
-        if self.tty or now - self._last > 10.0 or self.done == self.total:
-            self._last = now
-            self.show()
-
-    def show(self) -> None:
-        if not self.enabled:
-            return
-        new = self.done - self.start_done
-        el = time.monotonic() - self.t0
-        rate = new / el if el > 0 and new else 0.0
-        eta = (self.total - self.done) / rate if rate else math.nan
-        width = 30
-        filled = int(width * self.done / max(1, self.total))
-        eta_s = "--" if math.isnan(eta) else _hms(eta)
-        line = (
-            f"[{'#' * filled}{'.' * (width - filled)}] {self.done}/{self.total} "
-            f"ETA {eta_s}, failures {self.failures}"
-        )
-        print(
-            ("\r" + line) if self.tty else line,
-            end="" if self.tty else "\n",
-            file=sys.stderr,
-            flush=True,
-        )
-
-    def finish(self) -> None:
-        if self.enabled and self.tty:
-            print(file=sys.stderr, flush=True)
-
-
-def _hms(s: float) -> str:
-    s = round(s)
-    return f"{s // 3600}h{s % 3600 // 60:02d}m" if s >= 3600 else f"{s // 60}m{s % 60:02d}s"
 
 
 def prepare_dir(out: Path, c: Campaign, payload: dict[str, Any], resume: bool) -> set[int]:

@@ -5,13 +5,12 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import signal
 import sys
 from pathlib import Path
 from typing import Any
 
 from config.numbers import integer
-from wara.cli import EXIT_FAILED, EXIT_OK, UsageError
+from wara.cli import EXIT_FAILED, EXIT_OK, UsageError, stop_on_sigterm
 from wara.extras import require_campaign
 
 
@@ -56,16 +55,6 @@ def register(sub: argparse._SubParsersAction) -> None:
     t.set_defaults(func=_tune)
 
 
-def _stop_on_sigterm() -> None:
-    """SIGTERM as Ctrl-C: the cluster and its workers' planner processes are shut down
-    (the runs written so far stay; ``--resume`` goes on)."""
-
-    def _raise(signum: int, frame: object) -> None:
-        raise KeyboardInterrupt
-
-    signal.signal(signal.SIGTERM, _raise)
-
-
 def _check_workers(n: int | None) -> None:
     if n is not None and not 1 <= n <= 256:
         raise UsageError(f"--workers must be 1..256, got {n}")
@@ -79,7 +68,7 @@ def _run(args: argparse.Namespace) -> int:
 
     c = load_campaign(args.spec)
     out = Path(args.resume or args.out)
-    _stop_on_sigterm()
+    stop_on_sigterm()
     o = run_campaign(
         c,
         out,
@@ -197,7 +186,7 @@ def _tune(args: argparse.Namespace) -> int:
     from wara.campaign.tune import tune
 
     c = load_campaign(args.spec)
-    _stop_on_sigterm()
+    stop_on_sigterm()
     for name, v in (("--trials", args.trials), ("--runs", args.runs)):
         if v is not None and v < 1:
             raise UsageError(f"{name} must be at least 1, got {v}")
