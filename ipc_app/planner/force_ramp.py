@@ -1,4 +1,4 @@
-"""A preload's or transfer's force ramp in time (docs/walking.md, "The force ramps").
+"""A transfer's force ramp in time (docs/walking.md, "The force loop").
 
 The receiving legs' forces move along the plan's line from where they start to their
 target; :class:`ForceRamp` says how far along it they are at a time. The rate is
@@ -25,6 +25,11 @@ from config.schema import ProjectConfig
 
 #: the leg groups whose position loops hold the body while the other frame's legs ramp
 LEG_ROLES = ("main_leg", "sub_leg")
+#: the phases whose ramps are blended: the transfers (4, 7c), where the whole load moves
+#: between the frames; a preload moves a fifth of a share in a second (not blended: with
+#: every ramp blended the HFDU example's unloaded walk back met its 7a touch-down at
+#: 110.2 % of the overload limit's share, 107.7 % with the transfers only; docs/decisions/0028)
+TRANSFER_KEYS = frozenset({"4", "7c"})
 
 
 def blend_s(cfg: ProjectConfig) -> float:

@@ -15,7 +15,7 @@ Choices where walking.md is silent:
   ``walking.travel_speed_mm_s`` and ``walking.travel_accel_mm_s2``, the legs at
   ``planner.trajectory.max_rod_speed_mm_s`` and ``max_rod_accel_mm_s2``.
 - Preload and transfer ramp the leg forces at ``walking.force_ramp_kn_s`` (the largest
-  change of any leg sets the duration), the rate blended in and out
+  change of any leg sets the duration), a transfer's rate blended in and out
   (:mod:`ipc_app.planner.force_ramp`: one blend longer; the samples are the line's).
   During a transfer the forces move on the straight line from the preloaded to the new
   standing distribution (every point of it is an equilibrium); the transfer ends when
@@ -44,7 +44,7 @@ from ipc_app.model.support import (
     support_forces,
 )
 from ipc_app.planner.capacity import Duty, pressure_limit_pa, pressure_reason
-from ipc_app.planner.force_ramp import ForceRamp, blend_s
+from ipc_app.planner.force_ramp import TRANSFER_KEYS, ForceRamp, blend_s
 
 _SAMPLES = 41  # samples per phase (the margin and forces are checked at each)
 
@@ -524,7 +524,8 @@ class _Planner:
         self, step: int, key: str, x_s: float, f0: Array, f1: Array, support: list[int]
     ) -> None:
         linear_s = float(np.abs(f1 - f0).max()) / self.walk.force_ramp_n_s
-        duration = ForceRamp.of(linear_s, self.ramp_blend_s).duration_s
+        blend = self.ramp_blend_s if key in TRANSFER_KEYS else 0.0
+        duration = ForceRamp.of(linear_s, blend).duration_s
         lam = np.linspace(0.0, 1.0, _SAMPLES)[:, None]
         forces = f0[None, :] * (1 - lam) + f1[None, :] * lam
         ids = tuple(self.leg_ids[i] for i in support)

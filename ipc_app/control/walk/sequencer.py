@@ -59,7 +59,7 @@ from ipc_app.control.walk.phases import (
     walk_active_group,
 )
 from ipc_app.model.support import cap_side_forces_n
-from ipc_app.planner.force_ramp import ForceRamp, blend_s
+from ipc_app.planner.force_ramp import TRANSFER_KEYS, ForceRamp, blend_s
 from ipc_app.planner.walk import Move, Phase, WalkPlan
 
 FloatArray = NDArray[np.float64]
@@ -254,9 +254,10 @@ class WalkSequencer(WalkLoops):
 
     def _set_ramp(self, run: PhaseRun, f: FloatArray) -> None:
         """A force ramp from the receiving legs' forces ``f`` to their target: its line's
-        time at full rate (the largest change of any leg), blended in and out."""
+        time at full rate (the largest change of any leg), a transfer's blended in and out."""
         delta = max(abs(float(run.target_force_n[j] - f[j])) for j in run.role.frame)
-        run.ramp = ForceRamp.of(delta / self.walk.force_ramp_n_s, self.ramp_blend_s)
+        blend = self.ramp_blend_s if run.phase.key in TRANSFER_KEYS else 0.0
+        run.ramp = ForceRamp.of(delta / self.walk.force_ramp_n_s, blend)
         run.duration_s = run.ramp.duration_s
 
     def _margin_ahead(self, ph: Phase, x_s: float) -> float:
