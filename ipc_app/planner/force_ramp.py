@@ -11,7 +11,7 @@ Why a blend: the releasing legs hold the body in position control while the rece
 legs' force references ramp. A rate that starts at once is a step in the force the
 releasing loops must take off their legs, and their observers learn it only within
 their bandwidth: the body swung in pitch, some 1.2 s a period, and the swing at the
-start of 7c was most of the transfer's attitude change (docs/decisions/0028). A blend of
+start of 7c was most of the transfer's attitude change (docs/decisions/0026). A blend of
 one period of the slowest releasing loop's crossover changes the rate no faster than
 that loop follows.
 """
@@ -28,7 +28,7 @@ LEG_ROLES = ("main_leg", "sub_leg")
 #: the phases whose ramps are blended: the transfers (4, 7c), where the whole load moves
 #: between the frames; a preload moves a fifth of a share in a second (not blended: with
 #: every ramp blended the HFDU example's unloaded walk back met its 7a touch-down at
-#: 110.2 % of the overload limit's share, 107.7 % with the transfers only; docs/decisions/0028)
+#: 110.2 % of the overload limit's share, 107.7 % with the transfers only; docs/decisions/0026)
 TRANSFER_KEYS = frozenset({"4", "7c"})
 
 
