@@ -38,3 +38,10 @@ def test_the_blend_is_one_period_of_the_slowest_leg_loops_crossover() -> None:
     cfg = load_project(None)
     wc = [position_bandwidths(cfg, c)[0] for c in cfg.cylinders if c.role.endswith("_leg")]
     assert blend_s(cfg) == pytest.approx(2 * np.pi / min(wc))
+
+
+def test_a_ramp_with_nothing_to_move_is_done_at_once() -> None:
+    """Receiving legs already at their target (a resume at the ramp's end): no line to
+    run, no rate, the whole way along."""
+    ramp = ForceRamp.of(0.0, 1.5)
+    assert ramp.duration_s == 0.0 and ramp.fraction(0.0) == 1.0 and ramp.rate_share(0.0) == 0.0

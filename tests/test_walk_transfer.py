@@ -205,3 +205,19 @@ def test_a_force_ramp_starts_and_ends_at_rest_and_runs_at_full_rate_between() ->
         assert told == pytest.approx(-run.release_rate_n_s[SUB[0]] * share / k_oil, abs=1e-15)
     run.clock_s = run.duration_s
     assert run.progress == 1.0 and run.rate_share == 0.0
+
+
+def test_a_resume_with_the_receiving_legs_at_their_target_ends_the_ramp_at_once() -> None:
+    """Stopped at the ramp's end: the receiving legs carry their target, the ramp restarts
+    with nothing to move (no rate, no division by its zero length) and is done."""
+    seq, x, p = in_transfer("7c")
+    run = seq.run
+    assert run is not None
+    for j in MAIN:
+        i = seq.legs[j]
+        p[i, 0] = run.target_force_n[j] / seq.cap_area_m2[i]
+        p[i, 1] = 0.0
+    seq.resume(x, p)
+    assert run.ramp is not None and run.ramp.linear_s == pytest.approx(0.0, abs=1e-9)
+    seq.update(2.0, x, p, set(range(seq.n)))
+    assert run.progress == 1.0

@@ -523,7 +523,8 @@ class WalkSequencer(WalkLoops):
         progress = run.progress
         for j in run.role.frame:
             f0, f1 = float(run.start_force_n[j]), float(run.target_force_n[j])
-            rate_n_s = (f1 - f0) / self._linear_s(run) * run.rate_share
+            line_s = self._linear_s(run)
+            rate_n_s = (f1 - f0) / line_s * run.rate_share if line_s > 0 else 0.0
             cyc.force_ref[self.legs[j]] = (f0 + progress * (f1 - f0), rate_n_s)
 
     def _hold_body(self, run: PhaseRun, cyc: PhaseCycle) -> None:
