@@ -232,4 +232,14 @@ def test_ctrl_c_ends_a_run_without_the_workers_tracebacks(tmp_path: Path) -> Non
     text = err_path.read_text()
     assert code == 130, text
     assert "Traceback" not in text and "KeyboardInterrupt" not in text, text
-    assert text.rstrip().endswith("wara: interrupted"), text
+    # Python's resource tracker may report, after the command's last line, the queue
+    # semaphores of the worker processes the shutdown ended, which it removes
+    # (docs/campaigns.md): its lines only, nothing of ours
+    ours = [ln for ln in text.rstrip().splitlines() if not _resource_tracker_line(ln)]
+    assert ours[-1] == "wara: interrupted", text
+
+
+def _resource_tracker_line(line: str) -> bool:
+    return "resource_tracker" in line and (
+        "leaked semaphore" in line or line.lstrip().startswith("warnings.warn(")
+    )
