@@ -212,7 +212,7 @@ class _Driver:
                         load_kn["bolted"] = float(bolted["load_n"]) / units.KN
                         out = self.svc.call("confirm_fixed", user=OPERATOR)
                         if not out.get("ok"):
-                            raise RingFailed(f"confirm-fixed refused: {out.get('error')}")
+                            raise RingFailed(str(out.get("error")))  # "confirm-fixed refused: why"
                 elif phase == "survey" and not surveyed:
                     part = self.site.act("part")  # the total station sees the bolted part
                     if part["r"] != bolted.get("r") or part["t"] != bolted.get("t"):
@@ -223,7 +223,7 @@ class _Driver:
                     rows = [[p.name, *p.face, *p.measured] for p in pts]
                     out = self.svc.call("survey", points=rows)
                     if not out.get("ok"):
-                        raise RingFailed(f"survey refused: {out.get('error')}")
+                        raise RingFailed(str(out.get("error")))  # "survey refused: why"
                     surveyed = True
             if time.monotonic() - since > limit_s:
                 raise RingFailed(f"ring {ring}'s {self.phase} did not end in {limit_s:g} s")

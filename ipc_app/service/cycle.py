@@ -453,6 +453,15 @@ class RingCycle:
 
     # ----------------------------------------------------------------- requests
 
+    def _not_in(self, phase: str) -> str:
+        """Why a request of ``phase`` is refused: the cycle has ended (in which phase, and
+        why), or it is in another phase."""
+        if self.error is not None:
+            return f"ring {self.ring}'s cycle ended in {self.phase}: {self.error}"
+        if self.done:
+            return f"ring {self.ring}'s cycle is done"
+        return f"the cycle is in {self.phase or 'no phase'}, not {phase}"
+
     def confirm_fixed(self, user: str) -> Reply:
         """The operator confirms the part is fixed: the cycle goes on to ``release`` (the
         platform lowered off the part), then waits for the survey."""
@@ -461,9 +470,7 @@ class RingCycle:
 
     def _confirm_fixed(self, user: str) -> Reply:
         if self.phase != "fixing" or not self.active:
-            return Reply.refused(
-                f"confirm-fixed refused: the cycle is in {self.phase or 'no phase'}, not fixing"
-            )
+            return Reply.refused(f"confirm-fixed refused: {self._not_in('fixing')}")
         self.fixed_by = user
         self.core.audit(user, "confirm_fixed", f"ring {self.ring} fixed")
         self._enter("release")
@@ -480,9 +487,7 @@ class RingCycle:
 
     def _submit_survey(self, points: list[SurveyPoint] | None, pose: Pose | None) -> Reply:
         if self.phase != "survey" or not self.active:
-            return Reply.refused(
-                f"survey refused: the cycle is in {self.phase or 'no phase'}, not survey"
-            )
+            return Reply.refused(f"survey refused: {self._not_in('survey')}")
         if (points is None) == (pose is None):
             return Reply.bad_request("give survey points or a pose")
         if points is not None:
