@@ -215,8 +215,7 @@ def test_a_stop_in_fixing_ends_the_cycle_holding_safely(tmp_path: Path) -> None:
         refusal = h.core.confirm_fixed("operator A")
         assert refusal["code"] == "refused"  # and says why: the cycle ended, not its phase
         assert refusal["error"] == (
-            "confirm-fixed refused: ring 2's cycle ended in fixing: "
-            "stopped: operator stop (test)"
+            "confirm-fixed refused: ring 2's cycle ended in fixing: stopped: operator stop (test)"
         )
         assert h.core.snapshot()["cycle"]["error"] == cyc.error
     finally:
