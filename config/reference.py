@@ -57,6 +57,7 @@ UNITS: tuple[tuple[str, str], ...] = (
     ("_mm", "mm"),
     ("_ms", "ms"),
     ("_um", "um"),
+    ("_us", "us"),
     ("_m", "m"),
     ("_s", "s"),
     ("_n", "N"),

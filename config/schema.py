@@ -792,6 +792,10 @@ class Realtime(Strict):
     cpu_affinity: tuple[Annotated[int, Field(ge=0, le=4095)], ...] = ()
     #: lock the service's memory (``mlockall``)
     lock_memory: bool = False
+    #: while the loop runs, hold a Linux PM QoS request (``/dev/cpu_dma_latency``) that
+    #: no CPU take longer than this to wake: 0 keeps idle CPUs polling, so a step starts
+    #: on a warm CPU (docs/realtime.md); null leaves the system's idle states alone
+    cpu_wakeup_latency_us: Annotated[int, Field(ge=0, le=1_000_000)] | None = None
 
 
 class Control(Strict):

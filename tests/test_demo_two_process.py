@@ -127,13 +127,17 @@ def test_placement_of_loop_and_simulator(tmp_path: Path) -> None:
     if len(free) >= 2:
         assert list(pinned.control.realtime.cpu_affinity) == [free[0]]
         assert simulator_cpus(pinned, free) == free[1:]
+    assert pinned.control.realtime.cpu_wakeup_latency_us == 0  # steps on a warm CPU
     unpinned = multicast_config(None, tmp_path / "u.yaml", pin=False)
     assert not unpinned.control.realtime.cpu_affinity
+    assert unpinned.control.realtime.cpu_wakeup_latency_us is None
     assert simulator_cpus(unpinned, free) == []
     # A project that pins its loop itself keeps its choice.
     data = yaml.safe_load((tmp_path / "u.yaml").read_text())
     data["control"]["realtime"]["cpu_affinity"] = [1]
+    data["control"]["realtime"]["cpu_wakeup_latency_us"] = 50
     (tmp_path / "own.yaml").write_text(yaml.safe_dump(data))
     own = multicast_config(tmp_path / "own.yaml", tmp_path / "o.yaml", pin=True)
     assert list(own.control.realtime.cpu_affinity) == [1]
+    assert own.control.realtime.cpu_wakeup_latency_us == 50
     assert simulator_cpus(own, [0, 1, 2]) == [0, 2]

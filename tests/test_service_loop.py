@@ -3,8 +3,11 @@
 from __future__ import annotations
 
 import gc
+import os
+import sys
 import threading
 from collections.abc import Callable
+from pathlib import Path
 
 import pytest
 from structlog.testing import capture_logs
@@ -13,6 +16,7 @@ from config.schema import Realtime
 from ipc_app.service.loop import (
     ChangeGate,
     FixedRateLoop,
+    LinuxOsApi,
     RealtimeReport,
     SlackGate,
     apply_realtime,
@@ -219,6 +223,10 @@ class FakeOs:
     def memlock_unlimited(self) -> bool:
         return self.unlimited
 
+    def hold_cpu_latency(self, latency_us: int) -> Callable[[], None]:
+        self._do("latency", latency_us)
+        return lambda: self.calls.append(("latency released", latency_us))
+
 
 def test_realtime_nothing_asked_nothing_done() -> None:
     fake = FakeOs(set())
@@ -248,6 +256,47 @@ def test_realtime_applied_from_loop_and_reported_in_stats() -> None:
     loop.run()
     assert loop.realtime_report.applied == ("mlockall(MCL_CURRENT|MCL_FUTURE)",)
     assert loop.stats()["realtime_refused"][0].startswith("SCHED_FIFO priority 50")
+
+
+def test_the_cpu_wakeup_latency_is_held_while_the_loop_runs_and_released_after() -> None:
+    ft = FakeTime()
+    fake = FakeOs(set())
+    seen: list[list[tuple[str, object]]] = []
+    loop, _ = make(
+        ft, lambda k: seen.append(list(fake.calls)) or 0.1, 3,
+        realtime=Realtime(cpu_wakeup_latency_us=0), os_api=fake,
+    )  # fmt: skip
+    loop.run()
+    assert seen and all(c == [("latency", 0)] for c in seen)  # held during every step
+    assert fake.calls == [("latency", 0), ("latency released", 0)]
+    assert loop.realtime_report.applied == ("cpu_wakeup_latency 0 us (/dev/cpu_dma_latency)",)
+
+
+def test_a_refused_cpu_wakeup_latency_is_reported_and_the_loop_runs() -> None:
+    fake = FakeOs({"latency"})
+    rep = apply_realtime(Realtime(cpu_wakeup_latency_us=10), fake)
+    assert rep.applied == () and rep.releases == ()
+    assert rep.refused[0].startswith("cpu_wakeup_latency 10 us (/dev/cpu_dma_latency): ")
+
+
+def test_the_real_cpu_latency_request_is_a_held_file(tmp_path: Path) -> None:
+    """LinuxOsApi writes the request as the kernel reads it (a 32-bit int) and holds the
+    file open until released (the device replaced by a file here)."""
+    import ipc_app.service.loop as loop_mod
+
+    dev = tmp_path / "cpu_dma_latency"
+    dev.write_bytes(b"")
+    orig = loop_mod.CPU_LATENCY_DEVICE
+    loop_mod.CPU_LATENCY_DEVICE = str(dev)
+    try:
+        before = len(os.listdir("/proc/self/fd"))
+        release = LinuxOsApi().hold_cpu_latency(0)
+        assert len(os.listdir("/proc/self/fd")) == before + 1
+        release()
+        assert len(os.listdir("/proc/self/fd")) == before
+    finally:
+        loop_mod.CPU_LATENCY_DEVICE = orig
+    assert dev.read_bytes() == (0).to_bytes(4, sys.byteorder)
 
 
 def test_wara_bench_loop_prints_one_json_object(capsys: pytest.CaptureFixture[str]) -> None:

@@ -133,7 +133,10 @@ def multicast_config(
     """Copy the project YAML to ``out_path`` with the bus on ``transport``; validated.
 
     ``pin``: the service's loop thread gets a CPU of its own (:func:`loop_cpus`, written
-    as ``control.realtime.cpu_affinity``); the simulator then runs on the others.
+    as ``control.realtime.cpu_affinity``); the simulator then runs on the others; and
+    unless the project says otherwise the CPUs stay out of deep idle states while the
+    loop runs (``control.realtime.cpu_wakeup_latency_us`` 0, as docs/deploy.md has it
+    for the IPC).
     """
     src = Path(config_path) if config_path is not None else default_project_path()
     cfg = load_project(src)  # a bad config is the user's error (exit 2), reported against src
@@ -143,9 +146,11 @@ def multicast_config(
     can_block["channel"] = MULTICAST_GROUP
     if pin:
         cpus = loop_cpus(cfg, sorted(os.sched_getaffinity(0)))
+        rt = data.setdefault("control", {}).setdefault("realtime", {})
         if cpus:
-            rt = data.setdefault("control", {}).setdefault("realtime", {})
             rt["cpu_affinity"] = cpus
+        if cfg.control.realtime.cpu_wakeup_latency_us is None:
+            rt["cpu_wakeup_latency_us"] = 0  # as on the IPC: steps start on a warm CPU
     out_path.write_text(
         "# written by `wara demo --two-process` from "
         + str(src)
@@ -443,6 +448,7 @@ class LoopWatch:
             "compute_p99_fraction": fraction,
             "compute_p50_ms": worst("compute_p50_ms"),
             "compute_max_ms": worst("compute_max_ms"),
+            "compute_cpu_p99_ms": worst("compute_cpu_p99_ms"),
             "jitter_max_ms": worst("jitter_max_ms"),
             "overruns": overruns,
             "overruns_total": overruns_total,

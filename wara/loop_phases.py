@@ -17,8 +17,9 @@ What the service keeps, and what is read from it here:
   covers rows ``cycles - window_cycles`` to ``cycles - 1``.
 
 A phase's compute figures are those of the reports whose whole window lies within that
-phase (the worst p99 and max, the median p50); a phase shorter than a window (20.5 s at
-200 Hz) gets those of the windows that overlap it, marked ``mixed``. Its overruns,
+phase (the worst p99 and max, the median p50; the p99 of the step's own CPU time beside
+them, so that what remains is the time the loop's thread waited); a phase shorter than a
+window (20.5 s at 200 Hz) gets those of the windows that overlap it, marked ``mixed``. Its overruns,
 skipped periods, wake-up latency and suspends are counted from the record itself.
 
 Each overrun is explained by what the record and its window say: when (the phase, the
@@ -313,6 +314,7 @@ def phase_figures(
                 "compute_p50_ms": float(np.median(p50s)) if p50s else None,
                 "compute_p99_ms": worst("compute_p99_ms"),
                 "compute_max_ms": worst("compute_max_ms"),
+                "compute_cpu_p99_ms": worst("compute_cpu_p99_ms"),
                 "compute_windows": len(reps),
                 "compute_mixed": mixed and bool(reps),
                 "latency_p99_ms": float(np.percentile(lats, 99)) if lats.size else None,
@@ -340,10 +342,10 @@ def render_phases(fig: Mapping[str, Any], period_ms: float) -> list[str]:
         return "n/a" if v is None else f"{v:.2f}"
 
     head = (
-        "| phase | s | cycles | compute p50 / p99 / max ms | p99 % of period | wake-up p99 / "
-        "max ms | overruns (skipped) | suspends |"
+        "| phase | s | cycles | compute p50 / p99 / max ms | p99 % of period | its CPU p99 ms "
+        "| wake-up p99 / max ms | overruns (skipped) | suspends |"
     )
-    lines = [head, "|---|---|---|---|---|---|---|---|"]
+    lines = [head, "|---|---|---|---|---|---|---|---|---|"]
     for p in fig.get("phases", []):
         p99 = p["compute_p99_ms"]
         pct = "n/a" if p99 is None else f"{100 * p99 / period_ms:.1f}"
@@ -351,6 +353,7 @@ def render_phases(fig: Mapping[str, Any], period_ms: float) -> list[str]:
         lines.append(
             f"| {p['phase']} | {p['duration_s']:.1f} | {p['cycles']} | "
             f"{ms(p['compute_p50_ms'])} / {ms(p99)} / {ms(p['compute_max_ms'])}{mark} | {pct} | "
+            f"{ms(p.get('compute_cpu_p99_ms'))} | "
             f"{ms(p['latency_p99_ms'])} / {ms(p['latency_max_ms'])} | "
             f"{p['overruns']} ({p['skipped_periods']}) | {p['suspends']} |"
         )
