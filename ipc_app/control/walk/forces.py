@@ -191,13 +191,13 @@ class HeldLegShares:
             others = [j for j in range(8) if j not in held]
             a = equilibrium_matrix(machine, x_s)
             a_r = a[:, held]
-            # (key, the share, the load, others, a's columns of the others, of the held
-            # legs, and the held legs' normal matrix)
-            c = (key, eight_leg_share_n, a @ eight_leg_share_n, others, a[:, others], a_r,
-                 a_r @ a_r.T)  # fmt: skip
+            # (key, the share, the load, others, a's columns of the others, and the held
+            # legs' minimum-norm map a_r^T (a_r a_r^T)^-1, the normal matrix symmetric)
+            c = (key, eight_leg_share_n, a @ eight_leg_share_n, others, a[:, others],
+                 np.linalg.solve(a_r @ a_r.T, a_r).T)  # fmt: skip
             self._parts = c
-        _key, _share, load, others, a_o, a_r, normal = c
+        _key, _share, load, others, a_o, min_norm = c
         rest = load - a_o @ contact_n[others]
         out = plan_n.copy()
-        out[held] = a_r.T @ np.linalg.solve(normal, rest)  # min_norm_forces, its parts kept
+        out[held] = min_norm @ rest  # min_norm_forces, its parts kept
         return out

@@ -121,6 +121,8 @@ class WalkLoops:
         #: the eight-leg shares by S's position, per mm (emptied at each phase's start)
         self._share_cache: dict[int, tuple[float, FloatArray]] = {}
         self.held_shares = HeldLegShares()
+        #: the last stability margin: ((x_s, legs), margin), dropped with the machine
+        self._margin_at: tuple[tuple[float, tuple[int, ...]], float] | None = None
 
     def _key_now(self) -> str:
         """The present phase's key (before the first: the plan's first phase's)."""
@@ -149,6 +151,7 @@ class WalkLoops:
             self.cfg, float(fit.roll), float(fit.pitch), self.plan.unloaded, self.plan.standing
         )
         self.held_shares.clear()
+        self._margin_at = None
 
     def share(self, x_s: float, legs: tuple[int, ...]) -> FloatArray:
         """Expected forces (8,) with ``legs`` standing (minimum norm), N."""
@@ -169,9 +172,15 @@ class WalkLoops:
         return hit[1]
 
     def margin(self, x_s: float, legs: tuple[int, ...]) -> float:
-        """The static stability margin with ``legs`` standing, S at ``x_s``, m."""
+        """The static stability margin with ``legs`` standing, S at ``x_s``, m (the last
+        one kept: S stands still in every phase but a travel)."""
+        key = (x_s, legs)
+        if self._margin_at is not None and self._margin_at[0] == key:
+            return self._margin_at[1]
         point = cog_projection(self.machine.cog(x_s), self.machine.g_base)
-        return stability_margin(self.machine.legs_xy(x_s)[list(legs)], point)
+        m = stability_margin(self.machine.legs_xy(x_s)[list(legs)], point)
+        self._margin_at = (key, m)
+        return m
 
     @staticmethod
     def _frame(ids: tuple[str, ...], leg_ids: tuple[str, ...]) -> tuple[int, ...]:

@@ -103,6 +103,12 @@ class WalkSequencer(WalkLoops):
         traj = cfg.planner.trajectory
         self.leg_speed_m_s = traj.max_rod_speed_m_s
         self.leg_accel_m_s2 = traj.max_rod_accel_m_s2
+        #: a lowering's fast part (:meth:`_fast_lowering`), made once: the loop's thread
+        #: reads it every cycle of a lowering
+        self._fast_lower = Move(
+            self.walk.clearance_m - self.touchdown_travel_m, self.leg_speed_m_s,
+            self.leg_accel_m_s2,
+        )  # fmt: skip
         #: every walk cylinder's position reference while it holds, m
         self.hold_ref = np.zeros(self.n)
         self.done = False
@@ -246,8 +252,7 @@ class WalkSequencer(WalkLoops):
     def _fast_lowering(self) -> Move:
         """A lowering's fast part: at leg speed to ``touchdown_travel`` above the
         expected ground."""
-        distance_m = self.walk.clearance_m - self.touchdown_travel_m
-        return Move(distance_m, self.leg_speed_m_s, self.leg_accel_m_s2)
+        return self._fast_lower
 
     def _lift(self) -> Move:
         return Move(-self.walk.clearance_m, self.leg_speed_m_s, self.leg_accel_m_s2)
