@@ -13,9 +13,9 @@
 - **The twist mode** of a frame standing in position control: a force loop on its legs'
   twist sets that mode's share of their valve commands (:meth:`WalkLoops._twist_control`).
 - **The hold** of every other walk cylinder (:meth:`WalkLoops._hold`): in the active
-  group with its LADRC; outside it (frames at the slow cycle) with a slow
-  proportional-integral hold (:attr:`WalkLoops.SLOW_HOLD_RAD_S`), its integral started
-  at the LADRC's last command.
+  group with its LADRC; outside it (frames at the slow cycle) with a slow proportional
+  hold (:attr:`WalkLoops.SLOW_HOLD_RAD_S`), the travel pair with a proportional-integral
+  one (:attr:`WalkLoops.TRAVEL_HOLD_RAD_S`).
 - **The machine's statics and the legs' forces** as the checks see them: shares and
   margins from the measured upper platform (the workpiece's COG), the legs' forces at
   one instant less their rods' friction (:mod:`ipc_app.control.walk.forces`).
@@ -58,14 +58,16 @@ class WalkLoops:
     """The walk cylinders' loops, the machine's statics and the legs' force estimates
     of one walk plan; see the module docstring."""
 
-    #: slow hold of a walk cylinder outside the active group: command = (gain * error +
-    #: integral gain * its integral) / b0 (:meth:`_hold`). Its frames' slow cycle (rod
+    #: slow hold of a walk cylinder outside the active group: command = gain * error / b0
+    SLOW_HOLD_RAD_S = 1.0
+    #: the travel pair's slow hold, proportional-integral (:meth:`_hold`): command =
+    #: (gain * error + integral gain * its integral) / b0. Its frames' slow cycle (rod
     #: positions every 50 ms, valve commands every 20 ms) costs it 0.3 rad of phase at
-    #: 4 rad/s; at 1 rad/s the hanging M drifted 0.7 mm with the integral (docs/curves.md)
-    SLOW_HOLD_RAD_S = 4.0
-    #: the slow hold's integral gain, 1/s^2: a double pole at half its gain (critically
-    #: damped on the rod's integrator)
-    SLOW_HOLD_INTEGRAL_RAD2_S2 = SLOW_HOLD_RAD_S**2 / 4
+    #: 4 rad/s; at 1 rad/s the hanging M crept 0.7 mm with the integral (docs/curves.md)
+    TRAVEL_HOLD_RAD_S = 4.0
+    #: its integral gain, 1/s^2: a double pole at half its gain (critically damped on the
+    #: rod's integrator)
+    TRAVEL_HOLD_INTEGRAL_RAD2_S2 = TRAVEL_HOLD_RAD_S**2 / 4
 
     def __init__(self, cfg: ProjectConfig, period_s: float, plan: WalkPlan) -> None:
         if cfg.walking is None or cfg.frames is None:
@@ -128,8 +130,8 @@ class WalkLoops:
         #: the eight-leg shares by S's position, per mm (emptied at each phase's start)
         self._share_cache: dict[int, tuple[float, FloatArray]] = {}
         self.held_shares = HeldLegShares()
-        #: the slow hold's integral term of each cylinder held outside the active group
-        #: (its command's share, started at the LADRC's last command; :meth:`_hold`)
+        #: the integral term of each travel cylinder held outside the active group (its
+        #: command's share, from zero as it leaves the group; :meth:`_hold`)
         self.slow_integral: dict[int, float] = {}
 
     def _key_now(self) -> str:
@@ -212,33 +214,41 @@ class WalkLoops:
         active group, the slow hold outside it. ``known``: a rod speed the loop is told of
         (its oil column's decompression, m/s).
 
-        The slow hold is proportional-integral: a loaded cylinder leaks across its piston
-        and out (its chambers' pressures), and a rod at rest needs the valve open by what
-        passes that leakage; a proportional hold opens it only by a position error (the
-        leak's speed over the gain: 2.8 mm in 8 s with the 40 t part hanging on the travel
-        pair on a 3 % grade, docs/curves.md). The integral starts at the LADRC's last
-        command (bumpless; a cylinder leaving the active group at a phase's start), and
-        stops growing while the command is saturated."""
+        The travel pair's slow hold is proportional-integral: a frame hanging on it
+        outside the active group (a lowering or a lift) loads it along a grade, a loaded
+        cylinder leaks across its piston and out (its chambers' pressures), and a rod at
+        rest needs its valve open by what passes that leakage; a proportional hold opens
+        it only by a position error (the leak's speed over the gain: the hanging M crept
+        2.8 mm in phase 7a with the 40 t part on a 3 % rise, docs/curves.md). The
+        integral starts at zero as the pair leaves the active group (at a phase's start,
+        its rods at rest: the proportional part's zero there too), and stops growing
+        while the command is saturated. Started at the LADRCs' last command instead
+        (each one's, the pair's mean, or its observers' holding command) it took the
+        HFDU project's unloaded walk back to 110.0-113.9 % at M's touch-down against the
+        110 % overload trip (from zero: 107.6 %; the proportional hold's 107.7 %). The
+        other walk cylinders keep the proportional hold (their creep reaches no walk
+        goal)."""
         dt = self.period_s
         for i in self.walk_cylinders:
             if skip and i in skip:
-                self.slow_integral.pop(i, None)
                 continue
             if i in active:
                 self.slow_integral.pop(i, None)
                 d = known.get(i, 0.0) if known else 0.0
                 u[i] = self.pos[i].update(float(refs[i]), float(x[i]), float(rates[i]), d)
-            else:
-                e = float(refs[i] - x[i])
-                integral = self.slow_integral.get(i)
-                if integral is None:
-                    integral = self.pos[i].command
-                u0 = self.SLOW_HOLD_RAD_S * e / self.b0[i] + integral
-                u[i] = max(-1.0, min(1.0, u0))
-                if u0 == u[i]:
-                    integral += self.SLOW_HOLD_INTEGRAL_RAD2_S2 * e * dt / self.b0[i]
-                self.slow_integral[i] = integral
+                continue
+            e = float(refs[i] - x[i])
+            if i not in self.travel:
+                u[i] = max(-1.0, min(1.0, self.SLOW_HOLD_RAD_S * e / self.b0[i]))
                 self.pos[i].reset(float(x[i]), u[i])
+                continue
+            integral = self.slow_integral.get(i, 0.0)
+            u0 = self.TRAVEL_HOLD_RAD_S * e / self.b0[i] + integral
+            u[i] = max(-1.0, min(1.0, u0))
+            if u0 == u[i]:
+                integral += self.TRAVEL_HOLD_INTEGRAL_RAD2_S2 * e * dt / self.b0[i]
+            self.slow_integral[i] = integral
+            self.pos[i].reset(float(x[i]), u[i])
 
     # ----------------------------------------------------------------- the twist mode
 
