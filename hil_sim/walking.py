@@ -345,7 +345,11 @@ class WalkingRig(Rig):
         y[_X : _X + N] = p.stroke_m / 2
         x_s = -walk.step_length_m / 2
         y[_XW + 2] = x_s
-        self._anchor[:] = (0.0, x_s)
+        # M's feet hold the whole machine along the base's x (S hangs on the travel pair,
+        # which M's frame carries): their shear spring stretched by that load, so M
+        # starts at rest at X_M = 0 (not sliding into it as the walk begins)
+        along_n = -float(self._mass_x.sum()) * float(self.g_base[0])
+        self._anchor[:] = (along_n / self.shear_stiffness_n_m, x_s)
         self._place_sub_bodies(x_s)
         _m, q_g = self.generalized_gravity(np.zeros(6))
         g_z = self.g_base[2]

@@ -14,7 +14,8 @@
   twist sets that mode's share of their valve commands (:meth:`WalkLoops._twist_control`).
 - **The hold** of every other walk cylinder (:meth:`WalkLoops._hold`): in the active
   group with its LADRC; outside it (frames at the slow cycle) with a slow proportional
-  hold (:attr:`WalkLoops.SLOW_HOLD_RAD_S`).
+  hold (:attr:`WalkLoops.SLOW_HOLD_RAD_S`), the travel pair with a proportional-integral
+  one (:attr:`WalkLoops.TRAVEL_HOLD_RAD_S`).
 - **The machine's statics and the legs' forces** as the checks see them: shares and
   margins from the measured upper platform (the workpiece's COG), the legs' forces at
   one instant less their rods' friction (:mod:`ipc_app.control.walk.forces`).
@@ -59,6 +60,14 @@ class WalkLoops:
 
     #: slow hold of a walk cylinder outside the active group: command = gain * error / b0
     SLOW_HOLD_RAD_S = 1.0
+    #: the travel pair's slow hold, proportional-integral (:meth:`_hold`): command =
+    #: (gain * error + integral gain * its integral) / b0. Its frames' slow cycle (rod
+    #: positions every 50 ms, valve commands every 20 ms) costs it 0.3 rad of phase at
+    #: 4 rad/s; at 1 rad/s the hanging M crept 0.7 mm with the integral (docs/curves.md)
+    TRAVEL_HOLD_RAD_S = 4.0
+    #: its integral gain, 1/s^2: a double pole at half its gain (critically damped on the
+    #: rod's integrator)
+    TRAVEL_HOLD_INTEGRAL_RAD2_S2 = TRAVEL_HOLD_RAD_S**2 / 4
 
     def __init__(self, cfg: ProjectConfig, period_s: float, plan: WalkPlan) -> None:
         if cfg.walking is None or cfg.frames is None:
@@ -123,6 +132,9 @@ class WalkLoops:
         self.held_shares = HeldLegShares()
         #: the last stability margin: ((x_s, legs), margin), dropped with the machine
         self._margin_at: tuple[tuple[float, tuple[int, ...]], float] | None = None
+        #: the integral term of each travel cylinder held outside the active group (its
+        #: command's share, from zero as it leaves the group; :meth:`_hold`)
+        self.slow_integral: dict[int, float] = {}
 
     def _key_now(self) -> str:
         """The present phase's key (before the first: the plan's first phase's)."""
@@ -208,18 +220,44 @@ class WalkLoops:
         known: dict[int, float] | None = None,
     ) -> None:
         """Position control of every walk cylinder not in force control: LADRC in the
-        active group, the slow proportional hold outside it. ``known``: a rod speed the
-        loop is told of (its oil column's decompression, m/s)."""
+        active group, the slow hold outside it. ``known``: a rod speed the loop is told of
+        (its oil column's decompression, m/s).
+
+        The travel pair's slow hold is proportional-integral: a frame hanging on it
+        outside the active group (a lowering or a lift) loads it along a grade, a loaded
+        cylinder leaks across its piston and out (its chambers' pressures), and a rod at
+        rest needs its valve open by what passes that leakage; a proportional hold opens
+        it only by a position error (the leak's speed over the gain: the hanging M crept
+        2.8 mm in phase 7a with the 40 t part on a 3 % rise, docs/curves.md). The
+        integral starts at zero as the pair leaves the active group (at a phase's start,
+        its rods at rest: the proportional part's zero there too), and stops growing
+        while the command is saturated. Started at the LADRCs' last command instead
+        (each one's, the pair's mean, or its observers' holding command) it took the
+        HFDU project's unloaded walk back to 110.0-113.9 % at M's touch-down against the
+        110 % overload trip (from zero: 107.6 %; the proportional hold's 107.7 %). The
+        other walk cylinders keep the proportional hold (their creep reaches no walk
+        goal)."""
+        dt = self.period_s
         for i in self.walk_cylinders:
             if skip and i in skip:
                 continue
             if i in active:
+                self.slow_integral.pop(i, None)
                 d = known.get(i, 0.0) if known else 0.0
                 u[i] = self.pos[i].update(float(refs[i]), float(x[i]), float(rates[i]), d)
-            else:
-                e = float(refs[i] - x[i])
+                continue
+            e = float(refs[i] - x[i])
+            if i not in self.travel:
                 u[i] = max(-1.0, min(1.0, self.SLOW_HOLD_RAD_S * e / self.b0[i]))
                 self.pos[i].reset(float(x[i]), u[i])
+                continue
+            integral = self.slow_integral.get(i, 0.0)
+            u0 = self.TRAVEL_HOLD_RAD_S * e / self.b0[i] + integral
+            u[i] = max(-1.0, min(1.0, u0))
+            if u0 == u[i]:
+                integral += self.TRAVEL_HOLD_INTEGRAL_RAD2_S2 * e * dt / self.b0[i]
+            self.slow_integral[i] = integral
+            self.pos[i].reset(float(x[i]), u[i])
 
     # ----------------------------------------------------------------- the twist mode
 

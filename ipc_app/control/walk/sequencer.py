@@ -298,6 +298,7 @@ class WalkSequencer(WalkLoops):
         f = self.forces_n(p)
         for i, c in self.pos.items():
             c.reset(float(x[i]))
+        self.slow_integral.clear()  # the travel pair's slow hold too, at no command
         self._twist_started = False  # the twist loop too, at the forces now
         for j, i in enumerate(self.legs):
             if i in self.force_mode:
