@@ -26,6 +26,7 @@ the scenario events it plays are one sequence.
 
 from __future__ import annotations
 
+import gc
 import math
 import time
 from collections.abc import Callable
@@ -362,7 +363,13 @@ class HilSimulator:
         the schedule is reset and counted in ``overruns`` (the plant never skips time).
         Each scan sees only the frames that had arrived by its due time
         (:meth:`FaultyWire.set_arrival_horizon`), so catching up does not starve it.
+
+        What is allocated before the first scan (the modules, the compiled plant, the
+        rig) is moved out of the collector's reach (:func:`gc.freeze`): a full
+        collection over it takes 50-60 ms, ten scans the PLC would not make; frozen, a
+        collection walks only what the run has allocated since.
         """
+        gc.freeze()
         start = time.monotonic()
         to_epoch = time.time() - start
         t_start = self.t_s

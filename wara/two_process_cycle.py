@@ -187,7 +187,8 @@ class _Driver:
                 phase = str(cyc.get("phase"))
                 if phase != self.phase:
                     self.phase, since = phase, time.monotonic()
-                    self.say(f"ring {ring}: {phase}")
+                    if not cyc.get("done"):  # said once the ring's record is read
+                        self.say(f"ring {ring}: {phase}")
                 if cyc.get("error"):
                     reasons = "; ".join(st.get("fault_reasons") or [])
                     why = str(cyc["error"]) + (
