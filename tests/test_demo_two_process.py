@@ -17,6 +17,8 @@ from pathlib import Path
 
 import pytest
 
+from ipc_app.service.interlocks import Interlock
+from plc_bridge.link import Fault
 from wara.demo_two_process import netns_problem
 from wara.examples import ATTITUDE_TOL_DEG, SYNC_TOL_MM, TWIST_TOL_MM
 
@@ -82,6 +84,58 @@ def test_example_1_through_two_processes(netns: None) -> None:
         assert not set(pl["service_loop_cpus"]) & set(pl["simulator_cpus"])
     # The loop goal is judged (exit 1 when not met on a busy machine), never skipped.
     assert proc.returncode == (0 if out["passed"] else 1)
+
+
+@pytest.mark.realtime
+@pytest.mark.slow(seconds=300)
+def test_a_ring_cycle_through_two_processes(netns: None, tmp_path: Path) -> None:
+    """The README's two-process ring cycle, ``wara demo --two-process --rings 1``, as a
+    commissioning engineer runs it: the simulator and the service on the wall clock with
+    the shipped safety timeouts; ring 2 walked to, placed, fixed, released, surveyed and
+    walked back from, within Table 4, and the loop's figures given per phase.
+
+    One run in three to five on the 2-core development machine ends instead in the safe
+    state on the PLC's 15 ms limit on a silent IPC (or the service's on a silent PLC): a
+    process of the two kept off its CPU for some 100 ms, whose cause is not established
+    (docs/realtime.md, "Limits"). That ending is the machine's right answer to it and is
+    accepted here, exit 1 with the cause; any other ending is not."""
+    argv = ["demo", "--two-process", "--rings", "1", "--json", "--out", str(tmp_path)]
+    proc = subprocess.run(
+        [sys.executable, "-m", "wara", *argv],
+        capture_output=True,
+        text=True,
+        timeout=900,  # some 4.5 min of wall clock, and the plant compiled on a fresh machine
+        cwd=REPO,
+        env={**os.environ, "PYTHONPATH": str(REPO)},
+        check=False,
+    )
+    assert proc.returncode in (0, 1), proc.stderr[-3000:]
+    out = json.loads(proc.stdout)
+    assert out["refused"] is None, (out, proc.stderr[-3000:])
+    assert out["exit_codes"] == {"service": 0, "simulator": 0}
+    phases = {p["phase"]: p for p in out["loop_phases"]["phases"]}
+    assert "walk" in phases and phases["walk"]["compute_p50_ms"] > 0
+    # The loop goal is judged (exit 1 when it is missed on a busy machine), never skipped.
+    assert proc.returncode == (0 if out["passed"] else 1)
+    if out["final_mode"] == "ABORTED":  # the safe state, on a silent process only
+        assert out["rings"] == [] and out["error"], out
+        timing = [
+            f for f in out["faults"]
+            if f["interlock"] == Interlock.PLC_HEARTBEAT
+            or (f["interlock"] == Interlock.PLC_FAULT and f["where"] == Fault.IPC_TIMEOUT.name)
+        ]  # fmt: skip
+        assert out["faults"] and timing == out["faults"], (out["faults"], proc.stderr[-3000:])
+        return
+    assert out["error"] is None and out["final_mode"] == "COMPLETE", (out, proc.stderr[-3000:])
+    (ring,) = out["rings"]
+    assert ring["ring"] == 2
+    failed = {k: v for k, v in ring["table4_truth"].items() if v["passed"] is False}
+    assert not failed, failed
+    assert {"walk", "place", "fixing", "release", "survey", "walk_back"} <= set(phases)
+    for name in ("walk", "walk_back"):  # a 2 m step at 200 Hz: some 120 s of cycles
+        assert phases[name]["cycles"] > 15_000, phases[name]
+        assert 0 < phases[name]["compute_p50_ms"] <= phases[name]["compute_p99_ms"]
+    assert all(m.startswith("loop: ") for m in out["missed"]), out["missed"]  # only it
 
 
 @pytest.mark.slow

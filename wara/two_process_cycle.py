@@ -384,6 +384,7 @@ def run_inside(
         record_cycles=int(t_s.size),
         final_mode=final.get("mode"),
         fault_reasons=list(final.get("fault_reasons") or []),
+        faults=list(final.get("faults") or []),  # the same, as data (interlock, where)
         ride_through=final.get("ride_through"),
         exit_codes=codes,
         bus_load_percent=bus_load(cfg, active).load_percent,
