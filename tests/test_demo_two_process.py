@@ -94,7 +94,7 @@ def test_a_ring_cycle_through_two_processes(netns: None, tmp_path: Path) -> None
     the shipped safety timeouts; ring 2 walked to, placed, fixed, released, surveyed and
     walked back from, within Table 4, and the loop's figures given per phase.
 
-    One run in three to five on the 2-core development machine ends instead in the safe
+    One run in four to six on the 2-core development machine ends instead in the safe
     state on the PLC's 15 ms limit on a silent IPC (or the service's on a silent PLC): a
     process of the two kept off its CPU for some 100 ms, whose cause is not established
     (docs/realtime.md, "Limits"). That ending is the machine's right answer to it and is
