@@ -148,3 +148,34 @@ def test_fifo_for_every_thread_of_a_process_or_the_refusal() -> None:
     finally:
         child.kill()
         child.wait()
+
+
+def test_a_thread_that_ended_since_the_listing_is_not_a_refusal(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """The two-process demo sets SCHED_FIFO on the service's and the simulator's threads
+    every 0.5 s; a thread that ends between the listing and the call (ESRCH) was said as
+    "SCHED_FIFO refused: ... No such process". It is skipped; a real refusal is still
+    said."""
+    import wara.harness as h
+
+    tids = [int(t) for t in os.listdir("/proc/self/task")]
+    gone = tids[0]
+
+    def setscheduler(tid: int, policy: int, param: object) -> None:
+        if tid == gone:
+            raise ProcessLookupError(3, "No such process")
+
+    monkeypatch.setattr(h.os, "sched_setscheduler", setscheduler)
+    rep = h.fifo_all_threads(10)
+    assert rep.refused == ()
+    assert rep.applied == (f"SCHED_FIFO priority 10 for {len(tids) - 1} threads",) or (
+        len(tids) == 1 and rep.applied == ()
+    )
+
+    def refuse(tid: int, policy: int, param: object) -> None:
+        raise PermissionError(1, "Operation not permitted")
+
+    monkeypatch.setattr(h.os, "sched_setscheduler", refuse)
+    rep = h.fifo_all_threads(10)
+    assert rep.applied == () and "Operation not permitted" in rep.refused[0]

@@ -475,12 +475,16 @@ def fifo_all_threads(priority: int, pid: int | None = None) -> RealtimeReport:
     except OSError as exc:
         return RealtimeReport((), (f"threads: {exc}",))
     keep = getattr(os, "SCHED_RESET_ON_FORK", 0)  # a thread's own choice (the planner's)
+    done = 0
     for tid in tids:
         try:
             flags = os.sched_getscheduler(tid) & keep
             os.sched_setscheduler(tid, policy | flags, os.sched_param(priority))
+            done += 1
+        except ProcessLookupError:
+            continue  # the thread ended since the listing: nothing to set, nothing refused
         except OSError as exc:
             refused.append(f"SCHED_FIFO {priority} for thread {tid}: {exc.strerror or exc}")
-    if len(refused) < len(tids):
-        applied.append(f"SCHED_FIFO priority {priority} for {len(tids) - len(refused)} threads")
+    if done:
+        applied.append(f"SCHED_FIFO priority {priority} for {done} threads")
     return RealtimeReport(tuple(applied), tuple(refused[:1]))
