@@ -179,3 +179,52 @@ def test_a_thread_that_ended_since_the_listing_is_not_a_refusal(
     monkeypatch.setattr(h.os, "sched_setscheduler", refuse)
     rep = h.fifo_all_threads(10)
     assert rep.applied == () and "Operation not permitted" in rep.refused[0]
+
+
+def test_the_service_loop_thread_gets_the_priority_above_its_other_threads(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """The two-process demo's SCHED_FIFO: the thread that pinned itself to fewer CPUs
+    than its process (the service's loop, ``control.realtime.cpu_affinity``) one
+    priority above the others."""
+    import wara.harness as h
+    from wara.demo_two_process import _pinned_alone
+
+    cpus = sorted(os.sched_getaffinity(0))
+    if len(cpus) < 2:
+        pytest.skip("needs two CPUs to pin a thread to fewer than its process has")
+    child = subprocess.Popen(
+        [
+            sys.executable,
+            "-c",
+            "import os, threading, time\n"
+            f"threading.Thread(target=lambda: (os.sched_setaffinity(0, {{{cpus[0]}}}),"
+            " time.sleep(60)), daemon=True).start()\n"
+            "time.sleep(60)\n",
+        ]
+    )
+    try:
+        import time
+
+        tasks = Path(f"/proc/{child.pid}/task")
+        deadline = time.monotonic() + 10
+        pinned = _pinned_alone(child.pid)
+        while time.monotonic() < deadline:
+            tids = [int(t.name) for t in tasks.iterdir()]
+            if len(tids) == 2 and any(pinned(t) for t in tids):
+                break
+            time.sleep(0.05)
+        (other,) = set(tids) - {child.pid}
+        assert {t: pinned(t) for t in tids} == {child.pid: False, other: True}
+        set_to: dict[int, int] = {}
+        monkeypatch.setattr(h.os, "sched_getscheduler", lambda tid: 0)
+        monkeypatch.setattr(
+            h.os,
+            "sched_setscheduler",
+            lambda tid, pol, par: set_to.__setitem__(tid, par.sched_priority),
+        )
+        rep = h.fifo_all_threads(10, child.pid, pinned)
+        assert rep.applied and set_to == {child.pid: 10, other: 11}
+    finally:
+        child.kill()
+        child.wait()

@@ -235,10 +235,30 @@ def _promote(root_pid: int, stop: threading.Event) -> None:
                 continue
             if len(argv) < 4 or argv[1:3] != [b"-m", b"wara"] or argv[3] not in _PAIR_VERBS:
                 continue
-            rep = fifo_all_threads(RT_PRIORITY, pid)
+            above = _pinned_alone(pid) if argv[3] == b"serve" else None
+            rep = fifo_all_threads(RT_PRIORITY, pid, above)
             if rep.refused and not told:
                 told = True
                 print(f"wara: SCHED_FIFO refused: {rep.refused[0]}", file=sys.stderr)
+
+
+def _pinned_alone(pid: int) -> Callable[[int], bool]:
+    """Whether a thread of process ``pid`` runs on fewer CPUs than the process: the
+    service's loop thread, which pins itself (``control.realtime.cpu_affinity``). It
+    gets the priority above the service's other threads: at one priority a thread
+    busy outside the GIL on the loop's CPU would hold the loop off until it blocks."""
+    try:
+        whole = os.sched_getaffinity(pid)
+    except OSError:
+        return lambda tid: False
+
+    def pinned(tid: int) -> bool:
+        try:
+            return os.sched_getaffinity(tid) < whole
+        except OSError:
+            return False
+
+    return pinned
 
 
 def _descendants(root_pid: int) -> list[int]:

@@ -461,10 +461,14 @@ def ride_through(status: dict[str, Any]) -> dict[str, int]:
     return {"suspends": int(rt.get("suspends", 0)), "resumes": int(rt.get("resumes", 0))}
 
 
-def fifo_all_threads(priority: int, pid: int | None = None) -> RealtimeReport:
+def fifo_all_threads(
+    priority: int, pid: int | None = None, above: Callable[[int], bool] | None = None
+) -> RealtimeReport:
     """SCHED_FIFO at ``priority`` for every thread of process ``pid`` (this one by
     default; Linux: by thread id); what was applied or refused. Threads started later
-    by one of them inherit the policy. ``priority`` 0: back to SCHED_OTHER."""
+    by one of them inherit the policy. ``priority`` 0: back to SCHED_OTHER. A thread for
+    which ``above(tid)`` is true gets ``priority + 1`` (a control loop above the threads
+    that serve it)."""
     if not hasattr(os, "sched_setscheduler"):
         return RealtimeReport()
     policy = os.SCHED_FIFO if priority > 0 else os.SCHED_OTHER
@@ -479,7 +483,8 @@ def fifo_all_threads(priority: int, pid: int | None = None) -> RealtimeReport:
     for tid in tids:
         try:
             flags = os.sched_getscheduler(tid) & keep
-            os.sched_setscheduler(tid, policy | flags, os.sched_param(priority))
+            own = priority + 1 if priority > 0 and above is not None and above(tid) else priority
+            os.sched_setscheduler(tid, policy | flags, os.sched_param(own))
             done += 1
         except ProcessLookupError:
             continue  # the thread ended since the listing: nothing to set, nothing refused
