@@ -10,6 +10,7 @@ import contextlib
 import io
 import json
 import os
+import signal
 import subprocess
 import sys
 import tempfile
@@ -61,12 +62,31 @@ def run_wara_observed(
 
 
 def _child(argv: list[str], timeout_s: float, cwd: Path) -> subprocess.CompletedProcess[str]:
-    return subprocess.run(
+    return run_tree(argv, timeout_s, cwd, {**os.environ, "PYTHONPATH": str(REPO)})
+
+
+def run_tree(
+    argv: list[str], timeout_s: float, cwd: Path, env: dict[str, str]
+) -> subprocess.CompletedProcess[str]:
+    """``argv`` in a session of its own, text output captured, never checked. After
+    ``timeout_s`` the whole session is killed (the child and whatever it started, which
+    would otherwise hold the output's pipes open and the test with them) and
+    :class:`subprocess.TimeoutExpired` raised with what it had printed."""
+    with subprocess.Popen(
         argv,
-        capture_output=True,
+        stdin=subprocess.DEVNULL,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
         text=True,
-        timeout=timeout_s,
         cwd=cwd,
-        env={**os.environ, "PYTHONPATH": str(REPO)},
-        check=False,
-    )
+        env=env,
+        start_new_session=True,
+    ) as proc:
+        try:
+            out, err = proc.communicate(timeout=timeout_s)
+        except subprocess.TimeoutExpired:
+            with contextlib.suppress(ProcessLookupError):
+                os.killpg(proc.pid, signal.SIGKILL)
+            out, err = proc.communicate()
+            raise subprocess.TimeoutExpired(argv, timeout_s, out, err) from None
+    return subprocess.CompletedProcess(argv, proc.returncode, out, err)

@@ -18,6 +18,7 @@ from pathlib import Path
 import pytest
 
 from plc_bridge.bus import DATAGRAM_RCVBUF_BYTES
+from tests.cli_helpers import run_tree
 from wara.demo_two_process import NETNS_SETUP, UNSHARE, netns_problem
 
 pytestmark = pytest.mark.slow
@@ -26,15 +27,8 @@ REPO = Path(__file__).resolve().parents[1]
 
 
 def _in_private_netns(command: str, timeout: float) -> subprocess.CompletedProcess[str]:
-    return subprocess.run(
-        [*UNSHARE, "sh", "-c", f"{NETNS_SETUP} && {command}"],
-        capture_output=True,
-        text=True,
-        timeout=timeout,
-        cwd=REPO,
-        env={**os.environ, "PYTHONPATH": str(REPO)},
-        check=False,
-    )
+    argv = [*UNSHARE, "sh", "-c", f"{NETNS_SETUP} && {command}"]
+    return run_tree(argv, timeout, REPO, {**os.environ, "PYTHONPATH": str(REPO)})
 
 
 @pytest.fixture(scope="module")

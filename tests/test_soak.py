@@ -4,15 +4,13 @@ latency reconstruction from the run record; a short soak (slow)."""
 from __future__ import annotations
 
 import json
-import os
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
 
 from config import load_project
+from tests.cli_helpers import run_wara
 from wara.commands.soak import (
     PITCH_DEG,
     ROLL_DEG,
@@ -75,15 +73,7 @@ def test_a_short_soak() -> None:
     problem = netns_problem()
     if problem is not None:
         pytest.skip(f"wara soak needs a private netns: {problem}")
-    proc = subprocess.run(
-        [sys.executable, "-m", "wara", "soak", "--minutes", "0.5", "--json", "--seed", "1"],
-        capture_output=True,
-        text=True,
-        timeout=600,
-        cwd=REPO,
-        env={**os.environ, "PYTHONPATH": str(REPO)},
-        check=False,
-    )
+    proc = run_wara(["soak", "--minutes", "0.5", "--json", "--seed", "1"], timeout_s=600)
     out = json.loads(proc.stdout)
     assert "error" not in out, (out, proc.stderr[-2000:])
     assert out["moves"] >= 1
