@@ -27,7 +27,6 @@ from ipc_app.service.core import ServiceCore
 from ipc_app.service.ctl import Request, dispatch, parse
 from ipc_app.service.record import RunRecorder, read_run
 from tests import opcua_support as S
-from tests.cli_helpers import run_wara
 
 # ---------------------------------------------------------------------- users file
 
@@ -572,7 +571,10 @@ def test_bench_opcua_reports_the_loop_and_the_latency_with_its_parts() -> None:
     why = netns_problem()
     if why is not None:
         pytest.skip(f"the two-process bench needs a private network namespace: {why}")
-    run = run_wara(["bench", "opcua", "--json", "--quick"], timeout_s=600)
+    run = subprocess.run(
+        [sys.executable, "-m", "wara", "bench", "opcua", "--json", "--quick"],
+        capture_output=True, text=True, timeout=900, check=False,
+    )  # fmt: skip
     assert run.returncode == 0, run.stderr[-3000:]
     out = json.loads(run.stdout)
     assert out["passed"] is True, out.get("error")
