@@ -62,13 +62,14 @@ def run_wara_observed(
 
 
 def _child(argv: list[str], timeout_s: float, cwd: Path) -> subprocess.CompletedProcess[str]:
-    return run_tree(argv, timeout_s, cwd, {**os.environ, "PYTHONPATH": str(REPO)})
+    return run_tree(argv, timeout_s, cwd)
 
 
 def run_tree(
-    argv: list[str], timeout_s: float, cwd: Path, env: dict[str, str]
+    argv: list[str], timeout_s: float, cwd: Path = REPO
 ) -> subprocess.CompletedProcess[str]:
-    """``argv`` in a session of its own, text output captured, never checked. After
+    """``argv`` in a session of its own (this checkout on its PYTHONPATH), text output
+    captured, never checked. After
     ``timeout_s`` the whole session is killed (the child and whatever it started, which
     would otherwise hold the output's pipes open and the test with them) and
     :class:`subprocess.TimeoutExpired` raised with what it had printed."""
@@ -79,7 +80,7 @@ def run_tree(
         stderr=subprocess.PIPE,
         text=True,
         cwd=cwd,
-        env=env,
+        env={**os.environ, "PYTHONPATH": str(REPO)},
         start_new_session=True,
     ) as proc:
         try:

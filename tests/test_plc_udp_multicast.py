@@ -10,7 +10,6 @@ test is skipped with the reason.
 from __future__ import annotations
 
 import json
-import os
 import subprocess
 import sys
 from pathlib import Path
@@ -28,7 +27,7 @@ REPO = Path(__file__).resolve().parents[1]
 
 def _in_private_netns(command: str, timeout: float) -> subprocess.CompletedProcess[str]:
     argv = [*UNSHARE, "sh", "-c", f"{NETNS_SETUP} && {command}"]
-    return run_tree(argv, timeout, REPO, {**os.environ, "PYTHONPATH": str(REPO)})
+    return run_tree(argv, timeout)
 
 
 @pytest.fixture(scope="module")

@@ -4,14 +4,13 @@ of waiting on the output's pipes that a surviving grandchild holds open."""
 
 from __future__ import annotations
 
-import os
 import subprocess
 import time
 from pathlib import Path
 
 import pytest
 
-from tests.cli_helpers import REPO, run_tree
+from tests.cli_helpers import run_tree
 
 
 def test_a_hung_command_and_its_children_are_killed_at_the_timeout(tmp_path: Path) -> None:
@@ -19,7 +18,7 @@ def test_a_hung_command_and_its_children_are_killed_at_the_timeout(tmp_path: Pat
     script = f"sleep 300 & echo $! > {pid_file}; echo started; wait"
     t0 = time.monotonic()
     with pytest.raises(subprocess.TimeoutExpired) as exc:
-        run_tree(["sh", "-c", script], 1.0, REPO, dict(os.environ))
+        run_tree(["sh", "-c", script], 1.0)
     assert time.monotonic() - t0 < 30
     assert "started" in exc.value.output
     grandchild = int(pid_file.read_text())
@@ -37,5 +36,5 @@ def test_a_hung_command_and_its_children_are_killed_at_the_timeout(tmp_path: Pat
 
 
 def test_a_command_that_ends_gives_its_output_and_code() -> None:
-    proc = run_tree(["sh", "-c", "echo out; echo err >&2; exit 3"], 30, REPO, dict(os.environ))
+    proc = run_tree(["sh", "-c", "echo out; echo err >&2; exit 3"], 30)
     assert (proc.returncode, proc.stdout, proc.stderr) == (3, "out\n", "err\n")
