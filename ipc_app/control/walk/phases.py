@@ -145,7 +145,8 @@ class PhaseRun:
     touched: list[bool] = field(default_factory=list)
     #: ... their free rod's cap pressure (low-passed while it moves), Pa
     free_cap_pa: list[float] = field(default_factory=list)
-    #: ... the force each one holds since its touch-down, N
+    #: ... the force each one holds since its touch-down (from its force then down to the
+    #: touch force, :meth:`WalkSequencer._touch_hold`), N
     touch_force_n: list[float] = field(default_factory=list)
     #: the lowering is in its slow part (touch-down looked for)
     in_touchdown_window: bool = False
