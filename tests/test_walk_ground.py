@@ -78,3 +78,37 @@ def test_the_sequencer_shifts_a_lowering_legs_expected_ground_by_the_bodys_motio
     for j in MAIN:
         i = seq.legs[j]
         assert seq.last_refs[i] == pytest.approx(there[i], abs=2e-5)
+
+
+def test_a_touched_leg_lets_off_what_it_pressed_on_down_to_its_touch_force() -> None:
+    """A touch-down is seen some pressure frames late while the foot presses on; the
+    touched leg's force reference falls from its force then to the touch force
+    (``walking.touch_mpa`` over its cap) at ``walking.force_ramp_kn_s`` and holds it; a
+    leg seen below its touch force holds what it had."""
+    cfg = load_project(None)
+    seq = WalkSequencer(cfg, 0.005, plan_walk(cfg, 1))
+    keys = [ph.key for ph in seq.plan.phases]
+    x = seq.half.copy()
+    p = np.zeros((seq.n, 2))
+    p[[seq.legs[j] for j in MAIN], 0] = 8e6
+    seq.start(0.0, x, p)
+    seq._begin(keys.index("2"), 1.0, x, p)
+    run = seq.run
+    assert run is not None and run.phase.key == "2"
+    first, low = SUB[0], SUB[1]
+    touch = seq.touch_force_n
+    extra_n = 10e3
+    run.touched[0] = run.touched[1] = True
+    run.touch_force_n[0] = touch[first] + extra_n
+    run.touch_force_n[1] = 0.5 * touch[low]
+    rate = seq.walk.force_ramp_n_s
+    cycles = int(np.ceil(extra_n / (rate * seq.period_s)))
+    refs = []
+    for n in range(cycles + 5):
+        seq.update(1.0 + n * seq.period_s, x, p, set(range(seq.n)))
+        refs.append((seq.force_ref_n[first], seq.force_ref_n[low]))
+    first_refs = np.array([r[0] for r in refs])
+    assert first_refs[0] == pytest.approx(touch[first] + extra_n - rate * seq.period_s)
+    assert np.all(np.diff(first_refs) <= 0)
+    assert first_refs[cycles:] == pytest.approx(touch[first])
+    assert [r[1] for r in refs] == pytest.approx([0.5 * touch[low]] * len(refs))
