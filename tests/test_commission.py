@@ -257,6 +257,26 @@ def test_the_metro_project_is_fit_to_commission(
     assert len(cycle["figures"]["cycle_time_s"]) == 1 and cycle["figures"]["passed"] is True
 
 
+@pytest.mark.slow(seconds=300)
+def test_the_hfdu_project_in_the_default_form_is_fit_to_commission(tmp_path: Path) -> None:
+    """`wara commission shanghai_hfdu_power_unit.yaml` as the docs give it (3 steps, 4
+    rings, a 20-run campaign, the delay hold): exit 0, every item fit, the figures of the
+    form asked for. Its unloaded walks back stopped on overload at a touch-down (ring 5,
+    111 % of a corner leg's share) before a touched leg let off its overshoot."""
+    hfdu = default_project_path().with_name("shanghai_hfdu_power_unit.yaml")
+    out = tmp_path / "dossier"
+    run = run_wara(["commission", str(hfdu), "--quiet", "--out", str(out)], timeout_s=1800)
+    assert run.returncode == 0, (run.stdout[-3000:], run.stderr[-3000:])
+    d = json.loads((out / "commission.json").read_text())
+    assert d["fit"] is True and d["not_fit"] == []
+    assert {i["name"]: i["status"] for i in d["items"]} == dict.fromkeys(ITEMS, FIT)
+    fig = {i["name"]: i["figures"] for i in d["items"]}
+    assert fig["walk"]["steps"] == 3 and fig["walk"]["passed"] is True
+    assert len(fig["cycle"]["cycle_time_s"]) == 4 and fig["cycle"]["passed"] is True
+    assert fig["campaign"]["verdict"]["runs"] == 20
+    assert fig["campaign"]["status_counts"] == {"passed": 20}
+
+
 @pytest.mark.slow
 @pytest.mark.xdist_group("commission_metro")
 def test_the_dossier_opens_in_a_browser(
