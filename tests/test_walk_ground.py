@@ -112,3 +112,41 @@ def test_a_touched_leg_lets_off_what_it_pressed_on_down_to_its_touch_force() -> 
     assert np.all(np.diff(first_refs) <= 0)
     assert first_refs[cycles:] == pytest.approx(touch[first])
     assert [r[1] for r in refs] == pytest.approx([0.5 * touch[low]] * len(refs))
+
+
+def test_a_lowering_rods_own_force_is_not_a_foot_pressing_the_invert() -> None:
+    """In the fast part of a lowering a moving rod puts its seals' friction and the oil's
+    drag on the body, kilonewtons the loops' friction does not hold: against its free
+    rod's force, not zero, is a foot judged pressing the invert, and only then does its
+    force come off what the standing legs are expected to carry."""
+    cfg = load_project(None)
+    seq = WalkSequencer(cfg, 0.005, plan_walk(cfg, 1))
+    keys = [ph.key for ph in seq.plan.phases]
+    x = seq.half.copy()
+    p = np.zeros((seq.n, 2))
+    p[[seq.legs[j] for j in MAIN], 0] = 8e6
+    seq.start(0.0, x, p)
+    seq._begin(keys.index("2"), 1.0, x, p)
+    run = seq.run
+    assert run is not None and run.phase.key == "2"
+    leg = SUB[0]
+    i = seq.legs[leg]
+    touch_n = seq.touch_force_n[leg]
+    cap_m2 = float(seq.cap_area_m2[i])
+    free_n = 1.2 * seq.PRESSING * touch_n  # a stiff seal: above the old absolute mark
+    p[i, 0] = free_n / cap_m2
+    t = 1.0
+    for _ in range(40):
+        t += seq.period_s
+        seq.update(t, x, p, set(range(seq.n)))
+    assert run.in_touchdown_window is False
+    assert run.pressing[0] is False
+    contact = seq.contact_n(seq.forces_n(p))
+    assert contact[leg] == pytest.approx(-seq.machine.rod_weight_n)
+    # the foot meets the invert: its force rises over the free rod's by more than the mark
+    p[i, 0] = (free_n + 1.5 * seq.PRESSING * touch_n) / cap_m2
+    for _ in range(3):
+        t += seq.period_s
+        seq.update(t, x, p, set(range(seq.n)))
+    assert run.pressing[0] is True
+    assert seq.contact_n(seq.forces_n(p))[leg] > free_n

@@ -148,6 +148,12 @@ class PhaseRun:
     #: ... the force each one holds since its touch-down (from its force then down to the
     #: touch force, :meth:`WalkSequencer._touch_hold`), N
     touch_force_n: list[float] = field(default_factory=list)
+    #: ... their free rod's force on the body (low-passed in the air, from the first
+    #: cycle; NaN before it), N: what friction and the oil take while it moves
+    free_force_n: list[float] = field(default_factory=list)
+    #: ... in the fast part, a foot pressing the invert: its force on the body above its
+    #: free rod's by :attr:`~WalkSequencer.PRESSING` of its touch force
+    pressing: list[bool] = field(default_factory=list)
     #: the lowering is in its slow part (touch-down looked for)
     in_touchdown_window: bool = False
     #: a lowering's legs (in its frame's order): their expected ground's shift from
