@@ -10,6 +10,7 @@ import pytest
 from config import load_project
 from ipc_app.control.walk import MAIN, SUB, WalkSequencer
 from ipc_app.control.walk.ground import LiftMark, invert_plane, surface_z_m
+from ipc_app.control.walk.phases import PhaseRun
 from ipc_app.planner.walk import plan_walk
 
 K = 2e8
@@ -80,11 +81,10 @@ def test_the_sequencer_shifts_a_lowering_legs_expected_ground_by_the_bodys_motio
         assert seq.last_refs[i] == pytest.approx(there[i], abs=2e-5)
 
 
-def test_a_touched_leg_lets_off_what_it_pressed_on_down_to_its_touch_force() -> None:
-    """A touch-down is seen some pressure frames late while the foot presses on; the
-    touched leg's force reference falls from its force then to the touch force
-    (``walking.touch_mpa`` over its cap) at ``walking.force_ramp_kn_s`` and holds it; a
-    leg seen below its touch force holds what it had."""
+def lowering_s() -> tuple[WalkSequencer, PhaseRun, np.ndarray, np.ndarray]:
+    """The shipped project's sequencer at the start of S's lowering (phase 2), M standing
+    (its cap pressures 8 MPa), every rod at mid-stroke: the sequencer, its run, the rods'
+    positions and the pressures."""
     cfg = load_project(None)
     seq = WalkSequencer(cfg, 0.005, plan_walk(cfg, 1))
     keys = [ph.key for ph in seq.plan.phases]
@@ -95,6 +95,15 @@ def test_a_touched_leg_lets_off_what_it_pressed_on_down_to_its_touch_force() -> 
     seq._begin(keys.index("2"), 1.0, x, p)
     run = seq.run
     assert run is not None and run.phase.key == "2"
+    return seq, run, x, p
+
+
+def test_a_touched_leg_lets_off_what_it_pressed_on_down_to_its_touch_force() -> None:
+    """A touch-down is seen some pressure frames late while the foot presses on; the
+    touched leg's force reference falls from its force then to the touch force
+    (``walking.touch_mpa`` over its cap) at ``walking.force_ramp_kn_s`` and holds it; a
+    leg seen below its touch force holds what it had."""
+    seq, run, x, p = lowering_s()
     first, low = SUB[0], SUB[1]
     touch = seq.touch_force_n
     extra_n = 10e3
@@ -119,16 +128,7 @@ def test_a_lowering_rods_own_force_is_not_a_foot_pressing_the_invert() -> None:
     drag on the body, kilonewtons the loops' friction does not hold: against its free
     rod's force, not zero, is a foot judged pressing the invert, and only then does its
     force come off what the standing legs are expected to carry."""
-    cfg = load_project(None)
-    seq = WalkSequencer(cfg, 0.005, plan_walk(cfg, 1))
-    keys = [ph.key for ph in seq.plan.phases]
-    x = seq.half.copy()
-    p = np.zeros((seq.n, 2))
-    p[[seq.legs[j] for j in MAIN], 0] = 8e6
-    seq.start(0.0, x, p)
-    seq._begin(keys.index("2"), 1.0, x, p)
-    run = seq.run
-    assert run is not None and run.phase.key == "2"
+    seq, run, x, p = lowering_s()
     leg = SUB[0]
     i = seq.legs[leg]
     touch_n = seq.touch_force_n[leg]
