@@ -41,18 +41,28 @@ def test_standing_feet_pressed_deeper_bring_the_invert_up_under_the_body() -> No
     assert touch[2] == pytest.approx(sink_front * 2.8 / 1.9, rel=1e-9)
 
 
-def test_the_sequencer_shifts_a_lowering_legs_expected_ground_by_the_bodys_motion() -> None:
-    """M lifts (phase 5) with S standing, the body pitches nose down on S's legs while M
-    advances; at 7a M's front feet are expected that much sooner, the rear ones later,
-    and each leg's lowering reference takes its shift in over the fast part."""
+def sequencer_at(
+    phase: str, standing: tuple[int, ...]
+) -> tuple[WalkSequencer, list[str], np.ndarray, np.ndarray]:
+    """The shipped project's 1-step sequencer started, then at the start of ``phase``,
+    ``standing``'s legs at 8 MPa on their caps, every rod at mid-stroke: the sequencer,
+    the plan's phase keys, the rods' positions and the pressures."""
     cfg = load_project(None)
     seq = WalkSequencer(cfg, 0.005, plan_walk(cfg, 1))
     keys = [ph.key for ph in seq.plan.phases]
     x = seq.half.copy()
     p = np.zeros((seq.n, 2))
-    p[[seq.legs[j] for j in SUB], 0] = 8e6
+    p[[seq.legs[j] for j in standing], 0] = 8e6
     seq.start(0.0, x, p)
-    seq._begin(keys.index("5"), 1.0, x, p)
+    seq._begin(keys.index(phase), 1.0, x, p)
+    return seq, keys, x, p
+
+
+def test_the_sequencer_shifts_a_lowering_legs_expected_ground_by_the_bodys_motion() -> None:
+    """M lifts (phase 5) with S standing, the body pitches nose down on S's legs while M
+    advances; at 7a M's front feet are expected that much sooner, the rear ones later,
+    and each leg's lowering reference takes its shift in over the fast part."""
+    seq, keys, x, p = sequencer_at("5", SUB)
     x_s = seq.x_s(x)
     xy = seq.machine.legs_xy(x_s)
     theta = -5e-4  # nose down: S's rods shorten by theta x at their feet
@@ -82,17 +92,9 @@ def test_the_sequencer_shifts_a_lowering_legs_expected_ground_by_the_bodys_motio
 
 
 def lowering_s() -> tuple[WalkSequencer, PhaseRun, np.ndarray, np.ndarray]:
-    """The shipped project's sequencer at the start of S's lowering (phase 2), M standing
-    (its cap pressures 8 MPa), every rod at mid-stroke: the sequencer, its run, the rods'
-    positions and the pressures."""
-    cfg = load_project(None)
-    seq = WalkSequencer(cfg, 0.005, plan_walk(cfg, 1))
-    keys = [ph.key for ph in seq.plan.phases]
-    x = seq.half.copy()
-    p = np.zeros((seq.n, 2))
-    p[[seq.legs[j] for j in MAIN], 0] = 8e6
-    seq.start(0.0, x, p)
-    seq._begin(keys.index("2"), 1.0, x, p)
+    """The shipped project's sequencer at the start of S's lowering (phase 2), M standing:
+    the sequencer, its run, the rods' positions and the pressures."""
+    seq, _keys, x, p = sequencer_at("2", MAIN)
     run = seq.run
     assert run is not None and run.phase.key == "2"
     return seq, run, x, p
