@@ -451,7 +451,7 @@ class WalkSequencer(WalkLoops):
         free rod's force, which follows it while it does not. A moving rod's force on the
         body is its seals' friction and the oil's drag, some kilonewtons, more than the
         friction the loops assume on a stiffer seal; judged against zero, a free rod was
-        taken as a foot pressing (1 in 6 drawn machines of the walk's campaign): the
+        taken as a foot pressing (1 of the walk campaign's first 12 drawn machines): the
         standing legs' expected shares fell by its force and the overload check tripped
         on one at 113 %."""
         f_n = float(cyc.body_force_n[j])
