@@ -36,7 +36,7 @@ def run_wara(
 ) -> subprocess.CompletedProcess[str]:
     """``wara ARGS`` as a child process of this checkout (its PYTHONPATH; run in ``cwd``,
     default the checkout's directory), text output captured, never checked."""
-    return _child([sys.executable, "-m", "wara", *args], timeout_s, cwd)
+    return run_tree([sys.executable, "-m", "wara", *args], timeout_s, cwd)
 
 
 def run_wara_observed(
@@ -57,22 +57,18 @@ def run_wara_observed(
             f"sys.argv = ['wara', *{args!r}]\n"
             "runpy.run_module('wara', run_name='__main__', alter_sys=True)\n"
         )
-        proc = _child([sys.executable, "-c", code], timeout_s, cwd)
+        proc = run_tree([sys.executable, "-c", code], timeout_s, cwd)
         return proc, json.loads(seen.read_text(encoding="utf-8")) if seen.exists() else None
-
-
-def _child(argv: list[str], timeout_s: float, cwd: Path) -> subprocess.CompletedProcess[str]:
-    return run_tree(argv, timeout_s, cwd)
 
 
 def run_tree(
     argv: list[str], timeout_s: float, cwd: Path = REPO
 ) -> subprocess.CompletedProcess[str]:
     """``argv`` in a session of its own (this checkout on its PYTHONPATH), text output
-    captured, never checked. After
-    ``timeout_s`` the whole session is killed (the child and whatever it started, which
-    would otherwise hold the output's pipes open and the test with them) and
-    :class:`subprocess.TimeoutExpired` raised with what it had printed."""
+    captured, never checked. After ``timeout_s`` the whole session is killed (the child
+    and whatever it started, which would otherwise hold the output's pipes open and the
+    test with them) and :class:`subprocess.TimeoutExpired` raised with what it had
+    printed."""
     with subprocess.Popen(
         argv,
         stdin=subprocess.DEVNULL,

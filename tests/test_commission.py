@@ -262,8 +262,7 @@ def test_the_metro_project_is_fit_to_commission(
 def test_the_hfdu_project_in_the_default_form_is_fit_to_commission(tmp_path: Path) -> None:
     """`wara commission shanghai_hfdu_power_unit.yaml` as the docs give it (3 steps, 4
     rings, a 20-run campaign, the delay hold): exit 0, every item fit, the figures of the
-    form asked for. Its unloaded walks back stopped on overload at a touch-down (ring 5,
-    111 % of a corner leg's share) before a touched leg let off its overshoot."""
+    form asked for (its unloaded walks back at the touch-downs: decision 0031)."""
     hfdu = default_project_path().with_name("shanghai_hfdu_power_unit.yaml")
     out = tmp_path / "dossier"
     run = run_wara(["commission", str(hfdu), "--quiet", "--out", str(out)], timeout_s=1800)
