@@ -21,6 +21,7 @@ lumped mass and COG to them, so that the expected shares follow the machine as i
 
 from __future__ import annotations
 
+import math
 from typing import NamedTuple
 
 import numpy as np
@@ -151,10 +152,18 @@ class WalkingMachine:
 
     def cog(self, x_s: float) -> Array:
         """The total COG (3,) in the lower platform frame with S at ``x_s``."""
+        return np.array(self.cog_xyz(x_s))
+
+    def cog_xyz(self, x_s: float) -> tuple[float, float, float]:
+        """:meth:`cog` as plain floats (the walk's checks ask every cycle)."""
         mm, cm = self.main
         ms, cs = self.sub
-        c = np.array(cm) * mm + (np.array(cs) + np.array([x_s, 0.0, 0.0])) * ms
-        return np.asarray(c / (mm + ms), dtype=np.float64)
+        total = mm + ms
+        return (
+            (float(cm[0]) * mm + (float(cs[0]) + x_s) * ms) / total,
+            (float(cm[1]) * mm + float(cs[1]) * ms) / total,
+            (float(cm[2]) * mm + float(cs[2]) * ms) / total,
+        )
 
     def legs_xy(self, x_s: float) -> Array:
         """(8, 2): main legs 1..4, then sub legs 1..4, at ``x_s``."""
@@ -163,17 +172,40 @@ class WalkingMachine:
 
 def support_forces(points_xy: Array, mass_kg: float, cog: Array, g_base: Vec) -> Array:
     """Minimum-norm leg forces (n,) holding a level body of ``mass_kg`` at ``cog`` on legs
-    at ``points_xy`` (n, 2), pushing along the base z axis; compression positive."""
-    g = np.array([float(g_base.x), float(g_base.y), float(g_base.z)])
-    m = mass_kg
-    rhs = np.array(
-        [-m * g[2], -m * (cog[1] * g[2] - cog[2] * g[1]), -m * (cog[2] * g[0] - cog[0] * g[2])]
-    )
-    a = np.vstack([np.ones(len(points_xy)), points_xy[:, 1], -points_xy[:, 0]])
-    return np.asarray(a.T @ np.linalg.solve(a @ a.T, rhs), dtype=np.float64)
+    at ``points_xy`` (n, 2), pushing along the base z axis; compression positive.
+
+    The body's equilibrium ``A f = r`` (rows: heave, roll ``y``, pitch ``-x``) solved as
+    ``f = A^T (A A^T)^-1 r``, the 3 x 3 normal matrix's inverse written out: on plain
+    floats (the walk asks for the eight-leg share as S moves). Legs on one line hold no
+    body: ``numpy.linalg.LinAlgError``."""
+    pts = np.asarray(points_xy, dtype=np.float64).tolist()
+    g0, g1, g2 = float(g_base.x), float(g_base.y), float(g_base.z)
+    c0, c1, c2 = (float(v) for v in cog)
+    m = float(mass_kg)
+    r0, r1, r2 = -m * g2, -m * (c1 * g2 - c2 * g1), -m * (c2 * g0 - c0 * g2)
+    n = float(len(pts))
+    sy = sx = syy = sxx = sxy = 0.0
+    for x, y in pts:
+        sy += y
+        sx += x
+        syy += y * y
+        sxx += x * x
+        sxy += x * y
+    # A A^T, symmetric: [[n, sy, -sx], [sy, syy, -sxy], [-sx, -sxy, sxx]]
+    a, b, c, d, e, f = n, sy, -sx, syy, -sxy, sxx
+    i00, i01, i02 = d * f - e * e, c * e - b * f, b * e - c * d
+    i11, i12, i22 = a * f - c * c, b * c - a * e, a * d - b * b
+    det = a * i00 + b * i01 + c * i02
+    scale = abs(a * d * f) + abs(b * b * f) + abs(c * c * d) + abs(e * e * a)
+    if not det > 1e-12 * scale:  # (positive definite when the legs span an area)
+        raise np.linalg.LinAlgError(f"legs on one line hold no body: {pts}")
+    l0 = (i00 * r0 + i01 * r1 + i02 * r2) / det
+    l1 = (i01 * r0 + i11 * r1 + i12 * r2) / det
+    l2 = (i02 * r0 + i12 * r1 + i22 * r2) / det
+    return np.array([l0 + l1 * y - l2 * x for x, y in pts])
 
 
-def cog_projection(cog: Array, g_base: Vec) -> Array:
+def cog_projection(cog: Array | tuple[float, float, float], g_base: Vec) -> Array:
     """The COG's projection along gravity onto the base plane (2,)."""
     gx, gy, gz = float(g_base.x), float(g_base.y), float(g_base.z)
     return np.array([cog[0] - cog[2] * gx / gz, cog[1] - cog[2] * gy / gz])
@@ -206,26 +238,40 @@ def _hull_points(points: Array) -> list[tuple[float, float]]:
     return lower[:-1] + upper[:-1]
 
 
-def stability_margin(points_xy: Array, point: Array) -> float:
-    """Signed distance (m) from ``point`` to the nearest edge of the convex hull of
-    ``points_xy``: positive inside, negative outside.
+Edge = tuple[float, float, float, float]
 
-    On plain floats (the walk asks every cycle) but for each edge's length and the dot
-    product, which stay numpy's (``np.hypot``; the dot of two 2-vectors, whose BLAS
-    kernel may fuse a multiply and add): the same bits as on arrays."""
+
+def hull_edges(points_xy: Array) -> list[Edge]:
+    """The convex hull's edges of ``points_xy`` (n, 2), counter-clockwise, each as its
+    start (x, y) and its inward unit normal (x, y); none for fewer than three corners."""
     hull = _hull_points(points_xy)
     if len(hull) < 3:
-        return -float("inf")
-    px, py = (float(v) for v in point)
-    margin = float("inf")
+        return []
+    edges: list[Edge] = []
     for k in range(len(hull)):
         (ax, ay), (bx, by) = hull[k], hull[(k + 1) % len(hull)]
         ex, ey = bx - ax, by - ay
-        length = float(np.hypot(ex, ey))
-        # inward normal of a counter-clockwise edge
-        inward = np.array([-ey / length, ex / length])
-        margin = min(margin, float(inward @ np.array([px - ax, py - ay])))
+        length = math.hypot(ex, ey)
+        edges.append((ax, ay, -ey / length, ex / length))  # a counter-clockwise edge's
+    return edges
+
+
+def edges_margin(edges: list[Edge], px: float, py: float) -> float:
+    """Signed distance (m) from ``(px, py)`` to the nearest of ``edges``
+    (:func:`hull_edges`): positive inside, negative outside; -inf without a hull."""
+    margin = -math.inf if not edges else math.inf
+    for ax, ay, nx, ny in edges:
+        d = nx * (px - ax) + ny * (py - ay)
+        if d < margin:
+            margin = d
     return margin
+
+
+def stability_margin(points_xy: Array, point: Array) -> float:
+    """Signed distance (m) from ``point`` to the nearest edge of the convex hull of
+    ``points_xy``: positive inside, negative outside (on plain floats: the walk asks
+    every cycle)."""
+    return edges_margin(hull_edges(points_xy), float(point[0]), float(point[1]))
 
 
 def boot_cap_pressures_pa(cfg: ProjectConfig) -> dict[str, float]:
