@@ -16,7 +16,6 @@ dominate (the results are those numpy would give, element by element).
 from __future__ import annotations
 
 import math
-from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -164,14 +163,35 @@ class HeldLegShares:
     the other legs leave of the load (the body's equilibrium with their forces on it);
     the others the plan's force.
 
-    What depends on the legs' positions and the load alone is kept while they stay
-    (every cycle of a phase but a travel); :meth:`clear` when the machine changes."""
+    What depends on the legs' positions alone is kept while the held legs stay: S's
+    columns of :func:`equilibrium_matrix` at ``x_s`` are its columns at 0 with ``x_s``
+    times the heave row taken from the pitch row (``a(x_s) = T a(0)``), so the held legs'
+    minimum-norm map at ``x_s`` is its map at 0 after ``T^-1`` when they are all S's, the
+    same map when they are all M's, and kept per ``x_s`` only for a mix (constant within
+    every phase but a travel, where one frame is held). On plain floats: a travel asks
+    every cycle. :meth:`clear` when the machine changes."""
 
     def __init__(self) -> None:
-        self._parts: tuple[Any, ...] | None = None
+        self._maps: dict[tuple[float, tuple[int, ...]], list[list[float]]] = {}
+        self._xy: tuple[list[float], list[float]] | None = None
 
     def clear(self) -> None:
-        self._parts = None
+        self._maps.clear()
+        self._xy = None
+
+    def _map(
+        self, machine: WalkingMachine, x_ref: float, held: tuple[int, ...]
+    ) -> list[list[float]]:
+        """The held legs' minimum-norm map (len(held) rows of 3), S at ``x_ref``."""
+        key = (x_ref, held)
+        m = self._maps.get(key)
+        if m is None:
+            a_r = equilibrium_matrix(machine, x_ref)[:, list(held)]
+            m = np.linalg.solve(a_r @ a_r.T, a_r).T.tolist()  # the normal matrix symmetric
+            if len(self._maps) > 64:  # a mix of held legs per x_s: bounded
+                self._maps.clear()
+            self._maps[key] = m
+        return m
 
     def expected_n(
         self,
@@ -184,20 +204,33 @@ class HeldLegShares:
     ) -> FloatArray:
         """``plan_n`` with the ``held`` legs' entries their share of the load
         (``eight_leg_share_n``'s, any equilibrium gives it) less what the other legs'
-        ``contact_n`` carry, S at ``x_s``."""
-        key = (x_s, tuple(held))
-        c = self._parts
-        if c is None or c[0] != key or c[1] is not eight_leg_share_n:
-            others = [j for j in range(8) if j not in held]
-            a = equilibrium_matrix(machine, x_s)
-            a_r = a[:, held]
-            # (key, the share, the load, others, a's columns of the others, and the held
-            # legs' minimum-norm map a_r^T (a_r a_r^T)^-1, the normal matrix symmetric)
-            c = (key, eight_leg_share_n, a @ eight_leg_share_n, others, a[:, others],
-                 np.linalg.solve(a_r @ a_r.T, a_r).T)  # fmt: skip
-            self._parts = c
-        _key, _share, load, others, a_o, min_norm = c
-        rest = load - a_o @ contact_n[others]
+        ``contact_n`` carry, S at ``x_s`` (:func:`min_norm_forces` of the held legs, to
+        rounding)."""
+        if not held:
+            return plan_n.copy()
+        if self._xy is None:
+            xy = equilibrium_matrix(machine, 0.0)
+            self._xy = (xy[1].tolist(), xy[2].tolist())
+        ys, xs0 = self._xy  # each leg's moment arms with S at 0: y, -x
+        n_main = len(machine.main_legs_xy)
+        share, contact = eight_leg_share_n.tolist(), contact_n.tolist()
+        held_set = set(held)
+        # the load less what the others carry, about the body's axes with S at 0
+        heave = roll = pitch = shift = 0.0
+        for j in range(len(share)):
+            f = share[j] if j in held_set else share[j] - contact[j]
+            heave += f
+            roll += ys[j] * f
+            pitch += xs0[j] * f
+            if j >= n_main:
+                shift += f
+        pitch -= x_s * shift  # S's legs' pitch arms at x_s
+        all_sub = min(held) >= n_main
+        all_main = max(held) < n_main
+        x_ref = 0.0 if all_sub or all_main else x_s
+        if all_sub:
+            pitch += x_s * heave  # T^-1: the map kept at 0
         out = plan_n.copy()
-        out[held] = min_norm @ rest  # min_norm_forces, its parts kept
+        for j, row in zip(held, self._map(machine, x_ref, tuple(held)), strict=True):
+            out[j] = row[0] * heave + row[1] * roll + row[2] * pitch
         return out

@@ -35,10 +35,12 @@ from ipc_app.control.walk.forces import HeldLegShares, LegForceSamples, RodFrict
 from ipc_app.control.walk.phases import MAIN, PHASES, SUB, PhaseKind, PhaseRun
 from ipc_app.model.kinematics import fit_layer
 from ipc_app.model.support import (
+    Edge,
     WalkingMachine,
     cap_side_forces_n,
     cog_projection,
-    stability_margin,
+    edges_margin,
+    hull_edges,
     support_forces,
 )
 from ipc_app.planner.walk import Phase, WalkPlan
@@ -49,9 +51,14 @@ FloatArray = NDArray[np.float64]
 TWIST = np.array((1.0, -1.0, 1.0, -1.0))
 
 
+def _twist(v: list[float]) -> float:
+    """``TWIST @ v`` on four plain floats: legs 1 and 3 against 2 and 4."""
+    return v[0] - v[1] + v[2] - v[3]
+
+
 def twist_part(values: FloatArray) -> FloatArray:
     """The twist mode's part of four legs' ``values`` (:data:`TWIST`)."""
-    return TWIST * float(TWIST @ values) / 4
+    return TWIST * (_twist(np.asarray(values, dtype=float).tolist()) / 4)
 
 
 class WalkLoops:
@@ -91,6 +98,12 @@ class WalkLoops:
         self.centred_stroke_m = travel[0].stroke_m / 2
         self.cap_area_m2 = np.array([c.cap_area_m2 for c in by_index])
         self.rod_area_m2 = np.array([c.rod_area_m2 for c in by_index])
+        self._leg_cap_m2 = self.cap_area_m2[self.legs]
+        self._leg_rod_m2 = self.rod_area_m2[self.legs]
+        #: the travel pair's can_index, cap and rod areas (m^2)
+        self._travel_areas = [
+            (i, float(self.cap_area_m2[i]), float(self.rod_area_m2[i])) for i in self.travel
+        ]
         ctl = cfg.control
         self.feedforward = ctl.ladrc.reference_feedforward
         self.b0 = np.zeros(self.n)
@@ -130,8 +143,8 @@ class WalkLoops:
         #: the eight-leg shares by S's position, per mm (emptied at each phase's start)
         self._share_cache: dict[int, tuple[float, FloatArray]] = {}
         self.held_shares = HeldLegShares()
-        #: the last stability margin: ((x_s, legs), margin), dropped with the machine
-        self._margin_at: tuple[tuple[float, tuple[int, ...]], float] | None = None
+        #: the hull's edges per (S's x at which they are taken, the standing legs)
+        self._margin_edges: dict[tuple[float, tuple[int, ...]], list[Edge]] = {}
         #: the integral term of each travel cylinder held outside the active group (its
         #: command's share, from zero as it leaves the group; :meth:`_hold`)
         self.slow_integral: dict[int, float] = {}
@@ -145,7 +158,7 @@ class WalkLoops:
     def forces_n(self, p: FloatArray) -> FloatArray:
         """Cap-side force of each leg (8,), N: ``p_A A_A - p_B A_B``."""
         idx = self.legs
-        return cap_side_forces_n(p[idx], self.cap_area_m2[idx], self.rod_area_m2[idx])
+        return cap_side_forces_n(p[idx], self._leg_cap_m2, self._leg_rod_m2)
 
     def x_s(self, x: FloatArray) -> float:
         """S's position along the rails, measured: the travel pair's mean less ``e_0``
@@ -163,7 +176,7 @@ class WalkLoops:
             self.cfg, float(fit.roll), float(fit.pitch), self.plan.unloaded, self.plan.standing
         )
         self.held_shares.clear()
-        self._margin_at = None
+        self._margin_edges.clear()
 
     def share(self, x_s: float, legs: tuple[int, ...]) -> FloatArray:
         """Expected forces (8,) with ``legs`` standing (minimum norm), N."""
@@ -184,15 +197,22 @@ class WalkLoops:
         return hit[1]
 
     def margin(self, x_s: float, legs: tuple[int, ...]) -> float:
-        """The static stability margin with ``legs`` standing, S at ``x_s``, m (the last
-        one kept: S stands still in every phase but a travel)."""
-        key = (x_s, legs)
-        if self._margin_at is not None and self._margin_at[0] == key:
-            return self._margin_at[1]
-        point = cog_projection(self.machine.cog(x_s), self.machine.g_base)
-        m = stability_margin(self.machine.legs_xy(x_s)[list(legs)], point)
-        self._margin_at = (key, m)
-        return m
+        """The static stability margin with ``legs`` standing, S at ``x_s``, m. The
+        hull's edges are kept per set of legs: M's do not move with ``x_s`` and S's move
+        with it (the COG's projection is taken into S's frame instead), only a mix of
+        both frames is kept per ``x_s`` (S stands still in every phase but a travel)."""
+        n_main = len(self.machine.main_legs_xy)
+        all_sub, all_main = min(legs) >= n_main, max(legs) < n_main
+        x_ref = 0.0 if all_sub or all_main else x_s
+        key = (x_ref, legs)
+        edges = self._margin_edges.get(key)
+        if edges is None:
+            edges = hull_edges(self.machine.legs_xy(x_ref)[list(legs)])
+            if len(self._margin_edges) > 64:  # mixed frames per x_s: bounded
+                self._margin_edges.clear()
+            self._margin_edges[key] = edges
+        px, py = cog_projection(self.machine.cog_xyz(x_s), self.machine.g_base).tolist()
+        return edges_margin(edges, px - (x_s if all_sub else 0.0), py)
 
     @staticmethod
     def _frame(ids: tuple[str, ...], leg_ids: tuple[str, ...]) -> tuple[int, ...]:
@@ -238,26 +258,30 @@ class WalkLoops:
         other walk cylinders keep the proportional hold (their creep reaches no walk
         goal)."""
         dt = self.period_s
+        refs_l, x_l, rates_l = refs.tolist(), x.tolist(), rates.tolist()
+        pos, b0, travel = self.pos, self.b0.tolist(), self.travel
         for i in self.walk_cylinders:
             if skip and i in skip:
                 continue
             if i in active:
                 self.slow_integral.pop(i, None)
                 d = known.get(i, 0.0) if known else 0.0
-                u[i] = self.pos[i].update(float(refs[i]), float(x[i]), float(rates[i]), d)
+                u[i] = pos[i].update(refs_l[i], x_l[i], rates_l[i], d)
                 continue
-            e = float(refs[i] - x[i])
-            if i not in self.travel:
-                u[i] = max(-1.0, min(1.0, self.SLOW_HOLD_RAD_S * e / self.b0[i]))
-                self.pos[i].reset(float(x[i]), u[i])
+            e = refs_l[i] - x_l[i]
+            if i not in travel:
+                ui = max(-1.0, min(1.0, self.SLOW_HOLD_RAD_S * e / b0[i]))
+                u[i] = ui
+                pos[i].reset(x_l[i], ui)
                 continue
             integral = self.slow_integral.get(i, 0.0)
-            u0 = self.TRAVEL_HOLD_RAD_S * e / self.b0[i] + integral
-            u[i] = max(-1.0, min(1.0, u0))
-            if u0 == u[i]:
-                integral += self.TRAVEL_HOLD_INTEGRAL_RAD2_S2 * e * dt / self.b0[i]
+            u0 = self.TRAVEL_HOLD_RAD_S * e / b0[i] + integral
+            ui = max(-1.0, min(1.0, u0))
+            u[i] = ui
+            if u0 == ui:
+                integral += self.TRAVEL_HOLD_INTEGRAL_RAD2_S2 * e * dt / b0[i]
             self.slow_integral[i] = integral
-            self.pos[i].reset(float(x[i]), u[i])
+            pos[i].reset(x_l[i], ui)
 
     # ----------------------------------------------------------------- the twist mode
 
@@ -282,7 +306,9 @@ class WalkLoops:
         if len(frame) != 4 or any(i in self.force_mode or i not in active for i in idx):
             self._twist_started = False
             return ()
-        refs[idx] += twist_part(x[idx] - refs[idx])
+        t = _twist([float(x[i] - refs[i]) for i in idx]) / 4
+        for k, i in enumerate(idx):
+            refs[i] += t if k % 2 == 0 else -t
         return frame
 
     def _twist_control(
@@ -315,14 +341,14 @@ class WalkLoops:
             else self.walk.twist_observer_touchdown_rad_s
         )
         idx = [self.legs[j] for j in frame]
-        twist_now_n = float(TWIST @ f[list(frame)]) / 4
-        twist_ref_n = float(TWIST @ plan_f[list(frame)]) / 4
-        u_pos = u[idx]
-        u_twist_pos = float(TWIST @ u_pos) / 4
+        f_l, plan_l, u_l = f.tolist(), plan_f.tolist(), u.tolist()
+        twist_now_n = _twist([f_l[j] for j in frame]) / 4
+        twist_ref_n = _twist([plan_l[j] for j in frame]) / 4
+        u_pos = [u_l[i] for i in idx]
+        u_twist_pos = _twist(u_pos) / 4
         if not self._twist_started:
             self.twist.reset(twist_now_n, u_twist_pos)
             self._twist_started = True
-        u_twist = self.twist.update(twist_ref_n, twist_now_n)
-        u_all = u_pos + TWIST * (u_twist - u_twist_pos)
+        du = self.twist.update(twist_ref_n, twist_now_n) - u_twist_pos
         for k, i in enumerate(idx):
-            u[i] = self.pos[i].apply(float(u_all[k]))
+            u[i] = self.pos[i].apply(u_pos[k] + (du if k % 2 == 0 else -du))

@@ -58,7 +58,6 @@ from ipc_app.control.walk.phases import (
     PhaseRun,
     walk_active_group,
 )
-from ipc_app.model.support import cap_side_forces_n
 from ipc_app.planner.force_ramp import TRANSFER_KEYS, ForceRamp, blend_s
 from ipc_app.planner.walk import Move, Phase, WalkPlan
 
@@ -668,26 +667,25 @@ class WalkSequencer(WalkLoops):
         touch = self.touch_force_n
         touching = tuple(j for j in range(8) if leg_force_n[j] > touch[j])
         fig.margin_m = self.margin(x_s, touching) if len(touching) >= 3 else -math.inf
-        idx_t = self.travel
-        fig.travel_force_n = float(
-            np.sum(
-                cap_side_forces_n(
-                    cyc.pressure_pa[idx_t], self.cap_area_m2[idx_t], self.rod_area_m2[idx_t]
-                )
+        fig.travel_force_n = 0.0  # the pair's cap-side forces, summed in order
+        for i, cap_m2, rod_m2 in self._travel_areas:
+            fig.travel_force_n += (
+                float(cyc.pressure_pa[i, 0]) * cap_m2 - float(cyc.pressure_pa[i, 1]) * rod_m2
             )
-        )
-        capacity = 0  # summed in order, as sum() of the standing legs' forces
+        capacity = 0.0  # summed in order, as sum() of the standing legs' forces
         for j in self._frame(ph.standing, self.leg_ids):
             capacity += max(0.0, leg_force_n[j])
-        fig.friction_capacity_n = self.walk.foot_friction_coefficient * float(capacity)
+        fig.friction_capacity_n = self.walk.foot_friction_coefficient * capacity
         fig.expected_n = tuple(self._expected_n(run, cyc, x_s).tolist())
         # judged: a leg in force control its cap-side force (what its loop sets against
         # its reference), any other its force on the body (against its statics' share)
-        judged = cyc.body_force_n.copy()
-        for j, i in enumerate(self.legs):
-            if i in self.force_mode:
-                judged[j] = f_aligned[j]
-        fig.leg_force_n = tuple(judged.tolist())
+        judged = cyc.body_force_n.tolist()
+        if self.force_mode:
+            aligned = f_aligned.tolist()
+            for j, i in enumerate(self.legs):
+                if i in self.force_mode:
+                    judged[j] = aligned[j]
+        fig.leg_force_n = tuple(judged)
         fig.phase_t_s = run.clock_s
 
     def _expected_n(self, run: PhaseRun, cyc: PhaseCycle, x_s: float) -> FloatArray:
