@@ -33,15 +33,38 @@ def netns() -> None:
         pytest.skip(f"wara demo --two-process needs a private netns: {problem}")
 
 
+def _assert_silent_process_stop(out: dict[str, object], stderr: str) -> None:
+    """The run ended in the safe state on a silent process alone: its latched faults,
+    as data, the service's PLC heartbeat and sensor timeouts or the PLC's
+    ``IPC_TIMEOUT``, and at least one of them. A process of the two kept off its CPU for
+    some 100 ms (a cause not established, docs/realtime.md "Limits"; decisions 0030,
+    0033) is stopped on, as the machine should; any other ending is not accepted."""
+    faults = out.get("faults")
+    assert isinstance(faults, list) and faults, (out, stderr[-3000:])
+    silent = (Interlock.PLC_HEARTBEAT, Interlock.SENSOR_TIMEOUT)
+    timing = [
+        f for f in faults
+        if f["interlock"] in silent
+        or (f["interlock"] == Interlock.PLC_FAULT and f["where"] == Fault.IPC_TIMEOUT.name)
+    ]  # fmt: skip
+    assert timing == faults, (faults, stderr[-3000:])
+
+
 @pytest.mark.realtime
 @pytest.mark.slow
 def test_example_1_through_two_processes(netns: None) -> None:
+    """Example 1 through two processes; as in the ring cycle's test below, the safe
+    state on a silent process (here also while the service comes up) is accepted with
+    its cause, exit 1."""
     argv = ["demo", "--two-process", "--json", "--examples", "1", "--min-run-s", "0"]
     # (400 s: a fresh machine compiles the simulator plant first)
     proc = run_wara([*argv, "--settle-s", "1.5"], timeout_s=400)
     assert proc.returncode in (0, 1), proc.stderr
     out = json.loads(proc.stdout)
-    assert "error" not in out, (out, proc.stderr[-2000:])
+    if "error" in out or out.get("final_mode") == "ABORTED":
+        assert proc.returncode == 1 and out["passed"] is False, out
+        _assert_silent_process_stop(out, proc.stderr)
+        return
     assert out["mode"] == "two-process" and out["bus"].startswith("wara_udp ")
     (ex,) = out["examples"]
     assert (ex["target_roll_deg"], ex["target_pitch_deg"]) == (2.0, 1.0)
@@ -96,13 +119,7 @@ def test_a_ring_cycle_through_two_processes(netns: None, tmp_path: Path) -> None
     assert proc.returncode == (0 if out["passed"] else 1)
     if out["final_mode"] == "ABORTED":  # the safe state, on a silent process only
         assert out["rings"] == [] and out["error"], out
-        silent = (Interlock.PLC_HEARTBEAT, Interlock.SENSOR_TIMEOUT)
-        timing = [
-            f for f in out["faults"]
-            if f["interlock"] in silent
-            or (f["interlock"] == Interlock.PLC_FAULT and f["where"] == Fault.IPC_TIMEOUT.name)
-        ]  # fmt: skip
-        assert out["faults"] and timing == out["faults"], (out["faults"], proc.stderr[-3000:])
+        _assert_silent_process_stop(out, proc.stderr)
         return
     assert out["error"] is None and out["final_mode"] == "COMPLETE", (out, proc.stderr[-3000:])
     (ring,) = out["rings"]

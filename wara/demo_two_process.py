@@ -80,7 +80,13 @@ class NetnsUnavailable(Exception):
 
 
 class TwoProcessError(Exception):
-    """A process of the demo did not come up or died (the message says which and why)."""
+    """A process of the demo did not come up or died (the message says which and why);
+    ``faults``: the service's latched faults as data where it stopped in the safe state
+    (its status's ``faults``: interlock, where), else empty."""
+
+    def __init__(self, message: str, faults: list[dict[str, Any]] | None = None) -> None:
+        super().__init__(message)
+        self.faults = list(faults or [])
 
 
 # --------------------------------------------------------------------------- outside
@@ -563,7 +569,8 @@ def service_and_simulator(
         st = svc.wait(lambda s: s.get("mode") in ("IDLE", "ABORTED"), 60.0)
         if st is None or st.get("mode") != "IDLE":
             raise TwoProcessError(
-                f"service did not come up: {st and (st.get('mode'), st.get('fault_reasons'))}"
+                f"service did not come up: {st and (st.get('mode'), st.get('fault_reasons'))}",
+                faults=(st or {}).get("faults"),
             )
         say("IDLE; waiting for the first loop report (end of start-up)")
         yield svc, sim, placement

@@ -211,6 +211,7 @@ def run_inside_netns(
         },
         "final_mode": final.get("mode"),
         "final_fault_reasons": list(final.get("fault_reasons") or []),
+        "faults": list(final.get("faults") or []),  # the same, as data (interlock, where)
         "exit_codes": codes,
         "bus_load_percent": bus_load(cfg, active).load_percent,
         "simulator_realtime_factor": sim_realtime_factor(sim.log_path.read_text(errors="replace")),

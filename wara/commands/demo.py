@@ -310,7 +310,9 @@ def _in_two_processes(
     except (d2.TwoProcessError, CtlError) as exc:
         print(f"wara demo: two-process run failed: {exc}", file=sys.stderr)
         if args.json:  # the verdict stays machine-readable
-            print(json.dumps({"mode": "two-process", "passed": False, "error": str(exc)}))
+            faults = exc.faults if isinstance(exc, d2.TwoProcessError) else []
+            print(json.dumps({"mode": "two-process", "passed": False, "error": str(exc),
+                              "faults": faults}))  # fmt: skip
         return EXIT_FAILED
 
 
