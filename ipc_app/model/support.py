@@ -22,6 +22,7 @@ lumped mass and COG to them, so that the expected shares follow the machine as i
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from typing import NamedTuple
 
 import numpy as np
@@ -164,6 +165,15 @@ class WalkingMachine:
             (float(cm[1]) * mm + float(cs[1]) * ms) / total,
             (float(cm[2]) * mm + float(cs[2]) * ms) / total,
         )
+
+    def frame_reference(self, legs: Sequence[int], x_s: float) -> tuple[float, bool]:
+        """Where what depends on ``legs``' positions alone is taken, S at ``x_s``: at 0
+        when they are one frame's (M's do not move with ``x_s``; S's move with it, so a
+        caller moves its point or load into S's frame instead), at ``x_s`` for a mix of
+        both frames; and whether they are all S's."""
+        n_main = len(self.main_legs_xy)
+        all_sub = min(legs) >= n_main
+        return (0.0 if all_sub or max(legs) < n_main else x_s), all_sub
 
     def legs_xy(self, x_s: float) -> Array:
         """(8, 2): main legs 1..4, then sub legs 1..4, at ``x_s``."""

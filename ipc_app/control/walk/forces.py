@@ -225,9 +225,7 @@ class HeldLegShares:
             if j >= n_main:
                 shift += f
         pitch -= x_s * shift  # S's legs' pitch arms at x_s
-        all_sub = min(held) >= n_main
-        all_main = max(held) < n_main
-        x_ref = 0.0 if all_sub or all_main else x_s
+        x_ref, all_sub = machine.frame_reference(held, x_s)
         if all_sub:
             pitch += x_s * heave  # T^-1: the map kept at 0
         out = plan_n.copy()

@@ -48,11 +48,13 @@ from ipc_app.planner.walk import Phase, WalkPlan
 FloatArray = NDArray[np.float64]
 
 #: the twist mode of four legs at (s_i a, t_i b): legs 1 and 3 against 2 and 4
-TWIST = np.array((1.0, -1.0, 1.0, -1.0))
+#: the twist mode's sign of each of a frame's four legs: legs 1 and 3 against 2 and 4
+TWIST_SIGNS = (1.0, -1.0, 1.0, -1.0)
+TWIST = np.array(TWIST_SIGNS)
 
 
 def _twist(v: list[float]) -> float:
-    """``TWIST @ v`` on four plain floats: legs 1 and 3 against 2 and 4."""
+    """``TWIST @ v`` on four plain floats."""
     return v[0] - v[1] + v[2] - v[3]
 
 
@@ -100,10 +102,8 @@ class WalkLoops:
         self.rod_area_m2 = np.array([c.rod_area_m2 for c in by_index])
         self._leg_cap_m2 = self.cap_area_m2[self.legs]
         self._leg_rod_m2 = self.rod_area_m2[self.legs]
-        #: the travel pair's can_index, cap and rod areas (m^2)
-        self._travel_areas = [
-            (i, float(self.cap_area_m2[i]), float(self.rod_area_m2[i])) for i in self.travel
-        ]
+        self._travel_cap_m2 = self.cap_area_m2[self.travel]
+        self._travel_rod_m2 = self.rod_area_m2[self.travel]
         ctl = cfg.control
         self.feedforward = ctl.ladrc.reference_feedforward
         self.b0 = np.zeros(self.n)
@@ -201,9 +201,7 @@ class WalkLoops:
         hull's edges are kept per set of legs: M's do not move with ``x_s`` and S's move
         with it (the COG's projection is taken into S's frame instead), only a mix of
         both frames is kept per ``x_s`` (S stands still in every phase but a travel)."""
-        n_main = len(self.machine.main_legs_xy)
-        all_sub, all_main = min(legs) >= n_main, max(legs) < n_main
-        x_ref = 0.0 if all_sub or all_main else x_s
+        x_ref, all_sub = self.machine.frame_reference(legs, x_s)
         key = (x_ref, legs)
         edges = self._margin_edges.get(key)
         if edges is None:
@@ -307,8 +305,8 @@ class WalkLoops:
             self._twist_started = False
             return ()
         t = _twist([float(x[i] - refs[i]) for i in idx]) / 4
-        for k, i in enumerate(idx):
-            refs[i] += t if k % 2 == 0 else -t
+        for i, sign in zip(idx, TWIST_SIGNS, strict=True):
+            refs[i] += sign * t
         return frame
 
     def _twist_control(
@@ -350,5 +348,5 @@ class WalkLoops:
             self.twist.reset(twist_now_n, u_twist_pos)
             self._twist_started = True
         du = self.twist.update(twist_ref_n, twist_now_n) - u_twist_pos
-        for k, i in enumerate(idx):
-            u[i] = self.pos[i].apply(u_pos[k] + (du if k % 2 == 0 else -du))
+        for k, (i, sign) in enumerate(zip(idx, TWIST_SIGNS, strict=True)):
+            u[i] = self.pos[i].apply(u_pos[k] + sign * du)

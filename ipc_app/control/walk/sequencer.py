@@ -58,6 +58,7 @@ from ipc_app.control.walk.phases import (
     PhaseRun,
     walk_active_group,
 )
+from ipc_app.model.support import cap_side_forces_n
 from ipc_app.planner.force_ramp import TRANSFER_KEYS, ForceRamp, blend_s
 from ipc_app.planner.walk import Move, Phase, WalkPlan
 
@@ -667,11 +668,13 @@ class WalkSequencer(WalkLoops):
         touch = self.touch_force_n
         touching = tuple(j for j in range(8) if leg_force_n[j] > touch[j])
         fig.margin_m = self.margin(x_s, touching) if len(touching) >= 3 else -math.inf
-        fig.travel_force_n = 0.0  # the pair's cap-side forces, summed in order
-        for i, cap_m2, rod_m2 in self._travel_areas:
-            fig.travel_force_n += (
-                float(cyc.pressure_pa[i, 0]) * cap_m2 - float(cyc.pressure_pa[i, 1]) * rod_m2
+        fig.travel_force_n = float(
+            np.sum(
+                cap_side_forces_n(
+                    cyc.pressure_pa[self.travel], self._travel_cap_m2, self._travel_rod_m2
+                )
             )
+        )
         capacity = 0.0  # summed in order, as sum() of the standing legs' forces
         for j in self._frame(ph.standing, self.leg_ids):
             capacity += max(0.0, leg_force_n[j])
