@@ -1042,8 +1042,17 @@ class Walking(Strict):
     contact: FootContact = FootContact()
     #: sync band of a lifting or lowering leg group (walking.md section 5): the group holds
     leg_sync_band_mm: Annotated[Finite, Field(gt=0, le=100)] = 2.0
-    #: sync band of the travel pair
+    #: sync band of the travel pair (on the rods' deviation from their planned
+    #: difference while steering, curves.md section 3)
     travel_sync_band_mm: Annotated[Finite, Field(gt=0, le=100)] = 5.0
+    #: b_T: the travel pair's rods act at y = -/+ this from the frames' centreline (the
+    #: lower can_index on the right, -y); S's yaw in M is asin((e_1 - e_2) / (2 b_T))
+    travel_half_span_mm: Annotated[Finite, Field(gt=0, le=10_000)] = 800.0
+    #: S's yaw in M about the rails' pivot at S's centre: the most a step may turn
+    max_yaw_deg: Annotated[Finite, Field(gt=0, le=10)] = 1.0
+    #: steering back onto the axis: a step turns the machine by the axis's own turn plus at
+    #: most this toward the axis (its heading error and its offset over one step)
+    max_heading_correction_per_step_deg: Annotated[Finite, Field(ge=0, le=10)] = 0.05
     #: a group out of its band for longer than this: stop, latched
     sync_band_timeout_s: Annotated[Finite, Field(gt=0, le=600)] = 5.0
     #: a leg force above this share of its expected force: stop, latched
@@ -1103,6 +1112,18 @@ class Walking(Strict):
     @property
     def force_ramp_n_s(self) -> float:
         return self.force_ramp_kn_s * units.KN
+
+    @property
+    def travel_half_span_m(self) -> float:
+        return units.mm(self.travel_half_span_mm)
+
+    @property
+    def max_yaw_rad(self) -> float:
+        return units.deg(self.max_yaw_deg)
+
+    @property
+    def max_heading_correction_per_step_rad(self) -> float:
+        return units.deg(self.max_heading_correction_per_step_deg)
 
 
 # --------------------------------------------------------------------------- placement
