@@ -47,9 +47,6 @@ ROBOT_MASS_TOLERANCE = 0.01
 #: A cylinder's action point may lie this far outside the robot's envelope (its feet and
 #: the envelope's rounding).
 ENVELOPE_TOLERANCE_M = 0.001
-#: The tightest horizontal radius the machine is built for (curves.md section 5: each
-#: 2 m step turns the frames by step / R, which walking.md's pivot must take).
-TIGHTEST_RADIUS_M = 300.0
 #: The steepest grade the machine is built for (curves.md section 5); the statics on it
 #: are the static-pressure rule's (``base.pitch_deg`` is the grade's).
 STEEPEST_GRADE_PERCENT = 5.0
@@ -259,13 +256,29 @@ def _radius_and_taper(cfg: ProjectConfig) -> str | None:
     return None
 
 
+def tightest_radius_m(cfg: ProjectConfig) -> float:
+    """The tightest radius the walk steers (curves.md section 3): a step turns the frames
+    by ``step / R`` plus the steering back, S's yaw in M at most ``max_yaw``."""
+    assert cfg.walking is not None
+    w = cfg.walking
+    room = w.max_yaw_rad - w.max_heading_correction_per_step_rad
+    return math.inf if room <= 0.0 else w.step_length_m / math.sin(room)
+
+
 def _tightest_radius(cfg: ProjectConfig) -> str | None:
+    w = cfg.walking
+    if w is None:
+        return None
+    tightest = tightest_radius_m(cfg)
     for key, _, radius in _arcs(cfg):
-        if radius is not None and abs(radius) < TIGHTEST_RADIUS_M:
+        if radius is not None and abs(radius) < tightest:
             return (
-                f"{key}: {_g(radius)} m is tighter than the machine is built for (its "
-                f"walk turns the frames by step / R: curves.md); expected |radius_m| >= "
-                f"{_g(TIGHTEST_RADIUS_M)}"
+                f"{key}: {_g(radius)} m is tighter than the walk steers: a "
+                f"walking.step_length_mm {_g(w.step_length_mm)} step turns "
+                f"{math.degrees(w.step_length_m / abs(radius)):.3f} deg, plus "
+                f"walking.max_heading_correction_per_step_deg "
+                f"{_g(w.max_heading_correction_per_step_deg)} beyond walking.max_yaw_deg "
+                f"{_g(w.max_yaw_deg)}; expected |radius_m| >= {tightest:.0f}"
             )
     return None
 
@@ -474,9 +487,15 @@ RULES: tuple[Rule, ...] = (
     ),
     Rule(
         "radius-the-machine-takes",
-        ("tunnel.alignment.horizontal",),
-        f"every arc the rings lie on: abs(`radius_m`) >= {_g(TIGHTEST_RADIUS_M)} m "
-        "(`TIGHTEST_RADIUS_M`, curves.md)",
+        (
+            "tunnel.alignment.horizontal",
+            "walking.step_length_mm",
+            "walking.max_yaw_deg",
+            "walking.max_heading_correction_per_step_deg",
+        ),
+        "every arc the rings lie on: `step_length_mm` / abs(`radius_m`) + "
+        "`max_heading_correction_per_step_deg` <= `max_yaw_deg` (S's turn in M in a step, "
+        "curves.md section 3)",
         _tightest_radius,
     ),
     Rule(

@@ -131,8 +131,12 @@ BREAKS: dict[str, tuple[Edit, tuple[str, ...]]] = {
         ("tunnel.alignment.gradient_percent", "workpiece.taper_mm", "acceptance.max_gap_mm"),
     ),
     "radius-the-machine-takes": (
-        _axis(250.0, 76.0),
-        ("tunnel.alignment.horizontal.elements[1].radius_m",),
+        _axis(100.0, 190.0),
+        (
+            "tunnel.alignment.horizontal.elements[1].radius_m",
+            "walking.max_yaw_deg",
+            "walking.step_length_mm",
+        ),
     ),
     "grade-the-machine-takes": (
         _axis(400.0, 47.5, (-0.3, -6.0)),

@@ -175,9 +175,14 @@ class WalkingMachine:
         all_sub = min(legs) >= n_main
         return (0.0 if all_sub or max(legs) < n_main else x_s), all_sub
 
-    def legs_xy(self, x_s: float) -> Array:
-        """(8, 2): main legs 1..4, then sub legs 1..4, at ``x_s``."""
-        return np.concatenate([self.main_legs_xy, self.sub_legs_xy + np.array([x_s, 0.0])])
+    def legs_xy(self, x_s: float, yaw: float = 0.0) -> Array:
+        """(8, 2): main legs 1..4, then sub legs 1..4, at ``x_s``, S yawed by ``yaw`` (rad,
+        counter-clockwise) in M about its centre (curves.md section 3)."""
+        sub = self.sub_legs_xy
+        if yaw != 0.0:
+            c, s = math.cos(yaw), math.sin(yaw)
+            sub = sub @ np.array([[c, s], [-s, c]])
+        return np.concatenate([self.main_legs_xy, sub + np.array([x_s, 0.0])])
 
 
 def support_forces(points_xy: Array, mass_kg: float, cog: Array, g_base: Vec) -> Array:

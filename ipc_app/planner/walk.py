@@ -23,6 +23,12 @@ Choices where walking.md is silent:
   as it lifts.
 - Rails and guides take no travel force: the travel force is what moves the free frame
   (its mass times the acceleration, plus gravity along the base x).
+- On a curved axis each step turns by the travel pair's differential
+  (:mod:`ipc_app.planner.steering`): a travel phase's ``start_m``/``end_m`` are then each
+  rod's (as ``x_S`` plus or minus ``b_T sin psi``), its samples' ``x_s_m`` their mean, and
+  the statics and margin take S's legs turned by ``psi`` about S's centre. A step whose
+  turn exceeds ``walking.max_yaw_deg``, or whose rods leave the travel's reserve, is
+  refused.
 """
 
 from __future__ import annotations
@@ -45,6 +51,7 @@ from ipc_app.model.support import (
 )
 from ipc_app.planner.capacity import Duty, pressure_limit_pa, pressure_reason
 from ipc_app.planner.force_ramp import TRANSFER_KEYS, ForceRamp, blend_s
+from ipc_app.planner.steering import OnAxis, StepTurn, on_axis_at_start, step_turns
 
 _SAMPLES = 41  # samples per phase (the margin and forces are checked at each)
 
@@ -192,10 +199,17 @@ class Phase:
     travel_force_n: Array  #: force the travel pair must give at the samples
     friction_capacity_n: Array  #: foot friction of the standing legs at the samples
     direction: str = "forward"  #: of the step it is part of
+    #: S's yaw in M at the phase's start and end, rad (:mod:`ipc_app.planner.steering`)
+    yaw_rad: tuple[float, float] = (0.0, 0.0)
 
     @property
     def name(self) -> str:
         return phase_name(self.key, self.direction)
+
+    @property
+    def end_x_s_m(self) -> float:
+        """A travel's end ``x_S``: its rods' mean."""
+        return sum(self.end_m) / len(self.end_m)
 
     def summary(self, leg_ids: tuple[str, ...]) -> dict[str, Any]:
         """The phase for the plan's JSON: a move's start and end positions in mm
@@ -242,6 +256,8 @@ class WalkPlan:
     unloaded: bool = False
     #: the load measured on M's legs at the start, which the statics are trimmed to
     standing: StandingLoad | None = None
+    #: each step's turn along the axis (:mod:`ipc_app.planner.steering`)
+    turns: list[StepTurn] = field(default_factory=list)
 
     @property
     def distance_m(self) -> float:
@@ -292,6 +308,7 @@ class WalkPlan:
                 "cog_projection_m": [round(v, 4) for v in self.standing.cog_projection_m],
                 "x_s_m": round(self.standing.x_s_m, 4),
             },
+            "steering": [t.to_dict() for t in self.turns],
             "refusal": ref.to_dict() if ref is not None else None,
             "violations": [v.to_dict() for v in self.violations[:10]],
             "phases": [p.summary(self.leg_ids) for p in self.phases],
@@ -307,6 +324,9 @@ class WalkStart:
     upper_extensions_m: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 0.0)
     #: the load M's standing legs measure (None: the YAML's bodies as they are)
     standing: StandingLoad | None = None
+    #: where the machine stands against the design axis (None: on it at ring 1's rear
+    #: joint face, :func:`~ipc_app.planner.steering.on_axis_at_start`)
+    on_axis: OnAxis | None = None
 
 
 def start_state(cfg: ProjectConfig) -> WalkStart:
@@ -336,7 +356,11 @@ class _Planner:
             (c for c in cfg.cylinders if c.role == "sub_leg"), key=lambda c: c.position or 0
         )
         self.leg_ids = tuple(cfg.layers.lower.cylinders) + tuple(c.id for c in subs)
-        self.travel_ids = tuple(c.id for c in cfg.cylinders if c.role == "travel")
+        # the rod with the lower can_index first: on the right (steering's sign)
+        self.travel_ids = tuple(c.id for c in cfg.cylinders_by_can_index if c.role == "travel")
+        self.b_t = self.walk.travel_half_span_m
+        #: S's yaw in M now, rad (the statics' S legs turn with it)
+        self.yaw = 0.0
         legs = [cfg.cylinder(cid) for cid in self.leg_ids]
         self.cap_area = np.array([c.cap_area_m2 for c in legs])
         self.limit_pa: dict[Duty, float] = {
@@ -361,8 +385,12 @@ class _Planner:
 
     def forces(self, x_s: float, legs: list[int]) -> Array:
         """Expected forces (8,) with ``legs`` (indices) carrying the machine."""
+        return self.forces_at(x_s, self.yaw, legs)
+
+    def forces_at(self, x_s: float, yaw: float, legs: list[int]) -> Array:
+        """:meth:`forces` with S yawed by ``yaw`` in M."""
         out = np.zeros(8)
-        pts = self.machine.legs_xy(x_s)[legs]
+        pts = self.machine.legs_xy(x_s, yaw)[legs]
         out[legs] = support_forces(pts, self.machine.mass_kg, self.machine.cog(x_s), self.g)
         return out
 
@@ -373,16 +401,17 @@ class _Planner:
         out[touching] = share8[touching] * self.walk.preload_percent / 100.0
         # the standing legs carry what is left (minimum norm over them)
         four = self.forces(x_s, standing)
-        pts = self.machine.legs_xy(x_s)
+        pts = self.machine.legs_xy(x_s, self.yaw)
         a_t = np.vstack([np.ones(4), pts[touching, 1], -pts[touching, 0]])
         a_s = np.vstack([np.ones(4), pts[standing, 1], -pts[standing, 0]])
         residual = a_t @ out[touching]
         out[standing] = four[standing] - a_s.T @ np.linalg.solve(a_s @ a_s.T, residual)
         return out
 
-    def margin(self, x_s: float, legs: list[int]) -> float:
+    def margin(self, x_s: float, legs: list[int], yaw: float | None = None) -> float:
         point = cog_projection(self.machine.cog(x_s), self.g)
-        return stability_margin(self.machine.legs_xy(x_s)[legs], point)
+        pts = self.machine.legs_xy(x_s, self.yaw if yaw is None else yaw)
+        return stability_margin(pts[legs], point)
 
     # ----------------------------------------------------------------- phases
 
@@ -400,10 +429,14 @@ class _Planner:
         moving_mass: float = 0.0,
         accel: Array | None = None,
         min_force_n: float | None = None,
+        yaw: Array | None = None,
     ) -> None:
         n = len(x_s)
         t = self.t + np.linspace(0.0, duration, n)
-        margin = np.array([self.margin(float(x), support) for x in x_s])
+        yaws = np.full(n, self.yaw) if yaw is None else yaw
+        margin = np.array(
+            [self.margin(float(x), support, float(a)) for x, a in zip(x_s, yaws, strict=True)]
+        )
         normal = forces[:, support].sum(axis=1)
         a = np.zeros(n) if accel is None else accel
         travel = moving_mass * (a + float(self.g.x))
@@ -411,6 +444,7 @@ class _Planner:
         phase = Phase(
             step, key, self.t, duration, tuple(self.leg_ids[i] for i in support), moving,
             start, end, t, x_s, forces, margin, travel, capacity, self.direction,
+            (float(yaws[0]), float(yaws[-1])),
         )  # fmt: skip
         self.plan.phases.append(phase)
         self.check(phase, support, min_force_n)
@@ -482,20 +516,57 @@ class _Planner:
                 f"feet's friction {phase.friction_capacity_n[k] / units.KN:.2f} kN",
             )  # fmt: skip
 
+    def rods(self, x_s: float, yaw: float) -> tuple[float, float]:
+        """The travel rods (as ``x_S``) with S at ``x_s`` yawed by ``yaw``: right, left."""
+        d = self.b_t * math.sin(yaw)
+        return (x_s + d, x_s - d)
+
     def travel(
-        self, step: int, key: str, x0: float, x1: float, moving_mass: float, legs: list[int]
-    ) -> None:
+        self, step: int, key: str, x0: float, x1: float, moving_mass: float, legs: list[int],
+        yaw1: float = 0.0,
+    ) -> None:  # fmt: skip
+        """The travel pair from ``x0`` to ``x1``, S's yaw in M from now to ``yaw1`` in
+        proportion to the distance."""
+        yaw0 = self.yaw
         move = Move(x1 - x0, *self.travel_move)
         tt = np.linspace(0.0, move.duration_s, _SAMPLES)
         x_s = x0 + move.position(tt)
         accel = np.gradient(np.gradient(x_s, tt), tt) if move.duration_s > 0 else np.zeros(_SAMPLES)
         # M moving relative to standing S: in the world M's acceleration is -x_S''
         accel = accel if key == "1" else -accel
-        forces = np.array([self.forces(float(x), legs) for x in x_s])
+        frac = (x_s - x0) / (x1 - x0) if x1 != x0 else np.ones(_SAMPLES)
+        yaws = yaw0 + (yaw1 - yaw0) * frac
+        forces = np.array(
+            [self.forces_at(float(x), float(a), legs) for x, a in zip(x_s, yaws, strict=True)]
+        )
         self.add(
-            step, key, move.duration_s, x_s, forces, legs, self.travel_ids, (x0, x0), (x1, x1),
-            moving_mass, accel,
+            step, key, move.duration_s, x_s, forces, legs, self.travel_ids,
+            self.rods(x0, yaw0), self.rods(x1, yaw1), moving_mass, accel, yaw=yaws,
         )  # fmt: skip
+        self.yaw = yaw1
+        self.check_turn(self.plan.phases[-1], x1, yaw1)
+
+    def check_turn(self, phase: Phase, x_s: float, yaw: float) -> None:
+        """S's yaw in M within ``walking.max_yaw_deg``, its rods within the reserve."""
+        walk, last = self.walk, _SAMPLES - 1
+        if abs(yaw) > walk.max_yaw_rad + 1e-12:
+            turn = self.plan.turns[phase.step - 1]
+            self.violation(
+                phase, last, "yaw", abs(yaw), walk.max_yaw_rad, "rad",
+                f"S turns {units.to_deg(abs(yaw)):.3f} deg in M (the axis "
+                f"{units.to_deg(turn.axis_turn_rad):+.3f} deg, steering back "
+                f"{units.to_deg(turn.correction_rad):+.3f} deg) beyond walking.max_yaw_deg "
+                f"{walk.max_yaw_deg:g}",
+            )  # fmt: skip
+        rods = self.rods(x_s, yaw)
+        far = max(rods, key=abs)
+        if abs(far) > self.x_s_limit + 1e-9:
+            self.violation(
+                phase, last, "travel_stroke", abs(far), self.x_s_limit, "m",
+                f"a travel rod at {units.to_mm(far):+.1f} mm (x_S {units.to_mm(x_s):+.1f} mm, "
+                f"S turned {units.to_deg(yaw):+.3f} deg) beyond the travel's "
+                f"±{units.to_mm(self.x_s_limit):.1f} mm (walking.travel_reserve_mm)",
+            )  # fmt: skip
 
     def legs_move(
         self, step: int, key: str, x_s: float, moving: list[int], delta: float,
@@ -549,6 +620,8 @@ class _Planner:
     def run(self, steps: int) -> WalkPlan:
         walk = self.walk
         self.plan.steps = steps
+        on_axis = self.start.on_axis or on_axis_at_start(self.cfg)
+        self.plan.turns = step_turns(self.cfg, on_axis, steps, self.direction)
         main, sub, every = [0, 1, 2, 3], [4, 5, 6, 7], list(range(8))
         rear, front = -walk.step_length_m / 2, walk.step_length_m / 2
         x_s = self.start.x_s_m
@@ -572,8 +645,9 @@ class _Planner:
         # Each phase of a key stands and moves the same frames in both directions.
         back = self.direction == "back"
         for step in range(1, steps + 1):
+            turn = self.plan.turns[step - 1].turn_rad
             if not back:
-                self.travel(step, "1", x_s, front, m_sub, main)
+                self.travel(step, "1", x_s, front, m_sub, main, turn)
                 x_s = front
             f_m = self.forces(x_s, main)
             ext = self.legs_move(step, "2", x_s, sub, walk.clearance_m, ext, main, f_m)
@@ -584,7 +658,7 @@ class _Planner:
             self.ramp(step, "4", x_s, pre, end, every)
             ext = self.legs_move(step, "5", x_s, main, -walk.clearance_m, ext, sub, f_s)
             x_to = front if back else rear
-            self.travel(step, "6", x_s, x_to, m_main, sub)
+            self.travel(step, "6", x_s, x_to, m_main, sub, -turn if back else 0.0)
             x_s = x_to
             f_s = self.forces(x_s, sub)
             ext = self.legs_move(step, "7a", x_s, main, walk.clearance_m, ext, sub, f_s)

@@ -37,6 +37,7 @@ from config.schema import ProjectConfig
 from ipc_app.control.attitude import AttitudeController
 from ipc_app.model.placement import Pose
 from ipc_app.planner.placement import PlacementPlan
+from ipc_app.planner.steering import OnAxis
 from ipc_app.planner.survey import SurveyPoint
 from ipc_app.planner.walk import WalkStart
 from ipc_app.service.cycle import RingCycle, RingRecords
@@ -83,6 +84,7 @@ class ServiceCore:
         self.link = link
         self.planner = planner
         self.record = record
+        self.on_axis: OnAxis | None = None
         self.period_s = cfg.control.period_s
         self.boot_timeout_s = cfg.safety.boot_timeout_s
         self.attitude = AttitudeController(cfg, self.period_s)

@@ -44,6 +44,7 @@ from plc_bridge.link import Mode as PlcMode
 
 if TYPE_CHECKING:
     from ipc_app.control.attitude import AttitudeController
+    from ipc_app.planner.steering import OnAxis
     from ipc_app.service.machine_io import MachineInputs
     from ipc_app.service.modes import Mode
     from ipc_app.service.record import RunRecorder
@@ -155,6 +156,9 @@ class Service(Protocol):
     planner: Planner
     attitude: AttitudeController
     record: RunRecorder | None
+    #: where the machine stands against the design axis, as its walks measured it (None:
+    #: on the axis at ring 1's rear joint face; :mod:`ipc_app.planner.steering`)
+    on_axis: OnAxis | None
 
     @property
     def inputs(self) -> MachineInputs | None: ...

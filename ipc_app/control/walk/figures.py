@@ -56,10 +56,14 @@ class StepFigures:
     min_stability_margin_m: float = math.inf
     max_leg_force_ratio: float = 0.0
     transfer_time_s: float = 0.0
+    #: the machine's heading change this step, measured: S's yaw in M from the travel
+    #: rods at the end of the step's first travel (curves.md section 3), rad
+    turn_rad: float | None = None
 
     def to_dict(self) -> dict[str, Any]:
         return {
             "index": self.index,
+            "turn_deg": None if self.turn_rad is None else round(units.to_deg(self.turn_rad), 5),
             "duration_s": round(self.duration_s, 3),
             "max_leg_sync_error_mm": round(units.to_mm(self.max_leg_sync_error_m), 4),
             "max_travel_sync_error_mm": round(units.to_mm(self.max_travel_sync_error_m), 4),

@@ -23,6 +23,8 @@
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 from numpy.typing import NDArray
 
@@ -98,6 +100,7 @@ class WalkLoops:
         self.half = np.array([c.stroke_m / 2 for c in by_index])
         #: the travel pair's extension with S centred under M (``e_0``), m
         self.centred_stroke_m = travel[0].stroke_m / 2
+        self.b_t_m = self.walk.travel_half_span_m
         self.cap_area_m2 = np.array([c.cap_area_m2 for c in by_index])
         self.rod_area_m2 = np.array([c.rod_area_m2 for c in by_index])
         self._leg_cap_m2 = self.cap_area_m2[self.legs]
@@ -167,6 +170,12 @@ class WalkLoops:
         for i in self.travel:
             total += float(x[i])
         return total / len(self.travel) - self.centred_stroke_m
+
+    def yaw_s_in_m(self, x: FloatArray) -> float:
+        """S's yaw in M from the travel rods, rad (curves.md section 3): ``asin((e_1 -
+        e_2) / (2 b_T))``, ``e_1`` the rod with the lower can_index (on the right)."""
+        d = (float(x[self.travel[0]]) - float(x[self.travel[1]])) / (2.0 * self.b_t_m)
+        return math.asin(min(1.0, max(-1.0, d)))
 
     def set_upper(self, x: FloatArray) -> None:
         """The upper platform's attitude fixes the workpiece's COG: from its rods."""

@@ -132,6 +132,8 @@ class PhaseRun:
     start_position_m: FloatArray = field(default_factory=lambda: np.zeros(0))
     #: a travel phase's move of the pair (from ``start_position_m``), made at its first cycle
     travel_move: Move | None = None
+    #: and each travel rod's share of it (1 each unless S turns in M)
+    travel_share: list[float] = field(default_factory=list)
     #: the legs' cap-side forces at its start (8,), N; a force ramp's receiving legs'
     #: from where the ramp (re)started
     start_force_n: FloatArray = field(default_factory=lambda: np.zeros(0))

@@ -159,7 +159,7 @@ class WalkSequencer(WalkLoops):
         self.figures.margin_ahead_m = self._margin_ahead(ph, x_s)
 
     def _start_travel(self, run: PhaseRun, x: FloatArray, p: FloatArray, x_s: float) -> None:
-        run.duration_s = Move(run.phase.end_m[0] - x_s, *self._travel_limits()).duration_s
+        run.duration_s = Move(run.phase.end_x_s_m - x_s, *self._travel_limits()).duration_s
         self._legs_to_position_control(x)
 
     def _start_lower(self, run: PhaseRun, x: FloatArray, p: FloatArray, x_s: float) -> None:
@@ -273,7 +273,7 @@ class WalkSequencer(WalkLoops):
         with the legs that stand during it (after it, for a lift)."""
         standing = self._frame(ph.standing, self.leg_ids)
         if PHASES[ph.key].kind is PhaseKind.TRAVEL:
-            xs = np.linspace(x_s, ph.end_m[0], 21)
+            xs = np.linspace(x_s, ph.end_x_s_m, 21)
             return min(self.margin(float(v), standing) for v in xs)
         return self.margin(x_s, standing)
 
@@ -283,6 +283,11 @@ class WalkSequencer(WalkLoops):
         step = self.steps[-1]
         if run.kind is PhaseKind.TRANSFER:
             step.transfer_time_s += now - run.started_s
+        if run.kind is PhaseKind.TRAVEL and step.turn_rad is None:
+            # the step's first travel turned the lifted frame: S's yaw in M (forward S
+            # turned, back M turned the other way)
+            turned = self.yaw_s_in_m(x) - self.yaw_s_in_m(run.start_position_m)
+            step.turn_rad = -turned if self.plan.direction == "back" else turned
         k = run.index + 1
         if k < len(self.plan.phases) and self.plan.phases[k].step == run.phase.step:
             self._begin(k, now, x, p)
@@ -379,20 +384,28 @@ class WalkSequencer(WalkLoops):
         return samples[below] * (1 - (at - below)) + samples[above] * (at - below)
 
     def _run_travel(self, run: PhaseRun, cyc: PhaseCycle) -> None:
-        """The travel pair to the phase's end ``x_S`` (a trapezoid), each rod from its
-        stroke at the phase's start."""
+        """The travel pair to the phase's end (a trapezoid of ``x_S``), each rod from its
+        stroke at the phase's start to its own end (they differ while S is turned in M,
+        curves.md section 3) in proportion: the pair's sync errors are the rods'
+        deviations from their planned difference."""
         dt = self.period_s
         move = run.travel_move
         if move is None:  # from the phase's start to its end: the same every cycle
             x_s_start = float(np.mean(run.start_position_m[self.travel])) - self.centred_stroke_m
-            move = Move(run.phase.end_m[0] - x_s_start, *self._travel_limits())
+            move = Move(run.phase.end_x_s_m - x_s_start, *self._travel_limits())
             run.travel_move = move
+            run.travel_share = [
+                (end + self.centred_stroke_m - float(run.start_position_m[i])) / move.distance_m
+                if move.distance_m != 0.0
+                else 1.0
+                for i, end in zip(self.travel, run.phase.end_m, strict=True)
+            ]
         travelled_m = move.position_at(run.clock_s)
         rate_m_s = (move.position_at(run.clock_s + dt) - travelled_m) / dt
         refs = cyc.position_ref_m
-        for i in self.travel:
-            refs[i] = run.start_position_m[i] + travelled_m
-            cyc.rate_ref_m_s[i] = rate_m_s if self.feedforward else 0.0
+        for i, share in zip(self.travel, run.travel_share, strict=True):
+            refs[i] = run.start_position_m[i] + share * travelled_m
+            cyc.rate_ref_m_s[i] = share * rate_m_s if self.feedforward else 0.0
         cyc.moving = list(self.travel)
         cyc.sync_band_m = self.travel_sync_band_m
         cyc.finished = run.clock_s >= run.duration_s and all(

@@ -22,6 +22,7 @@ import structlog
 from config import units
 from ipc_app.control.walk import WalkSequencer
 from ipc_app.model.support import WalkingMachine, cap_side_forces_n, standing_load
+from ipc_app.planner.steering import on_axis_at_start, walked
 from ipc_app.planner.walk import DIRECTIONS, WalkPlan, WalkStart
 from ipc_app.service.interlocks import Cause, Limits
 from ipc_app.service.machine_io import MachineInputs
@@ -78,6 +79,7 @@ def walk_start(svc: Service) -> WalkStart | str:
         main_extensions_m=tuple((x[lo] - half[lo]).tolist()),
         upper_extensions_m=tuple((x[up] - half[up]).tolist()),
         standing=standing,
+        on_axis=svc.on_axis,
     )
 
 
@@ -112,6 +114,7 @@ class WalkMotion(Motion):
 
     def __init__(self, svc: Service, plan: WalkPlan) -> None:
         self.cfg = svc.cfg
+        self.svc = svc
         self.attitude = svc.attitude
         self.walk_plan = plan
         self.sequencer = self.walker = WalkSequencer(svc.cfg, svc.period_s, plan)
@@ -261,7 +264,15 @@ class WalkMotion(Motion):
 
     def end(self, now: float, mode: Mode, successor: Motion | None) -> Effects:
         """Back to the attitude group, unless a walk follows (its first phase claims
-        its own group)."""
+        its own group). Where the machine now stands against the axis: from the turns its
+        finished steps measured (:func:`~ipc_app.planner.steering.walked`; a step stopped
+        part-way is not counted)."""
+        p = self.walk_plan
+        done = [s for s in self.walker.steps if s.duration_s > 0]
+        made = [s.turn_rad for s in done if s.turn_rad is not None]
+        if made:
+            start = self.svc.on_axis or on_axis_at_start(self.cfg)
+            self.svc.on_axis = walked(self.cfg, start, p.turns, made, p.direction == "back")
         return () if isinstance(successor, WalkMotion) else (None,)
 
     def status(self) -> dict[str, Any] | None:
