@@ -15,6 +15,7 @@ from config import ProjectConfig, load_project
 from ipc_app.model.support import WalkingMachine, cog_projection, stability_margin
 from ipc_app.planner.steering import OnAxis, on_axis_at_start, step_turns, walked
 from ipc_app.planner.walk import WalkPlan, plan_walk
+from wara.cli import main
 
 PROJECTS = Path(__file__).resolve().parents[1] / "config" / "projects"
 
@@ -140,3 +141,14 @@ def test_the_plan_json_gives_each_steps_turn(curved: ProjectConfig) -> None:
     assert s["lateral_after_mm"] == 0.0
     with pytest.raises(ValueError, match="finite"):
         OnAxis(math.nan)
+
+
+def test_walk_plan_shows_the_turns_and_refuses_a_bad_on_axis(
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    path = str(PROJECTS / "curved_grade_heavy_part.yaml")
+    assert main(["walk", "plan", "--config", path, "--steps", "1", "--on-axis", "0,0.1,5"]) == 0
+    out = capsys.readouterr().out
+    assert "step 1 turns +0.2364 deg (the axis +0.2863, steering back -0.0500)" in out
+    assert main(["walk", "plan", "--config", path, "--steps", "1", "--on-axis", "0,nan,5"]) == 2
+    assert "--on-axis: expected three finite numbers" in capsys.readouterr().err

@@ -20,6 +20,7 @@ from pathlib import Path
 
 from config import load_project, units
 from config.numbers import decimal, integer
+from ipc_app.planner.steering import OnAxis
 from ipc_app.planner.walk import DIRECTIONS, WalkPlan, WalkStart, plan_walk, start_state
 from wara.cli import EXIT_FAILED, EXIT_INFEASIBLE, EXIT_OK, UsageError, check_walk_steps
 from wara.commands.plan import parse_four_mm, report
@@ -70,6 +71,14 @@ def register(sub: argparse._SubParsersAction) -> None:
         default=None,
         metavar="D1,D2,D3,D4",
         help="measured upper extensions from mid-stroke, mm (default: mid-stroke)",
+    )
+    plan.add_argument(
+        "--on-axis",
+        default=None,
+        metavar="CHAINAGE_M,HEADING_ERROR_DEG,OFFSET_MM",
+        help="where the machine stands against the design axis: M's centre's chainage, its "
+        "heading less the axis's and its offset, both positive to the left (default: on the "
+        "axis at ring 1's rear joint face; docs/curves.md)",
     )
     plan.add_argument("--json", action="store_true", help="print one JSON object")
     _direction_options(plan)
@@ -176,12 +185,27 @@ def run_plan(args: argparse.Namespace) -> int:
         x_s_m=nominal.x_s_m if args.start_x_s_mm is None else units.mm(args.start_x_s_mm),
         main_extensions_m=parse_four_mm(args.start_main_mm, "--start-main-mm"),
         upper_extensions_m=parse_four_mm(args.start_upper_mm, "--start-upper-mm"),
+        on_axis=_on_axis(args.on_axis),
     )
     try:
         result = plan_walk(cfg, args.steps, start, direction=args.direction, unloaded=args.unloaded)
     except ValueError as exc:  # unloaded without a workpiece body
         raise UsageError(str(exc)) from None
     return report(result, args.json, render)
+
+
+def _on_axis(text: str | None) -> OnAxis | None:
+    if text is None:
+        return None
+    parts = text.split(",")
+    try:
+        chainage, heading, offset = (float(v) for v in parts)
+        return OnAxis(chainage, units.deg(heading), units.mm(offset))
+    except ValueError:
+        raise UsageError(
+            f"--on-axis: expected three finite numbers CHAINAGE_M,HEADING_ERROR_DEG,OFFSET_MM, "
+            f"got {text!r}"
+        ) from None
 
 
 def render(p: WalkPlan) -> str:
@@ -208,6 +232,15 @@ def render(p: WalkPlan) -> str:
         f"least stability margin  {d['min_stability_margin_m']:.3f} m "
         f"(step {at['step']}, phase {at['phase']}; limit {p.min_margin_limit_m:.3f} m)",
     ]
+    if any(t.turn_rad != 0.0 for t in p.turns):
+        lines.append("")
+        for t in d["steering"]:
+            lines.append(
+                f"step {t['step']} turns {t['turn_deg']:+.4f} deg (the axis "
+                f"{t['axis_turn_deg']:+.4f}, steering back {t['correction_deg']:+.4f}); after "
+                f"it: chainage {t['chainage_after_m']:.3f} m, heading error "
+                f"{t['heading_error_after_deg']:+.4f} deg, offset {t['lateral_after_mm']:+.1f} mm"
+            )
     if p.refusal is not None:
         lines += ["", f"Refused: {p.refusal.message}"]
     return "\n".join(lines)
