@@ -79,4 +79,9 @@ class ForceRamp:
             return 0.0
         if b <= 0.0:
             return 1.0
-        return min(1.0, t_s / b, (end - t_s) / b)
+        share = 1.0  # divided only where below 1: a tiny blend's quotient would overflow
+        if t_s < b:
+            share = t_s / b
+        if end - t_s < b:
+            share = min(share, (end - t_s) / b)
+        return share
