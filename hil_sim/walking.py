@@ -86,6 +86,7 @@ Model (what :class:`hil_sim.rig.Rig` has, and how this differs)
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -351,6 +352,26 @@ def _walk_advance(
             yaw[_Y_PY] = yaw[_Y_PY + 1] - lateral
         else:
             yaw[_Y_PY + 1] = yaw[_Y_PY] + lateral
+
+
+@dataclass(frozen=True)
+class WalkTruth:
+    """Where the walking rig's frames are (:meth:`WalkingRig.walk_truth`; the walk's base
+    frame: x along the machine's heading at the start, headings 0 there)."""
+
+    #: ``(X_M, X_S)``: the frames' world x, the truth for the distance, m
+    world_x_m: tuple[float, float]
+    #: S's position along the rails in M, m
+    x_s_m: float
+    #: ``(theta_M, theta_S)``, rad, counter-clockwise from above positive
+    heading_rad: FloatArray
+    #: psi = theta_S - theta_M: S's yaw in M, rad
+    yaw_s_in_m_rad: float
+    #: the frames' centres in plan (2, 2): rows M, S; columns x, y (lateral), m
+    plan_xy_m: FloatArray
+    #: how far each frame's feet have slipped along x (m) and in yaw (rad): M, S
+    slip_m: FloatArray
+    yaw_slip_rad: FloatArray
 
 
 class WalkingRig(Rig):
@@ -727,6 +748,18 @@ class WalkingRig(Rig):
         """The torque each frame's feet hold in yaw now, ``mu sum(N) r`` (M, S), N m."""
         n = np.array([self.foot_force_n[:4].sum(), self.foot_force_n[4:].sum()])
         return self.friction * n * self._yaw[_Y_R : _Y_R + 2]
+
+    def walk_truth(self) -> WalkTruth:
+        """The frames' positions, headings and slip now (copies)."""
+        return WalkTruth(
+            world_x_m=self.world_x_m,
+            x_s_m=self.x_s_m,
+            heading_rad=self.heading_rad,
+            yaw_s_in_m_rad=self.yaw_s_in_m_rad,
+            plan_xy_m=self.plan_xy_m,
+            slip_m=self.slip_m.copy(),
+            yaw_slip_rad=self.yaw_slip_rad.copy(),
+        )
 
     @property
     def invert_height_m(self) -> float:

@@ -4,11 +4,15 @@ two travel rods (curves.md section 3; hil_sim/walking.py's module docstring)."""
 from __future__ import annotations
 
 import math
+import uuid
 
+import can
 import numpy as np
 import pytest
 
 from config import ProjectConfig
+from config.hil_scenario import HilScenario
+from hil_sim.simulator import HilSimulator
 from hil_sim.walking import WalkingRig
 
 SCAN = 4  # RK4 steps of 0.25 ms per PLC scan
@@ -182,3 +186,28 @@ def test_the_rails_end_stop_bounds_the_yaw(project: ProjectConfig, side: float) 
     b_t = project.walking.travel_half_span_m
     assert abs(diff) < 2 * b_t * math.sin(limit) + 0.5e-3
     assert abs(rig.heading_rad[0]) < 1e-4  # M stands
+
+
+def test_the_simulators_truth_reports_the_frames(project: ProjectConfig) -> None:
+    for contact in (True, False):
+        scenario = HilScenario.model_validate({"plant": {"contact": contact}})
+        bus = can.Bus(interface="virtual", channel=f"steer-{uuid.uuid4().hex}")
+        sim = HilSimulator(project, bus, scenario)
+        try:
+            sim.step(0.02)
+            walk = sim.truth().walk
+            if not contact:
+                assert walk is None
+                continue
+            rig = sim.rig
+            assert isinstance(rig, WalkingRig) and walk is not None
+            assert walk.world_x_m == rig.world_x_m
+            assert walk.x_s_m == rig.x_s_m
+            assert np.array_equal(walk.heading_rad, rig.heading_rad)
+            assert walk.yaw_s_in_m_rad == rig.yaw_s_in_m_rad == 0.0
+            assert walk.plan_xy_m.shape == (2, 2)
+            assert np.array_equal(walk.plan_xy_m[:, 0], np.array(rig.world_x_m))
+            assert np.array_equal(walk.slip_m, rig.slip_m)
+            assert np.array_equal(walk.yaw_slip_rad, rig.yaw_slip_rad)
+        finally:
+            sim.close()
