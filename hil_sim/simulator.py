@@ -65,7 +65,7 @@ from hil_sim.placement import bolt_part
 from hil_sim.plc_fast import FastPlc, limit_switch_bits
 from hil_sim.rig import LayerTruth, Rig
 from hil_sim.sensors import PositionTransducer, PressureTransducer
-from hil_sim.walking import WalkingRig
+from hil_sim.walking import WalkingRig, WalkTruth
 from hil_sim.wire import PLC_TO_IPC, FaultyWire, WireFault, match_messages
 from plc_bridge import (
     ControlWord,
@@ -118,6 +118,9 @@ class Truth:
     part_state: str = "carried"
     #: how much of the part's weight the upper platform carries, N (bolted: its pads)
     part_load_n: float = 0.0
+    #: the walking rig's frames (``plant.contact``): world x, headings, S's yaw in M, plan
+    #: positions, slip; None on the attitude rig
+    walk: WalkTruth | None = None
 
 
 class HilSimulator:
@@ -760,6 +763,7 @@ class HilSimulator:
             faults_active=self.active_faults(),
             part_state=rig.part_state,
             part_load_n=rig.part_load_n,
+            walk=rig.walk_truth() if isinstance(rig, WalkingRig) else None,
         )
 
     def status_line(self) -> str:

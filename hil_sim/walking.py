@@ -7,9 +7,10 @@ Model (what :class:`hil_sim.rig.Rig` has, and how this differs)
   (``q[0:3]``, relative to the base plane at world x = 0) plus ``x_S``, S's position along
   the rails. The upper platform on it is the rig's (``q[3:6]``). Its bodies: the YAML's
   layer bodies, ``frames.main.bodies`` (lower platform frame) and ``frames.sub.bodies``
-  (S's frame, placed at ``x_S``).
+  (S's frame, placed at ``x_S`` and turned by psi, below).
 - Each of the eight legs is a cylinder whose barrel is fixed to the body at
-  ``(s_i a_M, t_i b_M)`` (main) or ``(x_S + s_i a_S, t_i b_S)`` (sub) and whose rod end is
+  ``(s_i a_M, t_i b_M)`` (main) or ``(x_S + s_i a_S, t_i b_S)`` (sub, at psi = 0; turned
+  with S below) and whose rod end is
   a foot: a point mass (``rod_mass_kg``) with its own height ``h`` (base frame). The rod
   position is ``stroke/2 + d_i(q) - h`` (``d_i``: the body point's height, model.md
   section 3); at ``h = 0`` and a level body at mid-stroke the foot just touches the base
@@ -25,12 +26,63 @@ Model (what :class:`hil_sim.rig.Rig` has, and how this differs)
   rig's does (``q = 0`` in heave, the rods at mid-stroke: the part at its home pose), so a
   placement after a walk sets the part where it does without one.
 - Along x each frame is a body of its own: world positions ``X_M`` and ``X_S = X_M +
-  x_S``, the simulator's truth. The two travel cylinders join them (rod position ``e_0 +
-  x_S``, ``e_0`` mid-stroke; their force pushes S forward and M back) and gravity along
-  the base's x acts on both. A frame's feet hold it by friction: an elasto-plastic
+  x_S``, the simulator's truth. The two travel cylinders join them (rod positions ``e_0 +
+  x_S`` at psi = 0, ``e_0`` mid-stroke; their force pushes S forward and M back) and
+  gravity along the base's x acts on both. A frame's feet hold it by friction: an elasto-plastic
   (bristle) model per frame, a shear spring ``k_t`` with damping to an anchor, the force
   capped at ``mu * sum N`` of its feet; above the cap the anchor is dragged along (the
   feet slip) and the slip is counted in :attr:`WalkingRig.slip_m`.
+- Yaw (curves.md section 3). S turns in M about z on a pivot at S's centre, by psi (S's
+  yaw in M; counter-clockwise seen from above positive: turning left). The travel
+  cylinder of the lower ``can_index`` (``travel_1``) acts on the right at ``y = -b_T``,
+  ``travel_2`` on the left at ``y = +b_T`` (``walking.travel_half_span_mm``); their rods
+  are at ``e_1 = e_0 + x_S + b_T sin psi`` and ``e_2 = e_0 + x_S - b_T sin psi``, so
+  ``psi = asin((e_1 - e_2) / (2 b_T))``, with speeds ``v_S +- b_T cos psi psi'``. Each
+  rod's force pushes S forward along M's x at its attachment: along the rails ``F_1 + F_2``
+  as before, about the pivot ``tau = b_T cos psi (F_1 - F_2)`` on S and ``-tau`` on M
+  (the ``cos psi``, 1.5e-4 from 1 at 1 deg, makes the torque the rods' power's). Nothing
+  but the pair sets psi: with equal cylinders and equal commands the pair's equations are
+  symmetric and psi stays 0 (to the last bit); unequal flows turn S, and what holds it
+  then is the IPC's position loop on each rod. The simulated PLC does not check the two
+  rods against each other (the travel sync band is the IPC's interlock).
+- Each frame has a heading in the walk's base frame (x along the machine's heading at
+  the start; 0 there): states ``theta_M, omega_M, theta_S, omega_S``, ``psi = theta_S -
+  theta_M``, the per-frame pattern of the x model. A frame's yaw inertia is its bodies'
+  (their own moments about z, :func:`hil_sim.rig.plate_inertia` over their support, and
+  their masses at their COGs' distances) and its rods and feet: M carries the platforms
+  and the part (the part, a point mass in the 6-DOF mass matrix, a plate over the upper
+  layer's support in yaw); S's is about its centre, the pivot; M's about the pivot
+  (``I_M + m_M x_S^2 - 2 x_S m_M xbar_M``: M turns about it when S stands, and when M
+  stands its feet hold it). Shipped project: M 131 400 kg m^2 about its centre (194 800
+  at ``x_S = -1 m``), S 13 840 kg m^2. On the travel pair the differential (yaw) mode
+  weighs ``I / (2 b_T^2)`` per rod: S 10.8 t, M 103 t at ``x_S = 0`` and 152 t at
+  ``x_S = +-1 m``, against 4.3 t and 31.7 t in the common (along the rails) mode: with
+  M lifted the pair's oil column holds M's yaw at about 8-10 rad/s, half the common
+  mode's 17.8 rad/s.
+- A standing frame's feet hold its yaw with the x model's bristle model turned: a
+  rotational spring ``k_t r^2`` to an anchor with damping (0.7 of critical), the torque
+  capped at ``mu * sum N * r``, ``r`` the feet's distance from the frame's centre
+  (M 3.13 m, S 2.12 m; independent of the cap along x); above the cap the anchor is
+  dragged along and the slip counted in :attr:`WalkingRig.yaw_slip_rad`. A lifted frame
+  (no normal force) turns freely under the travel pair's torque; with both standing the
+  differential only loads the feet. The rails stop psi at ``+-walking.max_yaw_deg``: a
+  stiff spring beyond it (S's yaw on it at :attr:`WalkingRig.yaw_stop_hz`), damped,
+  pushing only.
+- S's legs' barrels and S's bodies' COGs turn with psi about S's centre: in M's frame a
+  leg is at ``(x_S + s a_S cos psi - t b_S sin psi, s a_S sin psi + t b_S cos psi)`` (the
+  leg kinematics, the bodies placed every scan). A foot's world position for the ground
+  lookup is its frame's centre in plan plus ``R(theta)`` of its place in the frame.
+- Plan positions: each frame's centre at (x, y) in the base frame
+  (:attr:`WalkingRig.plan_xy_m`). x is the world x above, the truth for the distance,
+  integrated as before (along the base's x: to first order in the headings, its
+  ``x_S cos theta_M`` taken as ``x_S``). y is kept outside the RK4 stages, after each
+  RK4 step, by the pivot's constraint (S's centre is at M's plus ``R(theta_M) (x_S,
+  0)``): the frame with the larger normal force holds its y (its feet do not move in
+  plan but by their slip, which is along x and in yaw only: no lateral friction is
+  modelled), the other's follows, ``y_S - y_M = x_S sin theta_M``. Consistent to first
+  order: the lifted frame's turn about the pivot is the kernel's (M's inertia about the
+  pivot), its lateral motion the constraint's; the lateral forces and gravity across the
+  rails (``g_b[0] sin theta``) are left out.
 - Hydraulics, valves, load-holding valves and end stops are the rig's, integrated with
   the same RK4 in one numba kernel; the mass matrix is evaluated once per PLC scan.
 """
@@ -38,6 +90,7 @@ Model (what :class:`hil_sim.rig.Rig` has, and how this differs)
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -63,11 +116,24 @@ from hil_sim.rig import (
     plate_inertia,
 )
 
-#: offsets of the walking state after the rig's: foot heights, foot speeds, X_M, V_M, X_S, V_S
+#: offsets of the walking state after the rig's: foot heights, foot speeds, X_M, V_M, X_S,
+#: V_S, then the headings theta_M, omega_M, theta_S, omega_S
 _H = N_STATE
 _HD = _H + 8
 _XW = _HD + 8
-N_WALK_STATE = _XW + 4
+_YW = _XW + 4
+N_WALK_STATE = _YW + 4
+#: slots of the yaw parameters (:attr:`WalkingRig._yaw`, one float array): the travel
+#: pair's half-span b_T; the rails' end stop (max |psi|, its stiffness, its damping); the
+#: frames' yaw inertias about their centres (M, S); M's mass and first moment along x
+#: about its centre (its inertia about the pivot at x_S: ``I + m x_S^2 - 2 x_S m_x``);
+#: the feet's rotational bristle stiffness and damping (M, S); the feet's distance from
+#: their frame's centre (M, S); the frames' centres' lateral plan positions (M, S), kept by
+#: the kernel (module docstring)
+_Y_BT, _Y_MAX, _Y_KSTOP, _Y_CSTOP = 0, 1, 2, 3
+_Y_I, _Y_MM, _Y_MXM = 4, 6, 7
+_Y_K, _Y_C, _Y_R, _Y_PY = 8, 10, 12, 14
+N_YAW = 16
 #: ground offset slots: rows (x_from, x_to, y_from, y_to, dz) in the base frame, m
 N_GROUND = 8
 
@@ -86,7 +152,7 @@ def ground_height(xw, yw, ground):
 def _walk_derivative(
     y, dy, u, ports, leak, f_ext, p, up_idx, up_xy, up_half, leg_idx, leg_xy, leg_sub,
     leg_half, travel_idx, e0, m_inv, q_g, foot_m, foot_inertia, g_b, k_c, c_c, ground, fric, anchor,
-    k_t, c_t, mass_x, pads, x_out, f_out, n_out, pad_out,
+    k_t, c_t, mass_x, yaw, pads, x_out, f_out, n_out, pad_out,
 ):  # fmt: skip
     q = y[_Q : _Q + 6]
     qd = y[_QD : _QD + 6]
@@ -97,6 +163,18 @@ def _walk_derivative(
         v[i] = y[_V + i]
     x_s = y[_XW + 2] - y[_XW]
     v_s = y[_XW + 3] - y[_XW + 1]
+    # headings: each frame's (its feet on the ground) and S's yaw psi in M (its legs and
+    # the travel rods in M's frame)
+    ch = np.empty(2)
+    sh = np.empty(2)
+    for frame in range(2):
+        ch[frame] = math.cos(y[_YW + 2 * frame])
+        sh[frame] = math.sin(y[_YW + 2 * frame])
+    c_psi = ch[1] * ch[0] + sh[1] * sh[0]
+    s_psi = sh[1] * ch[0] - ch[1] * sh[0]
+    psi = y[_YW + 2] - y[_YW]
+    psi_d = y[_YW + 3] - y[_YW + 1]
+    b_t = yaw[_Y_BT]
     jup = np.empty((4, 3))
     for j in range(4):
         d, j0, j1, j2 = extension_and_jacobian(q[3], q[4], q[5], up_xy[j, 0], up_xy[j, 1])
@@ -106,23 +184,30 @@ def _walk_derivative(
         v[i] = j0 * qd[3] + j1 * qd[4] + j2 * qd[5]
     jleg = np.empty((8, 3))
     for j in range(8):
-        px = leg_xy[j, 0] + x_s * leg_sub[j]
-        d, j0, j1, j2 = extension_and_jacobian(q[0], q[1], q[2], px, leg_xy[j, 1])
+        px = leg_xy[j, 0]
+        py = leg_xy[j, 1]
+        if leg_sub[j] == 1:
+            px, py = x_s + px * c_psi - py * s_psi, px * s_psi + py * c_psi
+        d, j0, j1, j2 = extension_and_jacobian(q[0], q[1], q[2], px, py)
         jleg[j, 0], jleg[j, 1], jleg[j, 2] = j0, j1, j2
         i = leg_idx[j]
         x[i] = leg_half[j] + d - y[_H + j]
         v[i] = j0 * qd[0] + j1 * qd[1] + j2 * qd[2] - y[_HD + j]
-    for j in range(2):
+    for j in range(2):  # travel_1 at y = -b_T, travel_2 at +b_T
         i = travel_idx[j]
-        x[i] = e0 + x_s
-        v[i] = v_s
+        side = b_t if j == 0 else -b_t
+        x[i] = e0 + x_s + side * s_psi
+        v[i] = v_s + side * c_psi * psi_d
     cylinder_forces(y, dy, u, ports, leak, f_ext, p, x, v, f_out)
     normal = np.zeros(2)
     for j in range(8):
         i = leg_idx[j]
         frame = leg_sub[j]
-        xw = y[_XW + 2 * frame] + leg_xy[j, 0]
-        pen = ground_height(xw, leg_xy[j, 1], ground) - y[_H + j]
+        lx = leg_xy[j, 0]
+        ly = leg_xy[j, 1]
+        xw = y[_XW + 2 * frame] + lx * ch[frame] - ly * sh[frame]
+        yw = yaw[_Y_PY + frame] + lx * sh[frame] + ly * ch[frame]
+        pen = ground_height(xw, yw, ground) - y[_H + j]
         nf = 0.0
         if pen > 0.0:
             nf = k_c * pen - c_c * y[_HD + j]
@@ -173,16 +258,40 @@ def _walk_derivative(
         push = f_travel if frame == 1 else -f_travel
         dy[_XW + 2 * frame] = vel
         dy[_XW + 2 * frame + 1] = (push + tf) / mass_x[frame] + g_b[0]
+    # yaw: the travel pair's differential turns S about the pivot and M the other way; the
+    # rails' end stop beyond +-max; each frame's feet hold it (bristle, capped mu N r)
+    tau = b_t * c_psi * (f_out[travel_idx[0]] - f_out[travel_idx[1]])
+    over = abs(psi) - yaw[_Y_MAX]
+    if over > 0.0:
+        sgn = 1.0 if psi > 0.0 else -1.0
+        stop = yaw[_Y_KSTOP] * over + yaw[_Y_CSTOP] * sgn * psi_d
+        if stop > 0.0:
+            tau -= sgn * stop
+    inertia_m = yaw[_Y_I] + x_s * (x_s * yaw[_Y_MM] - 2.0 * yaw[_Y_MXM])
+    for frame in range(2):
+        th = y[_YW + 2 * frame]
+        om = y[_YW + 2 * frame + 1]
+        cap = fric[frame] * normal[frame] * yaw[_Y_R + frame]
+        tf = -yaw[_Y_K + frame] * (th - anchor[2 + frame]) - yaw[_Y_C + frame] * om
+        if tf > cap:
+            tf = cap
+        elif tf < -cap:
+            tf = -cap
+        turn = tau if frame == 1 else -tau
+        dy[_YW + 2 * frame] = om
+        dy[_YW + 2 * frame + 1] = (turn + tf) / (inertia_m if frame == 0 else yaw[_Y_I + 1])
 
 
 @jit
 def _walk_advance(
     y, u, ports, leak, f_ext, p, up_idx, up_xy, up_half, leg_idx, leg_xy, leg_sub, leg_half,
     travel_idx, e0, body_m, body_c, body_i, body_layer, rod_xy, rod_m, origin_u, foot_m,
-    foot_inertia, g_b, k_c, c_c, ground, fric, anchor, slip, k_t, c_t, mass_x, pads, h, n_steps,
-    x_out, f_out, n_out, pad_out,
+    foot_inertia, g_b, k_c, c_c, ground, fric, anchor, slip, k_t, c_t, mass_x, yaw, pads, h,
+    n_steps, x_out, f_out, n_out, pad_out,
 ):  # fmt: skip
-    """``n_steps`` RK4 steps; after each, the friction anchors follow a slipping frame."""
+    """``n_steps`` RK4 steps; after each, the friction anchors (along x and in yaw) follow
+    a slipping frame, and the lifted frame's lateral plan position follows the standing
+    one's through the pivot."""
     n = y.shape[0]
     k1 = np.empty(n)
     k2 = np.empty(n)
@@ -198,8 +307,9 @@ def _walk_advance(
     args = (
         u, ports, leak, f_ext, p, up_idx, up_xy, up_half, leg_idx, leg_xy, leg_sub, leg_half,
         travel_idx, e0, m_inv, q_g, foot_m, foot_inertia, g_b, k_c, c_c, ground, fric, anchor,
-        k_t, c_t, mass_x, pads, x_out, f_out, n_out, pad_out,
+        k_t, c_t, mass_x, yaw, pads, x_out, f_out, n_out, pad_out,
     )  # fmt: skip
+    normals = np.zeros(2)
     if n_steps == 0:
         _walk_derivative(y, k1, *args)
     for _ in range(n_steps):
@@ -221,6 +331,7 @@ def _walk_advance(
             for j in range(8):
                 if leg_sub[j] == frame:
                     normal += n_out[j]
+            normals[frame] = normal
             cap = fric[frame] * normal
             pos = y[_XW + 2 * frame]
             spring = k_t * (pos - anchor[frame])
@@ -229,6 +340,42 @@ def _walk_advance(
                 anchor[frame] += moved
                 if normal > 0.0:
                     slip[frame] += abs(moved)
+            cap *= yaw[_Y_R + frame]
+            k_y = yaw[_Y_K + frame]
+            th = y[_YW + 2 * frame]
+            spring = k_y * (th - anchor[2 + frame])
+            if spring > cap or spring < -cap:
+                moved = th - math.copysign(cap / k_y, spring) - anchor[2 + frame]
+                anchor[2 + frame] += moved
+                if normal > 0.0:
+                    slip[2 + frame] += abs(moved)
+        # the plan: the standing frame's centre stays where it is laterally; the other
+        # one's follows through the pivot (S's centre = M's + R(theta_M) (x_S, 0))
+        lateral = (y[_XW + 2] - y[_XW]) * math.sin(y[_YW])
+        if normals[1] > normals[0]:
+            yaw[_Y_PY] = yaw[_Y_PY + 1] - lateral
+        else:
+            yaw[_Y_PY + 1] = yaw[_Y_PY] + lateral
+
+
+@dataclass(frozen=True)
+class WalkTruth:
+    """Where the walking rig's frames are (:meth:`WalkingRig.walk_truth`; the walk's base
+    frame: x along the machine's heading at the start, headings 0 there)."""
+
+    #: ``(X_M, X_S)``: the frames' world x, the truth for the distance, m
+    world_x_m: tuple[float, float]
+    #: S's position along the rails in M, m
+    x_s_m: float
+    #: ``(theta_M, theta_S)``, rad, counter-clockwise from above positive
+    heading_rad: FloatArray
+    #: psi = theta_S - theta_M: S's yaw in M, rad
+    yaw_s_in_m_rad: float
+    #: the frames' centres in plan (2, 2): rows M, S; columns x, y (lateral), m
+    plan_xy_m: FloatArray
+    #: how far each frame's feet have slipped along x (m) and in yaw (rad): M, S
+    slip_m: FloatArray
+    yaw_slip_rad: FloatArray
 
 
 class WalkingRig(Rig):
@@ -241,6 +388,10 @@ class WalkingRig(Rig):
 
     #: tangential (shear) stiffness of a frame's feet on the invert, N/m (all four)
     shear_stiffness_n_m = 5.0e7
+    #: the rails' end stop in yaw: the frequency of S's yaw on it, Hz (its stiffness
+    #: ``I_S (2 pi f)^2``), and its damping ratio
+    yaw_stop_hz = 100.0
+    yaw_stop_damping_ratio = 0.5
     #: inertia of a foot (rod, piston, foot) in its vertical motion, kg. Its weight is
     #: ``rod_mass_kg``; the inertia puts the foot's own mode near 40 Hz, inside what RK4 at
     #: 0.25 ms integrates with the leg's regularized Coulomb friction (150 kg is not).
@@ -316,9 +467,19 @@ class WalkingRig(Rig):
         self.ground = np.zeros((N_GROUND + 1, 5))
         self.ground[0, :4] = (-math.inf, math.inf, -math.inf, math.inf)
         self.friction = np.full(2, walk.foot_friction_coefficient)
-        self._anchor = np.zeros(2)
+        # the friction anchors: along x (M, S), then in yaw (M, S)
+        self._anchor = np.zeros(4)
+        self._slip = np.zeros(4)
         #: distance each frame's feet have slipped while touching (main, sub), m
-        self.slip_m = np.zeros(2)
+        self.slip_m = self._slip[:2]
+        #: angle each frame's feet have slipped in yaw while touching (main, sub), rad
+        self.yaw_slip_rad = self._slip[2:]
+        self._yaw = np.zeros(N_YAW)
+        self._yaw[_Y_BT] = walk.travel_half_span_m
+        self._yaw[_Y_MAX] = walk.max_yaw_rad
+        self._yaw[_Y_R] = math.hypot(lo.a_m, lo.b_m)
+        self._yaw[_Y_R + 1] = math.hypot(frames.sub.a_m, frames.sub.b_m)
+        self._set_yaw_inertia()
         self.foot_force_n = np.zeros(8)
         #: M's world x at the part's bolting: its pads touch only while M stands there
         self._bolted_at_x_m = 0.0
@@ -334,8 +495,66 @@ class WalkingRig(Rig):
         """Nothing yet: the walking rig settles in :meth:`_settle_walking`, once its legs
         are set up."""
 
-    def _place_sub_bodies(self, x_s: float) -> None:
-        self._body_c[self._sub_bodies, 0] = self._body_c0[self._sub_bodies, 0] + x_s
+    def _set_yaw_inertia(self) -> None:
+        """The frames' yaw inertias from their bodies (each body's own moment about z plus
+        its mass at its COG's distance from the frame's centre; the part, a point mass in
+        the rig's mass matrix, as a plate over the upper layer's support rectangle) and
+        their rods and feet; M carries the platforms and the part. From them the feet's
+        rotational damping and the end stop's stiffness."""
+        cfg = self.cfg
+        sub = self._sub_bodies
+        m = self._body_m.copy()
+        izz = self._body_i[:, 2].copy()
+        xy = self._body_c[:, :2].copy()
+        xy[self._body_layer == 1] += self._origin_u[:2]
+        if self._part_body >= 0:
+            izz[self._part_body] = plate_inertia(m[self._part_body], cfg.layers.upper)[2]
+        m[sub] = 0.0
+        izz[sub] = 0.0
+        # M: its bodies, the upper rods, its own feet
+        m = np.concatenate([m, self._rod_m[4:], np.full(4, self.rod_mass_kg)])
+        izz = np.concatenate([izz, np.zeros(8)])
+        xy = np.concatenate([xy, self._up_xy + self._origin_u[:2], self._leg_xy[:4]])
+        yp = self._yaw
+        yp[_Y_I] = float(izz.sum() + (m * (xy**2).sum(axis=1)).sum())
+        yp[_Y_MM] = float(m.sum())
+        yp[_Y_MXM] = float((m * xy[:, 0]).sum())
+        # S: its bodies about its centre, its feet
+        m_s = self._body_m[sub]
+        xy_s = self._body_c0[sub, :2]
+        feet = self._leg_xy[4:]
+        yp[_Y_I + 1] = float(
+            self._body_i[sub, 2].sum()
+            + (m_s * (xy_s**2).sum(axis=1)).sum()
+            + self.rod_mass_kg * (feet**2).sum()
+        )
+        for frame in range(2):
+            yp[_Y_K + frame] = self.shear_stiffness_n_m * yp[_Y_R + frame] ** 2
+            yp[_Y_C + frame] = 2.0 * 0.7 * math.sqrt(yp[_Y_K + frame] * yp[_Y_I + frame])
+        i_s = yp[_Y_I + 1]
+        yp[_Y_KSTOP] = i_s * (2.0 * math.pi * self.yaw_stop_hz) ** 2
+        yp[_Y_CSTOP] = 2.0 * self.yaw_stop_damping_ratio * math.sqrt(yp[_Y_KSTOP] * i_s)
+
+    def _leg_points(self, x_s: float, psi: float) -> FloatArray:
+        """The eight legs' barrel points in M's frame (8, 2): S's rotated by ``psi`` about
+        its centre at ``x_S``."""
+        pts = self._leg_xy.copy()
+        c, s = math.cos(psi), math.sin(psi)
+        sub = self._leg_xy[4:]
+        pts[4:, 0] = x_s + sub[:, 0] * c - sub[:, 1] * s
+        pts[4:, 1] = sub[:, 0] * s + sub[:, 1] * c
+        return pts
+
+    def _place_sub_bodies(self, x_s: float, psi: float) -> None:
+        sub = self._sub_bodies
+        c0 = self._body_c0
+        if psi == 0.0:
+            self._body_c[sub, 0] = c0[sub, 0] + x_s
+            self._body_c[sub, 1] = c0[sub, 1]
+        else:
+            c, s = math.cos(psi), math.sin(psi)
+            self._body_c[sub, 0] = x_s + c0[sub, 0] * c - c0[sub, 1] * s
+            self._body_c[sub, 1] = c0[sub, 0] * s + c0[sub, 1] * c
 
     def _settle_walking(self) -> None:
         walk = self.walking
@@ -349,14 +568,15 @@ class WalkingRig(Rig):
         # which M's frame carries): their shear spring stretched by that load, so M
         # starts at rest at X_M = 0 (not sliding into it as the walk begins)
         along_n = -float(self._mass_x.sum()) * float(self.g_base[0])
-        self._anchor[:] = (along_n / self.shear_stiffness_n_m, x_s)
-        self._place_sub_bodies(x_s)
+        self._anchor[:] = (along_n / self.shear_stiffness_n_m, x_s, 0.0, 0.0)
+        self._yaw[_Y_PY : _Y_PY + 2] = 0.0
+        self._place_sub_bodies(x_s, 0.0)
         _m, q_g = self.generalized_gravity(np.zeros(6))
         g_z = self.g_base[2]
         jac = np.zeros((8, 3))
+        pts = self._leg_points(x_s, 0.0)
         for j in range(8):
-            px = self._leg_xy[j, 0] + x_s * self._leg_sub[j]
-            _d, *row = extension_and_jacobian(0.0, 0.0, 0.0, px, self._leg_xy[j, 1])
+            _d, *row = extension_and_jacobian(0.0, 0.0, 0.0, pts[j, 0], pts[j, 1])
             jac[j] = row
         f_sub = np.full(4, self.rod_mass_kg * g_z)  # a hanging foot pulls its rod down
         rhs = -(q_g[:3] + jac[4:].T @ f_sub)
@@ -415,10 +635,9 @@ class WalkingRig(Rig):
         q = self.y[_Q : _Q + 6]
         rows = np.zeros((12, 6))
         rows[:4] = self.rod_jacobian()[4:]
-        x_s = self.x_s_m
+        pts = self._leg_points(self.x_s_m, self.yaw_s_in_m_rad)
         for j in range(8):
-            px = self._leg_xy[j, 0] + x_s * self._leg_sub[j]
-            _d, *row = extension_and_jacobian(q[0], q[1], q[2], px, self._leg_xy[j, 1])
+            _d, *row = extension_and_jacobian(q[0], q[1], q[2], pts[j, 0], pts[j, 1])
             rows[4 + j, :3] = row
         extra = np.concatenate([np.zeros(4), np.full(8, 1.0 / self.foot_inertia_kg)])
         return rows, extra, np.concatenate([self.upper_index, self._leg_idx])
@@ -427,6 +646,13 @@ class WalkingRig(Rig):
         """The part's mass on the platform, and with it M's along the tunnel."""
         self._mass_x[0] += mass_kg - self._body_m[self._part_body]
         super()._set_part_mass(mass_kg, bound)
+        self._set_yaw_inertia()
+
+    def set_platform_load(self, layer: str, mass_kg: float, cog_m: tuple[float, ...]) -> None:
+        super().set_platform_load(layer, mass_kg, cog_m)
+        self._set_yaw_inertia()
+
+    set_platform_load.__doc__ = Rig.set_platform_load.__doc__
 
     def bolt_part(
         self,
@@ -446,16 +672,17 @@ class WalkingRig(Rig):
         ):
             self._pads[:] = 0.0  # walked away from the ring: the part stays behind
             self.pad_force_n[:] = 0.0
-        self._place_sub_bodies(self.x_s_m)
+        y = self.y
+        self._place_sub_bodies(y[_XW + 2] - y[_XW], y[_YW + 2] - y[_YW])
         _walk_advance(
             self.y, self.command, self.ports_open, self.valve_leak, self.external_force_n,
             self._p, self.upper_index, self._up_xy, self._up_half, self._leg_idx, self._leg_xy,
             self._leg_sub, self._leg_half, self._travel_idx, self.travel_mid_m, self._body_m,
             self._body_c, self._body_i, self._body_layer, self._rod_xy, self._rod_m,
             self._origin_u, self.rod_mass_kg, self.foot_inertia_kg, self.g_base, self._k_c,
-            self._c_c, self.ground, self.friction,
-            self._anchor, self.slip_m, self.shear_stiffness_n_m, self._c_t, self._mass_x,
-            self._pads, self.step_s, int(n_steps), self._xv, self._force, self.foot_force_n,
+            self._c_c, self.ground, self.friction, self._anchor, self._slip,
+            self.shear_stiffness_n_m, self._c_t, self._mass_x, self._yaw, self._pads,
+            self.step_s, int(n_steps), self._xv, self._force, self.foot_force_n,
             self.pad_force_n,
         )  # fmt: skip
         self.t_s += n_steps * self.step_s
@@ -470,7 +697,8 @@ class WalkingRig(Rig):
             self._leg_sub, self._leg_half, self._travel_idx, self.travel_mid_m, inverse(m_mat),
             q_g, self.rod_mass_kg, self.foot_inertia_kg, self.g_base, self._k_c, self._c_c,
             self.ground, self.friction, self._anchor.copy(), self.shear_stiffness_n_m, self._c_t,
-            self._mass_x, self._pads, np.zeros((2, N)), np.zeros(N), np.zeros(8), np.zeros(4),
+            self._mass_x, self._yaw.copy(), self._pads, np.zeros((2, N)), np.zeros(N),
+            np.zeros(8), np.zeros(4),
         )  # fmt: skip
         return dy
 
@@ -487,6 +715,55 @@ class WalkingRig(Rig):
     def world_x_m(self) -> tuple[float, float]:
         """``(X_M, X_S)``: both frames' positions in world x (m), the simulator's truth."""
         return float(self.y[_XW]), float(self.y[_XW + 2])
+
+    @property
+    def heading_rad(self) -> FloatArray:
+        """``(theta_M, theta_S)``: both frames' headings about z in the walk's base frame
+        (0 at the start, counter-clockwise from above positive), rad, the truth."""
+        return self.y[_YW : _YW + 4 : 2].copy()
+
+    @property
+    def yaw_s_in_m_rad(self) -> float:
+        """psi: S's yaw in M on the rails' pivot, ``theta_S - theta_M`` (rad; positive:
+        turned left, ``e_1 > e_2``)."""
+        return float(self.y[_YW + 2] - self.y[_YW])
+
+    @property
+    def plan_xy_m(self) -> FloatArray:
+        """The frames' centres in plan (2, 2): rows M, S; columns the base frame's x (the
+        world x, :attr:`world_x_m`) and y (lateral), m."""
+        y = self.y
+        return np.array(
+            [[y[_XW], self._yaw[_Y_PY]], [y[_XW + 2], self._yaw[_Y_PY + 1]]], dtype=np.float64
+        )
+
+    @property
+    def yaw_inertia_kg_m2(self) -> tuple[float, float]:
+        """The frames' yaw inertias: M's about the pivot at the present ``x_S`` (what it
+        turns about when S stands), S's about its centre (the pivot), kg m^2."""
+        yp, x_s = self._yaw, self.x_s_m
+        return (
+            float(yp[_Y_I] + x_s * (x_s * yp[_Y_MM] - 2.0 * yp[_Y_MXM])),
+            float(yp[_Y_I + 1]),
+        )
+
+    @property
+    def yaw_friction_cap_nm(self) -> FloatArray:
+        """The torque each frame's feet hold in yaw now, ``mu sum(N) r`` (M, S), N m."""
+        n = np.array([self.foot_force_n[:4].sum(), self.foot_force_n[4:].sum()])
+        return self.friction * n * self._yaw[_Y_R : _Y_R + 2]
+
+    def walk_truth(self) -> WalkTruth:
+        """The frames' positions, headings and slip now (copies)."""
+        return WalkTruth(
+            world_x_m=self.world_x_m,
+            x_s_m=self.x_s_m,
+            heading_rad=self.heading_rad,
+            yaw_s_in_m_rad=self.yaw_s_in_m_rad,
+            plan_xy_m=self.plan_xy_m,
+            slip_m=self.slip_m.copy(),
+            yaw_slip_rad=self.yaw_slip_rad.copy(),
+        )
 
     @property
     def invert_height_m(self) -> float:
