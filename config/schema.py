@@ -1077,6 +1077,12 @@ class Walking(Strict):
     force_wc_rad_s: Annotated[Finite, Field(gt=0, le=1000)] | None = None
     #: and its observer's bandwidth; left out (null): derived
     force_wo_rad_s: Annotated[Finite, Field(gt=0, le=1000)] | None = None
+    #: the travel pair's turn loop (its rods' half difference, turning the lifted frame
+    #: about the pivot: a far heavier mode than the pair's common one): the LADRC's
+    #: crossover; left out (null): derived from the plant (``ipc_app.control.tuning``)
+    turn_wc_rad_s: Annotated[Finite, Field(gt=0, le=1000)] | None = None
+    #: and its observer's bandwidth; left out (null): derived
+    turn_wo_rad_s: Annotated[Finite, Field(gt=0, le=1000)] | None = None
     #: the twist-mode controller of a frame standing in position control (travel,
     #: the other frame's lowering and preload): the crossover of its force loop on the
     #: legs' twist, which sets the twist mode's share of their valve commands

@@ -17,6 +17,7 @@ from ipc_app.model.placement import Pose, axis_pose, ring_chainage_m
 from ipc_app.planner.placement import plan_from_deviation
 from tests.cli_helpers import run_main
 from wara.place import run_place
+from wara.walk import run_walk
 
 CURVED = default_project_path().with_name("curved_grade_heavy_part.yaml")
 
@@ -80,3 +81,43 @@ def test_a_part_placed_on_the_curve_in_lockstep_meets_table_4_at_both_ends(
     assert 0.0 <= placed["min_gap_mm"] <= placed["max_gap_mm"] <= 10.0
     assert placed["goals"]["min_gap_mm"]["met"] and placed["goals"]["max_gap_mm"]["met"]
     assert placed["final_mode"] == "COMPLETE"
+
+
+@pytest.fixture(scope="module")
+def walked_on_the_curve() -> tuple[dict[str, Any], list[Any]]:
+    """One step forward on the 400 m curve in lockstep, the service's estimate of where
+    the machine stands and the simulator's truth kept after each cycle."""
+    seen: list[Any] = []
+
+    def keep(h: Any) -> None:
+        seen[:] = [h.core.on_axis, h.sim.truth().walk]
+
+    out = run_walk(str(CURVED), 1, mode="lockstep", on_cycle=keep)
+    return out, seen
+
+
+@pytest.mark.slow
+def test_a_step_on_the_curve_turns_the_machine_with_the_axis(
+    walked_on_the_curve: tuple[dict[str, Any], list[Any]],
+) -> None:
+    """curves.md section 3: S turns in M by the axis's 0.286 deg as it advances, M follows
+    as the rods come back to equal strokes; on the truth the machine ends on the axis,
+    its heading the axis's, S square in M again."""
+    out, (on_axis, truth) = walked_on_the_curve
+    assert out["passed"], out["missed"]
+    (step,) = out["steps"]
+    axis_turn = math.degrees(2.0 / 400.0)
+    assert step["turn_deg"] == pytest.approx(axis_turn, abs=0.005)  # measured on the rods
+    assert abs(out["heading_error_deg"]) < 0.01
+    assert abs(out["lateral_offset_mm"]) < 1.0
+    assert out["goals"]["heading_error_deg"]["met"]
+    assert math.degrees(float(truth.heading_rad[1])) == pytest.approx(axis_turn, abs=0.01)
+    assert abs(math.degrees(truth.yaw_s_in_m_rad)) < 0.01
+    assert float(truth.plan_xy_m[0, 1]) == pytest.approx(2.0**2 / (2 * 400.0), abs=1e-3)
+    # the service's estimate: one step along the axis, its heading error the measured
+    # turn less the axis's
+    assert on_axis is not None
+    assert on_axis.chainage_m == pytest.approx(1.9991, abs=1e-3)
+    assert math.degrees(on_axis.heading_error_rad) == pytest.approx(
+        step["turn_deg"] - math.degrees(2.0 / 400.0) * 0.99955, abs=1e-3
+    )

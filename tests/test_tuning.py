@@ -26,6 +26,7 @@ from ipc_app.control.tuning import (
     group_loads,
     position_plant,
     touchdown_speed_m_s,
+    yaw_inertias_kg_m2,
 )
 from wara.cli import main
 
@@ -103,11 +104,12 @@ def test_an_explicit_tuning_overrides_every_group(tmp_path: Path) -> None:
     def set_keys(d: dict[str, Any]) -> None:
         d["control"]["ladrc"].update(wc_rad_s=4, wo_rad_s=8)
         d["walking"].update(force_wc_rad_s=6, force_wo_rad_s=12, touchdown_speed_mm_s=2.0)
+        d["walking"].update(turn_wc_rad_s=1, turn_wo_rad_s=2)
 
     cfg = _changed(tmp_path, set_keys)
     t = derive(cfg)
     for lt in t.loops:
-        want = (4.0, 8.0) if lt.kind == "position" else (6.0, 12.0)
+        want = {"position": (4.0, 8.0), "force": (6.0, 12.0), "turn": (1.0, 2.0)}[lt.kind]
         assert (lt.wc_rad_s, lt.wo_rad_s) == want
         assert lt.source.endswith("wo_rad_s") and lt.bound == ""
     assert touchdown_speed_m_s(cfg) == pytest.approx(2.0e-3)
@@ -190,3 +192,38 @@ def test_ladrc_from_config_needs_bandwidths() -> None:
         LADRC.from_config(cfg.control.ladrc, 0.05, 0.005)
     c = LADRC.from_config(cfg.control.ladrc, 0.05, 0.005, wc=3.0, wo=6.0)
     assert (c.wc, c.wo) == (3.0, 6.0)
+
+
+def test_the_travel_pairs_turn_is_its_own_loop_on_the_frames_yaw() -> None:
+    """curves.md section 3: the rods against each other turn the lifted frame about the
+    pivot, on each rod I / (2 b_T^2) (M with the part: about 156 t against its 31.7 t along
+    the rails); the turn loop is tuned on that mode with the dual error on it, the common
+    loop on the pair moving the frame without it (it does not act there)."""
+    cfg = load_project()
+    assert cfg.walking is not None
+    (ld,) = [g for g in group_loads(cfg) if g.group == "travel"]
+    i_m, i_s = yaw_inertias_kg_m2(cfg)
+    b_t = cfg.walking.travel_half_span_m
+    assert ld.relative_kg == pytest.approx(max(i_m, i_s) / (2 * b_t**2))
+    assert ld.relative_kg > 4 * ld.load_kg
+    assert ld.relative_mode_rad_s == pytest.approx(math.sqrt(ld.stiffness_n_m / ld.relative_kg))
+    t = derive(cfg)
+    common, turn = t.loop("travel"), t.loop("travel", "turn")
+    assert common.plant.coupling == 1.0
+    assert turn.plant.coupling == 1.0 + cfg.control.sync.coupling_lambda
+    assert turn.plant.mode_rad_s == ld.relative_mode_rad_s
+    assert turn.wo_rad_s < common.wo_rad_s
+    assert turn.delay_margin_s >= MARGIN_FACTOR * 0.02
+    # tuned as fast as the common loop, the turn is unstable in the model
+    assert delay_margin_s(turn.plant, common.wc_rad_s, common.wo_rad_s) == 0.0
+    assert (
+        derive(_changed_walking(cfg, turn_wc_rad_s=4.75, turn_wo_rad_s=9.5))
+        .loop("travel", "turn")
+        .delay_margin_s
+        == 0.0
+    )
+
+
+def _changed_walking(cfg: ProjectConfig, **changes: Any) -> ProjectConfig:
+    assert cfg.walking is not None
+    return cfg.model_copy(update={"walking": cfg.walking.model_copy(update=changes)})

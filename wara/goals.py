@@ -219,7 +219,20 @@ _STEP_ROW = (
 
 
 #: A walk's own goal beside its steps': the distance of the whole walk (simulator truth).
-WALK_GOALS: tuple[Goal, ...] = (Goal("distance_error_mm", DISTANCE_TOL_MM),)
+def walk_goals(cfg: ProjectConfig) -> tuple[Goal, ...]:
+    """A whole walk's goals on the truth: its distance along the axis, and the machine's
+    heading against the axis's at its end within what one step steers back
+    (curves.md section 3)."""
+    assert cfg.walking is not None
+    w = cfg.walking
+    return (
+        Goal("distance_error_mm", DISTANCE_TOL_MM),
+        Goal(
+            "heading_error_deg",
+            w.max_heading_correction_per_step_deg,
+            "walking.max_heading_correction_per_step_deg",
+        ),
+    )
 
 
 def placement_goals(cfg: ProjectConfig) -> tuple[Goal, ...]:

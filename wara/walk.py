@@ -9,6 +9,7 @@ feet's forces at the end).
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -20,19 +21,61 @@ from config import load_project, units
 from config.hil_scenario import HilScenario, PlantSettings
 from config.schema import ProjectConfig
 from ipc_app.control.walk import TRANSFER
+from ipc_app.model.placement import axis_pose
+from ipc_app.planner.steering import OnAxis, on_axis_at_start, step_turns
 from ipc_app.planner.walk import DIRECTIONS, ORDER
 from ipc_app.service.modes import Mode
 from ipc_app.service.record import RunRecorder
 from ipc_app.service.worker import PlannerWorker
-from wara.goals import WALK_GOALS, Goal, Verdict, judge, step_figures, walk_step_goals
+from wara.goals import Goal, Verdict, judge, step_figures, walk_goals, walk_step_goals
 from wara.harness import Harness
 
 
 @dataclass
 class _StepTruth:
-    x_m_start: float
-    x_m_end: float = 0.0
+    #: M's centre in plan at the step's start and end (the walk's base frame), m
+    xy_start: tuple[float, float]
+    xy_end: tuple[float, float] | None = None
     attitude_change_deg: float = 0.0
+
+    def distance_m(self) -> float:
+        """Along M's chord, signed by x: on a 300 m curve a step's chord is 2 m less
+        4 um of arc."""
+        return _chord_m(self.xy_start, self.xy_end or self.xy_start)
+
+
+def _chord_m(a: tuple[float, float], b: tuple[float, float]) -> float:
+    dx, dy = b[0] - a[0], b[1] - a[1]
+    return math.copysign(math.hypot(dx, dy), dx)
+
+
+def _m_xy(h: Harness) -> tuple[float, float]:
+    """M's centre in plan, the simulator's truth."""
+    walk = h.sim.truth().walk
+    assert walk is not None
+    return float(walk.plan_xy_m[0, 0]), float(walk.plan_xy_m[0, 1])
+
+
+def against_axis(
+    cfg: ProjectConfig, chainage_m: float, xy: tuple[float, float], heading_rad: float
+) -> tuple[float, float]:
+    """The machine (M's centre ``xy`` and its heading, in the walk's base frame: x along
+    the axis at the start chainage, on it) against the design axis at ``chainage_m``: its
+    heading error (rad) and its offset (m), both positive to the left."""
+    alignment = cfg.tunnel.alignment
+    start = on_axis_at_start(cfg).chainage_m
+    if alignment is None:
+        return heading_rad, xy[1]
+    p0, p1 = axis_pose(alignment, start), axis_pose(alignment, chainage_m)
+    c, s = math.cos(p0.yaw), math.sin(p0.yaw)
+    dx, dy = p1.x - p0.x, p1.y - p0.y
+    # the axis's point and heading at chainage_m in the base frame (plan; the base
+    # frame's x runs along the grade, which shortens the plan's by cos(grade): below
+    # 1e-3 of a step on a 5 % grade, and along both)
+    ax, ay = c * dx + s * dy, -s * dx + c * dy
+    yaw = p1.yaw - p0.yaw
+    lateral = -math.sin(yaw) * (xy[0] - ax) + math.cos(yaw) * (xy[1] - ay)
+    return heading_rad - yaw, lateral
 
 
 @dataclass
@@ -100,8 +143,7 @@ def run_walk(
         if not (h.wait_for(Mode.IDLE, 20.0) and h.wait_walk_ready()):
             out["error"] = f"service did not come up: {h.fault_note()}"
             return _finish(out, h, cfg, goals, truths, trace, steps, plot_dir, walks, directions)
-        rig = h.sim.rig
-        out["start_x_m"] = round(float(rig.world_x_m[0]), 6)  # type: ignore[attr-defined]
+        out["start_x_m"] = round(_m_xy(h)[0], 6)
         for direction in directions:
             if walks and h.core.modes.mode != Mode.COMPLETE:
                 break
@@ -157,12 +199,12 @@ def _follow(
             continue
         seen = st
         now = (st["step"], st["phase"])
-        x_m = rig.world_x_m[0]  # type: ignore[attr-defined]
         if now != last:
+            xy = _m_xy(h)
             if last is None or now[0] != last[0]:
                 if len(truths) > first:
-                    truths[-1].x_m_end = x_m
-                truths.append(_StepTruth(x_m))
+                    truths[-1].xy_end = xy
+                truths.append(_StepTruth(xy))
                 say(f"step {st['step']} {st['direction']}")
             last = now
             att0 = rig.workpiece_attitude_rad() if st["phase"] in TRANSFER else None
@@ -181,8 +223,8 @@ def _follow(
             trace.margin_m.append(np.nan if fm is None else fm)
         if st["done"] or core.modes.mode not in (Mode.EXECUTE, Mode.HELD, Mode.SUSPENDED):
             break  # done, or ended otherwise (ridden through a suspension)
-    if len(truths) > first and truths[-1].x_m_end == 0.0:
-        truths[-1].x_m_end = rig.world_x_m[0]  # type: ignore[attr-defined]
+    if len(truths) > first and truths[-1].xy_end is None:
+        truths[-1].xy_end = _m_xy(h)
     return seen
 
 
@@ -213,7 +255,7 @@ def _finish(
             k = len(rows)
             tr = truths[k] if k < len(truths) else None
             row = {"direction": w["direction"], **fig}
-            row["distance_m"] = round(tr.x_m_end - tr.x_m_start, 6) if tr else 0.0
+            row["distance_m"] = round(tr.distance_m(), 6) if tr else 0.0
             row["max_transfer_attitude_change_deg"] = (
                 round(tr.attitude_change_deg, 6) if tr else 0.0
             )
@@ -221,9 +263,23 @@ def _finish(
             row.update(verdict.to_dict())
             parts.append((f"step {k + 1} {w['direction']}", verdict))
             rows.append(row)
-    x0 = truths[0].x_m_start if truths else 0.0
-    x1 = truths[-1].x_m_end if truths else 0.0
-    out["distance_m"] = round(x1 - x0, 6)
+    xy0 = truths[0].xy_start if truths else (0.0, 0.0)
+    xy1 = (truths[-1].xy_end or xy0) if truths else xy0
+    out["distance_m"] = round(_chord_m(xy0, xy1), 6)
+    figures = {"distance_error_mm": 0.0, "heading_error_deg": 0.0}
+    walk = h.sim.truth().walk
+    if walk is not None and truths:
+        # where the steps walked to along the axis, as the plan lays them
+        chainage = on_axis_at_start(cfg).chainage_m
+        for w in walks:
+            done = len(w["steps_done"])
+            if done:
+                turns = step_turns(cfg, OnAxis(chainage), done, w["direction"])
+                chainage = turns[-1].after.chainage_m
+        heading, lateral = against_axis(cfg, chainage, xy1, float(walk.heading_rad[0]))
+        out["heading_error_deg"] = round(units.to_deg(heading), 5)
+        out["lateral_offset_mm"] = round(units.to_mm(lateral), 3)
+        figures["heading_error_deg"] = abs(units.to_deg(heading))
     out["steps"] = rows
     ids = getattr(rig, "leg_ids", ())
     forces = getattr(rig, "foot_forces_n", np.zeros(len(ids)))
@@ -240,12 +296,8 @@ def _finish(
         problem = h.fault_note()
     if not problem and len(rows) < asked:
         problem = f"{len(rows)} of {asked} steps walked"
-    verdict = judge(
-        WALK_GOALS,
-        {"distance_error_mm": 1000.0 * abs(out["distance_m"] - want)},
-        problem=problem,
-        parts=parts,
-    )
+    figures["distance_error_mm"] = 1000.0 * abs(out["distance_m"] - want)
+    verdict = judge(walk_goals(cfg), figures, problem=problem, parts=parts)
     out.update(verdict.to_dict())
     out["step_goals"] = {g.figure: {"limit": g.limit, "source": g.source} for g in goals}
     if plot_dir is not None and trace.t:

@@ -46,14 +46,15 @@ from __future__ import annotations
 
 import functools
 import math
+from collections.abc import Iterable
 from dataclasses import dataclass, replace
 
 import numpy as np
 from numpy.typing import NDArray
 
 from config import units
-from config.derived import hydraulic_stiffness_n_m, viscous_damping_n_s_m
-from config.schema import Cylinder, ProjectConfig
+from config.derived import hydraulic_stiffness_n_m, viscous_damping_n_s_m, without_rods
+from config.schema import Body, Cylinder, ProjectConfig
 from ipc_app.control.ladrc import eso_matrices
 from ipc_app.control.plant_gain import cylinder_b0
 
@@ -110,15 +111,6 @@ class LoopPlant:
     age_s: float
     #: the dual error's factor on the relative modes (``1 + lambda``; 1: alone)
     coupling: float = 1.0
-    #: the relative modes move the load too (a platform's roll and pitch); False: they
-    #: only strain the oil columns against each other (a pair pushing one frame)
-    relative_mode: bool = True
-
-    def mode(self, coupling: float) -> LoopPlant:
-        """The plant of the mode the dual error's ``coupling`` acts on."""
-        if coupling == 1.0 or self.relative_mode:
-            return self
-        return replace(self, mode_rad_s=math.inf)
 
 
 @dataclass(frozen=True)
@@ -133,6 +125,11 @@ class GroupLoad:
     stiffness_n_m: float
     mode_rad_s: float
     mode_damping: float
+    #: the relative modes' load per cylinder, kg, where it is not the common one (the
+    #: travel pair turning a frame), and their oil column's mode
+    relative_kg: float | None = None
+    relative_mode_rad_s: float | None = None
+    relative_mode_damping: float | None = None
 
 
 @dataclass(frozen=True)
@@ -299,10 +296,9 @@ def delay_margin_s(p: LoopPlant, wc: float, wo: float) -> float:
     w = _frequencies(p)
     best = math.inf
     for coupling in {1.0, p.coupling}:
-        pm = p.mode(coupling)
-        if not closed_loop_stable(pm, wc, wo, coupling):
+        if not closed_loop_stable(p, wc, wo, coupling):
             return 0.0
-        ell = loop_response(pm, wc, wo, w, coupling)
+        ell = loop_response(p, wc, wo, w, coupling)
         mag = np.abs(ell)
         cross = np.nonzero(np.diff(np.sign(mag - 1.0)))[0]
         for i in cross:
@@ -316,12 +312,7 @@ def mode_gain(p: LoopPlant, wc: float, wo: float) -> float:
     if not math.isfinite(p.mode_rad_s) or p.mode_rad_s >= math.pi / p.period_s:
         return 0.0
     w = np.array([p.mode_rad_s])
-    gains = [
-        float(np.abs(loop_response(p.mode(c), wc, wo, w, c))[0])
-        for c in {1.0, p.coupling}
-        if math.isfinite(p.mode(c).mode_rad_s)
-    ]
-    return max(gains)
+    return max(float(np.abs(loop_response(p, wc, wo, w, c))[0]) for c in {1.0, p.coupling})
 
 
 def mode_in_reach(p: LoopPlant, required_s: float) -> bool:
@@ -354,6 +345,49 @@ def _lowest_stiffness_n_m(cfg: ProjectConfig, cyl: Cylinder) -> float:
     xs = np.linspace(margin, cyl.stroke_m - margin, 201)
     plant = cfg.plant_of(cyl)
     return min(hydraulic_stiffness_n_m(cyl, plant, cfg.hydraulics, float(x)) for x in xs)
+
+
+def yaw_inertias_kg_m2(cfg: ProjectConfig) -> tuple[float, float]:
+    """The frames' yaw inertias about S's pivot, the worst over S's travel, kg m^2: M
+    (its bodies, the platforms and the part, its rods) and S. Each body a plate over its
+    layer's or frame's support rectangle at its COG, each rod a point at its leg (the
+    controller's model: the simulator has its own, ``hil_sim.walking``)."""
+    from ipc_app.model.statics import MachineStatics
+
+    assert cfg.frames is not None and cfg.walking is not None
+    lo, up, sub = cfg.layers.lower, cfg.layers.upper, cfg.frames.sub
+    o = MachineStatics(cfg).origin_upper
+    rod = cfg.hydraulics.rod_mass_kg
+
+    def plate(
+        bodies: Iterable[Body], a: float, b: float, dx: float, dy: float
+    ) -> tuple[float, float, float]:
+        m = i = mx = 0.0
+        for body in bodies:
+            x, y = body.cog_m[0] + dx, body.cog_m[1] + dy
+            m += body.mass_kg
+            mx += body.mass_kg * x
+            i += body.mass_kg * ((a * a + b * b) / 3.0 + x * x + y * y)
+        return m, mx, i
+
+    def rods(a: float, b: float) -> tuple[float, float, float]:
+        return 4 * rod, 0.0, 4 * rod * (a * a + b * b)
+
+    parts = [
+        plate(lo.bodies, lo.a_m, lo.b_m, 0.0, 0.0),
+        plate(up.bodies, up.a_m, up.b_m, o[0], o[1]),
+        plate(without_rods(cfg, "main"), lo.a_m, lo.b_m, 0.0, 0.0),
+        rods(lo.a_m, lo.b_m),
+    ]
+    m_m = sum(p[0] for p in parts)
+    mx_m = sum(p[1] for p in parts)
+    i_m = sum(p[2] for p in parts)
+    travel = [c for c in cfg.cylinders if c.role == "travel"]
+    reach = min(c.stroke_m for c in travel) / 2 - cfg.walking.travel_reserve_m
+    # about the pivot at (x_S, 0): the parallel axis from M's centre
+    i_m_pivot = max(i_m + m_m * x * x - 2.0 * x * mx_m for x in (-reach, reach))
+    i_s = plate(without_rods(cfg, "sub"), sub.a_m, sub.b_m, 0.0, 0.0)[2] + rods(sub.a_m, sub.b_m)[2]
+    return i_m_pivot, i_s
 
 
 def _leg_statics_kg(cfg: ProjectConfig) -> dict[str, tuple[float, str]]:
@@ -396,6 +430,18 @@ def _leg_statics_kg(cfg: ProjectConfig) -> dict[str, tuple[float, str]]:
     return out
 
 
+def _turned_kg(cfg: ProjectConfig, cyl: Cylinder) -> float | None:
+    """The travel pair's relative mode: the rods against each other turn the lifted frame
+    about the pivot (curves.md section 3), on each rod ``I / (2 b_T^2)`` (M's the heavier
+    by far: 103-152 t on the shipped machine, against its 31.7 t along the rails). None:
+    a group whose relative modes move its common load."""
+    if cyl.role != "travel" or cfg.walking is None or cfg.frames is None:
+        return None
+    b_t = cfg.walking.travel_half_span_m
+    n = sum(1 for c in cfg.cylinders if c.role == "travel")
+    return max(yaw_inertias_kg_m2(cfg)) / (n * b_t * b_t)
+
+
 def group_loads(cfg: ProjectConfig) -> tuple[GroupLoad, ...]:
     """Each cylinder group's load: the statics' heaviest share where the group carries a
     platform or a frame, else the plant's lumped ``moving_mass_kg``; the oil column's
@@ -413,11 +459,16 @@ def group_loads(cfg: ProjectConfig) -> tuple[GroupLoad, ...]:
             kg, case = plant.moving_mass_kg, "the plant's moving_mass_kg"
         k = _lowest_stiffness_n_m(cfg, cyl)
         damping = viscous_damping_n_s_m(cyl, plant, cfg.hydraulics)
+        turned = _turned_kg(cfg, cyl)
+        rel: tuple[float | None, ...] = (None, None, None)
+        if turned is not None:
+            rel = (turned, math.sqrt(k / turned), damping / (2 * math.sqrt(k * turned)))
         out.append(
             GroupLoad(
-                cyl.group, cyl, kg, case, k, math.sqrt(k / kg), damping / (2 * math.sqrt(k * kg))
+                cyl.group, cyl, kg, case, k, math.sqrt(k / kg), damping / (2 * math.sqrt(k * kg)),
+                *rel,
             )
-        )
+        )  # fmt: skip
     return tuple(out)
 
 
@@ -428,9 +479,11 @@ def _valve(cfg: ProjectConfig) -> tuple[float, float]:
 
 def position_plant(cfg: ProjectConfig, load: GroupLoad) -> LoopPlant:
     """A group's position loop (the rods at the loop rate; synchronized if it has more
-    than one cylinder)."""
+    than one cylinder). The travel pair's: its common mode (the pair moving the frame;
+    the dual error does not act on it), its turn is :func:`turn_plant`'s."""
     n = sum(1 for c in cfg.cylinders if c.group == load.group)
     wv, zv = _valve(cfg)
+    coupled = n > 1 and load.relative_kg is None
     return LoopPlant(
         b0=cylinder_b0(load.cylinder, cfg.hydraulics),
         mode_rad_s=load.mode_rad_s,
@@ -439,8 +492,19 @@ def position_plant(cfg: ProjectConfig, load: GroupLoad) -> LoopPlant:
         valve_damping=zv,
         period_s=cfg.control.period_s,
         age_s=_measurement_age_s(cfg, POSITION_FRAME),
-        coupling=1.0 + cfg.control.sync.coupling_lambda if n > 1 else 1.0,
-        relative_mode=load.cylinder.role != "travel",
+        coupling=1.0 + cfg.control.sync.coupling_lambda if coupled else 1.0,
+    )
+
+
+def turn_plant(cfg: ProjectConfig, load: GroupLoad) -> LoopPlant:
+    """The travel pair's turn: the rods against each other turning the lifted frame about
+    the pivot (its relative mode, :func:`_turned_kg`), the dual error acting on it."""
+    assert load.relative_mode_rad_s is not None and load.relative_mode_damping is not None
+    return replace(
+        position_plant(cfg, load),
+        mode_rad_s=load.relative_mode_rad_s,
+        mode_damping=load.relative_mode_damping,
+        coupling=1.0 + cfg.control.sync.coupling_lambda,
     )
 
 
@@ -600,6 +664,21 @@ def derive(cfg: ProjectConfig) -> Tuning:
         )
         for ld in loads
     ]
+    if cfg.walking is not None:
+        w = cfg.walking
+        loops += [
+            _tuned(
+                ld.group,
+                "turn",
+                turn_plant(cfg, ld),
+                required,
+                ("walking.turn_wc_rad_s", "walking.turn_wo_rad_s"),
+                w.turn_wc_rad_s,
+                w.turn_wo_rad_s,
+            )
+            for ld in loads
+            if ld.relative_kg is not None
+        ]
     td: float | None = None
     td_source = ""
     if cfg.walking is not None:
@@ -625,6 +704,12 @@ def derive(cfg: ProjectConfig) -> Tuning:
 def position_bandwidths(cfg: ProjectConfig, cyl: Cylinder) -> tuple[float, float]:
     """``(wc, wo)`` of the cylinder's position loop (its group's), rad/s."""
     lt = derive(cfg).loop(cyl.group, "position")
+    return lt.wc_rad_s, lt.wo_rad_s
+
+
+def turn_bandwidths(cfg: ProjectConfig, cyl: Cylinder) -> tuple[float, float]:
+    """``(wc, wo)`` of the travel pair's turn loop (its rods' difference), rad/s."""
+    lt = derive(cfg).loop(cyl.group, "turn")
     return lt.wc_rad_s, lt.wo_rad_s
 
 

@@ -32,7 +32,12 @@ from config.derived import viscous_damping_n_s_m
 from config.schema import ProjectConfig
 from ipc_app.control.ladrc import LADRC
 from ipc_app.control.plant_gain import cylinder_b0
-from ipc_app.control.tuning import force_bandwidths, leg_stiffness_n_m, position_bandwidths
+from ipc_app.control.tuning import (
+    force_bandwidths,
+    leg_stiffness_n_m,
+    position_bandwidths,
+    turn_bandwidths,
+)
 from ipc_app.control.walk.forces import HeldLegShares, LegForceSamples, RodFriction
 from ipc_app.control.walk.phases import MAIN, PHASES, SUB, PhaseKind, PhaseRun
 from ipc_app.model.kinematics import fit_layer
@@ -116,6 +121,18 @@ class WalkLoops:
             self.b0[i] = cylinder_b0(cyl, cfg.hydraulics, order=ctl.ladrc.order)
             wc, wo = position_bandwidths(cfg, cyl)
             self.pos[i] = LADRC.from_config(ctl.ladrc, float(self.b0[i]), period_s, wc=wc, wo=wo)
+        # the travel pair in the loop-rate group: its common mode (the pair moving the
+        # frame) and its turn (the rods against each other turning the lifted frame about
+        # the pivot, a far heavier mode: ipc_app.control.tuning.turn_plant), each its own
+        # loop on the rods' mean and half difference
+        travel_cyl = by_index[self.travel[0]]
+        b0_t = float(self.b0[self.travel[0]])
+        wc, wo = position_bandwidths(cfg, travel_cyl)
+        self.pair_common = LADRC.from_config(ctl.ladrc, b0_t, period_s, wc=wc, wo=wo)
+        wc, wo = turn_bandwidths(cfg, travel_cyl)
+        self.pair_turn = LADRC.from_config(ctl.ladrc, b0_t, period_s, wc=wc, wo=wo)
+        #: the pair's two loops run (else they start again at the rods, bumpless)
+        self.pair_live = False
         self.k_contact = self.walk.contact.stiffness_n_m
         #: each leg's rod friction (its plant's): Coulomb, N, and viscous, N s/m
         plants = [(by_index[i], cfg.plant_of(by_index[i])) for i in self.legs]
@@ -267,8 +284,13 @@ class WalkLoops:
         dt = self.period_s
         refs_l, x_l, rates_l = refs.tolist(), x.tolist(), rates.tolist()
         pos, b0, travel = self.pos, self.b0.tolist(), self.travel
+        pair = all(i in active and not (skip and i in skip) for i in travel)
+        if pair:
+            self._drive_pair(u, refs_l, x_l, rates_l, known)
+        else:
+            self.pair_live = False
         for i in self.walk_cylinders:
-            if skip and i in skip:
+            if (skip and i in skip) or (pair and i in travel):
                 continue
             if i in active:
                 self.slow_integral.pop(i, None)
@@ -289,6 +311,40 @@ class WalkLoops:
                 integral += self.TRAVEL_HOLD_INTEGRAL_RAD2_S2 * e * dt / b0[i]
             self.slow_integral[i] = integral
             pos[i].reset(x_l[i], ui)
+
+    def _drive_pair(
+        self,
+        u: FloatArray,
+        refs: list[float],
+        x: list[float],
+        rates: list[float],
+        known: dict[int, float] | None,
+    ) -> None:
+        """The travel pair in the active group: its common loop on the rods' mean, its
+        turn loop on their half difference (the rod with the lower can_index first);
+        each rod's command their sum or difference. Started bumpless at the rods and
+        their last commands."""
+        i, j = self.travel
+        common, turn = self.pair_common, self.pair_turn
+        if not self.pair_live:
+            ui, uj = self.pos[i].command, self.pos[j].command
+            common.reset(0.5 * (x[i] + x[j]), 0.5 * (ui + uj))
+            turn.reset(0.5 * (x[i] - x[j]), 0.5 * (ui - uj))
+            self.pair_live = True
+        di = known.get(i, 0.0) if known else 0.0
+        dj = known.get(j, 0.0) if known else 0.0
+        uc = common.update(
+            0.5 * (refs[i] + refs[j]), 0.5 * (x[i] + x[j]), 0.5 * (rates[i] + rates[j]),
+            0.5 * (di + dj),
+        )  # fmt: skip
+        ud = turn.update(
+            0.5 * (refs[i] - refs[j]), 0.5 * (x[i] - x[j]), 0.5 * (rates[i] - rates[j]),
+            0.5 * (di - dj),
+        )  # fmt: skip
+        for k, cmd in ((i, uc + ud), (j, uc - ud)):
+            uk = max(-1.0, min(1.0, cmd))
+            u[k] = uk
+            self.pos[k].reset(x[k], uk)
 
     # ----------------------------------------------------------------- the twist mode
 

@@ -140,6 +140,7 @@ class WalkSequencer(WalkLoops):
         self.rod_friction.restart(now, x[self.legs])
         for i, c in self.pos.items():
             c.reset(float(x[i]))
+        self.pair_live = False  # the travel pair's loops too, at the rods
         self._begin(0, now, x, p)
 
     def _begin(self, k: int, now: float, x: FloatArray, p: FloatArray) -> None:
@@ -306,6 +307,7 @@ class WalkSequencer(WalkLoops):
         f = self.forces_n(p)
         for i, c in self.pos.items():
             c.reset(float(x[i]))
+        self.pair_live = False  # the travel pair's loops too, at the rods
         self.slow_integral.clear()  # the travel pair's slow hold too, at no command
         self._twist_started = False  # the twist loop too, at the forces now
         for j, i in enumerate(self.legs):

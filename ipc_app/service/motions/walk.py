@@ -115,6 +115,7 @@ class WalkMotion(Motion):
     def __init__(self, svc: Service, plan: WalkPlan) -> None:
         self.cfg = svc.cfg
         self.svc = svc
+        self._walked_done = False
         self.attitude = svc.attitude
         self.walk_plan = plan
         self.sequencer = self.walker = WalkSequencer(svc.cfg, svc.period_s, plan)
@@ -217,7 +218,23 @@ class WalkMotion(Motion):
         return Command(u, w.last_refs, False, causes, events, self._phase_claim())
 
     def completed(self, now: float) -> Event | None:
+        self._walked()
         return event("walk_done", steps=[s.to_dict() for s in self.walker.steps])
+
+    def _walked(self) -> None:
+        """Where the machine now stands against the axis, from the turns its finished
+        steps measured (:func:`~ipc_app.planner.steering.walked`; a step stopped
+        part-way is not counted): once, as the walk completes (the next walk is planned
+        from it while this one still holds) or else as it ends."""
+        if self._walked_done:
+            return
+        self._walked_done = True
+        p = self.walk_plan
+        done = [s for s in self.walker.steps if s.duration_s > 0]
+        made = [s.turn_rad for s in done if s.turn_rad is not None]
+        if made:
+            start = self.svc.on_axis or on_axis_at_start(self.cfg)
+            self.svc.on_axis = walked(self.cfg, start, p.turns, made, p.direction == "back")
 
     def stop_point(self, now: float, inp: MachineInputs | None) -> np.ndarray:
         driven = self._driven
@@ -264,15 +281,8 @@ class WalkMotion(Motion):
 
     def end(self, now: float, mode: Mode, successor: Motion | None) -> Effects:
         """Back to the attitude group, unless a walk follows (its first phase claims
-        its own group). Where the machine now stands against the axis: from the turns its
-        finished steps measured (:func:`~ipc_app.planner.steering.walked`; a step stopped
-        part-way is not counted)."""
-        p = self.walk_plan
-        done = [s for s in self.walker.steps if s.duration_s > 0]
-        made = [s.turn_rad for s in done if s.turn_rad is not None]
-        if made:
-            start = self.svc.on_axis or on_axis_at_start(self.cfg)
-            self.svc.on_axis = walked(self.cfg, start, p.turns, made, p.direction == "back")
+        its own group). A walk stopped part-way: where it stands (:meth:`_walked`)."""
+        self._walked()
         return () if isinstance(successor, WalkMotion) else (None,)
 
     def status(self) -> dict[str, Any] | None:
