@@ -149,6 +149,16 @@ def ground_height(xw, yw, ground):
 
 
 @jit
+def _capped(force, cap):
+    """A frame's feet's bristle force (or torque), at most ``cap`` either way."""
+    if force > cap:
+        return cap
+    if force < -cap:
+        return -cap
+    return force
+
+
+@jit
 def _walk_derivative(
     y, dy, u, ports, leak, f_ext, p, up_idx, up_xy, up_half, leg_idx, leg_xy, leg_sub,
     leg_half, travel_idx, e0, m_inv, q_g, foot_m, foot_inertia, g_b, k_c, c_c, ground, fric, anchor,
@@ -249,12 +259,7 @@ def _walk_derivative(
     for frame in range(2):
         pos = y[_XW + 2 * frame]
         vel = y[_XW + 2 * frame + 1]
-        cap = fric[frame] * normal[frame]
-        tf = -k_t * (pos - anchor[frame]) - c_t[frame] * vel
-        if tf > cap:
-            tf = cap
-        elif tf < -cap:
-            tf = -cap
+        tf = _capped(-k_t * (pos - anchor[frame]) - c_t[frame] * vel, fric[frame] * normal[frame])
         push = f_travel if frame == 1 else -f_travel
         dy[_XW + 2 * frame] = vel
         dy[_XW + 2 * frame + 1] = (push + tf) / mass_x[frame] + g_b[0]
@@ -271,12 +276,10 @@ def _walk_derivative(
     for frame in range(2):
         th = y[_YW + 2 * frame]
         om = y[_YW + 2 * frame + 1]
-        cap = fric[frame] * normal[frame] * yaw[_Y_R + frame]
-        tf = -yaw[_Y_K + frame] * (th - anchor[2 + frame]) - yaw[_Y_C + frame] * om
-        if tf > cap:
-            tf = cap
-        elif tf < -cap:
-            tf = -cap
+        tf = _capped(
+            -yaw[_Y_K + frame] * (th - anchor[2 + frame]) - yaw[_Y_C + frame] * om,
+            fric[frame] * normal[frame] * yaw[_Y_R + frame],
+        )
         turn = tau if frame == 1 else -tau
         dy[_YW + 2 * frame] = om
         dy[_YW + 2 * frame + 1] = (turn + tf) / (inertia_m if frame == 0 else yaw[_Y_I + 1])

@@ -13,7 +13,7 @@ import pytest
 from config import ProjectConfig, load_project, units
 from hil_sim.placement import bolt_part, pose_from_home
 from hil_sim.rig import Rig, rotation
-from hil_sim.walking import WalkingRig
+from hil_sim.walking import _XW, WalkingRig
 
 RIGS = (Rig, WalkingRig)
 
@@ -189,7 +189,7 @@ def test_the_walking_rig_leaves_the_bolted_part_behind(project: ProjectConfig) -
     rig = WalkingRig(project)
     bolt_part(project, rig)
     assert rig.part_load_n > 0.0
-    rig.y[rig.y.size - 4] += 2 * rig.PADS_REACH_M  # M moved along the tunnel (X_M)
+    rig.y[_XW] += 2 * rig.PADS_REACH_M  # M moved along the tunnel (X_M: the state's slot)
     rig.advance(1)
     assert rig.part_load_n == 0.0 and not rig._pads.any()
     assert rig.part_state == "bolted" and rig.bolted_pose is not None
