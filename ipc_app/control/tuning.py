@@ -430,16 +430,20 @@ def _leg_statics_kg(cfg: ProjectConfig) -> dict[str, tuple[float, str]]:
     return out
 
 
-def _turned_kg(cfg: ProjectConfig, cyl: Cylinder) -> float | None:
+#: the frame the travel pair turns: M lifted (phase 6, S standing), S lifted (phase 1)
+TURNED_FRAMES: tuple[str, ...] = ("main", "sub")
+
+
+def _turned_kg(cfg: ProjectConfig, cyl: Cylinder, frame: str = "main") -> float | None:
     """The travel pair's relative mode: the rods against each other turn the lifted frame
-    about the pivot (curves.md section 3), on each rod ``I / (2 b_T^2)`` (M's the heavier
-    by far: 103-152 t on the shipped machine, against its 31.7 t along the rails). None:
-    a group whose relative modes move its common load."""
+    about the pivot (curves.md section 3), on each rod ``I / (2 b_T^2)`` (M with the part
+    156 t on the shipped machine, against 31.7 t along the rails; S 10.8 t). None: a
+    group whose relative modes move its common load."""
     if cyl.role != "travel" or cfg.walking is None or cfg.frames is None:
         return None
     b_t = cfg.walking.travel_half_span_m
     n = sum(1 for c in cfg.cylinders if c.role == "travel")
-    return max(yaw_inertias_kg_m2(cfg)) / (n * b_t * b_t)
+    return yaw_inertias_kg_m2(cfg)[TURNED_FRAMES.index(frame)] / (n * b_t * b_t)
 
 
 def group_loads(cfg: ProjectConfig) -> tuple[GroupLoad, ...]:
@@ -496,14 +500,18 @@ def position_plant(cfg: ProjectConfig, load: GroupLoad) -> LoopPlant:
     )
 
 
-def turn_plant(cfg: ProjectConfig, load: GroupLoad) -> LoopPlant:
-    """The travel pair's turn: the rods against each other turning the lifted frame about
-    the pivot (its relative mode, :func:`_turned_kg`), the dual error acting on it."""
-    assert load.relative_mode_rad_s is not None and load.relative_mode_damping is not None
+def turn_plant(cfg: ProjectConfig, load: GroupLoad, frame: str = "main") -> LoopPlant:
+    """The travel pair's turn of ``frame`` (the lifted one): the rods against each other
+    turning it about the pivot (its relative mode, :func:`_turned_kg`), the dual error
+    acting on it."""
+    kg = _turned_kg(cfg, load.cylinder, frame)
+    assert kg is not None
+    k = load.stiffness_n_m
+    damping_n_s_m = load.mode_damping * 2.0 * math.sqrt(k * load.load_kg)
     return replace(
         position_plant(cfg, load),
-        mode_rad_s=load.relative_mode_rad_s,
-        mode_damping=load.relative_mode_damping,
+        mode_rad_s=math.sqrt(k / kg),
+        mode_damping=damping_n_s_m / (2.0 * math.sqrt(k * kg)),
         coupling=1.0 + cfg.control.sync.coupling_lambda,
     )
 
@@ -669,8 +677,8 @@ def derive(cfg: ProjectConfig) -> Tuning:
         loops += [
             _tuned(
                 ld.group,
-                "turn",
-                turn_plant(cfg, ld),
+                f"turn_{frame}",
+                turn_plant(cfg, ld, frame),
                 required,
                 ("walking.turn_wc_rad_s", "walking.turn_wo_rad_s"),
                 w.turn_wc_rad_s,
@@ -678,6 +686,7 @@ def derive(cfg: ProjectConfig) -> Tuning:
             )
             for ld in loads
             if ld.relative_kg is not None
+            for frame in TURNED_FRAMES
         ]
     td: float | None = None
     td_source = ""
@@ -707,9 +716,10 @@ def position_bandwidths(cfg: ProjectConfig, cyl: Cylinder) -> tuple[float, float
     return lt.wc_rad_s, lt.wo_rad_s
 
 
-def turn_bandwidths(cfg: ProjectConfig, cyl: Cylinder) -> tuple[float, float]:
-    """``(wc, wo)`` of the travel pair's turn loop (its rods' difference), rad/s."""
-    lt = derive(cfg).loop(cyl.group, "turn")
+def turn_bandwidths(cfg: ProjectConfig, cyl: Cylinder, frame: str) -> tuple[float, float]:
+    """``(wc, wo)`` of the travel pair's turn loop (its rods' difference) while it turns
+    ``frame`` ("main" or "sub", :data:`TURNED_FRAMES`), rad/s."""
+    lt = derive(cfg).loop(cyl.group, f"turn_{frame}")
     return lt.wc_rad_s, lt.wo_rad_s
 
 

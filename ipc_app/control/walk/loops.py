@@ -129,8 +129,11 @@ class WalkLoops:
         b0_t = float(self.b0[self.travel[0]])
         wc, wo = position_bandwidths(cfg, travel_cyl)
         self.pair_common = LADRC.from_config(ctl.ladrc, b0_t, period_s, wc=wc, wo=wo)
-        wc, wo = turn_bandwidths(cfg, travel_cyl)
-        self.pair_turn = LADRC.from_config(ctl.ladrc, b0_t, period_s, wc=wc, wo=wo)
+        #: the turn loop by the frame it turns (M lifted in phase 6, S in phase 1)
+        self.pair_turn: dict[tuple[int, ...], LADRC] = {}
+        for frame, legs in (("main", MAIN), ("sub", SUB)):
+            wc, wo = turn_bandwidths(cfg, travel_cyl, frame)
+            self.pair_turn[legs] = LADRC.from_config(ctl.ladrc, b0_t, period_s, wc=wc, wo=wo)
         #: the pair's two loops run (else they start again at the rods, bumpless)
         self.pair_live = False
         self.k_contact = self.walk.contact.stiffness_n_m
@@ -325,7 +328,8 @@ class WalkLoops:
         each rod's command their sum or difference. Started bumpless at the rods and
         their last commands."""
         i, j = self.travel
-        common, turn = self.pair_common, self.pair_turn
+        lifted = PHASES[self._key_now()].frame
+        common, turn = self.pair_common, self.pair_turn[lifted]
         if not self.pair_live:
             ui, uj = self.pos[i].command, self.pos[j].command
             common.reset(0.5 * (x[i] + x[j]), 0.5 * (ui + uj))
