@@ -134,3 +134,11 @@ def without_rods(cfg: ProjectConfig, owner: RodOwner) -> tuple[Body, ...]:
         b if b.name == WORKPIECE_BODY else b.model_copy(update={"mass_kg": b.mass_kg * k})
         for b in bodies
     )
+
+
+def travel_reach_m(cfg: ProjectConfig) -> float:
+    """How far S goes each way along the rails from centred: the shortest travel
+    cylinder's half stroke less ``walking.travel_reserve_mm`` (the walk plans within it)."""
+    assert cfg.walking is not None
+    travel = [c for c in cfg.cylinders if c.role == "travel"]
+    return min(c.stroke_m for c in travel) / 2 - cfg.walking.travel_reserve_m

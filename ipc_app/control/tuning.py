@@ -53,7 +53,12 @@ import numpy as np
 from numpy.typing import NDArray
 
 from config import units
-from config.derived import hydraulic_stiffness_n_m, viscous_damping_n_s_m, without_rods
+from config.derived import (
+    hydraulic_stiffness_n_m,
+    travel_reach_m,
+    viscous_damping_n_s_m,
+    without_rods,
+)
 from config.schema import Body, Cylinder, ProjectConfig
 from ipc_app.control.ladrc import eso_matrices
 from ipc_app.control.plant_gain import cylinder_b0
@@ -382,8 +387,7 @@ def yaw_inertias_kg_m2(cfg: ProjectConfig) -> tuple[float, float]:
     m_m = sum(p[0] for p in parts)
     mx_m = sum(p[1] for p in parts)
     i_m = sum(p[2] for p in parts)
-    travel = [c for c in cfg.cylinders if c.role == "travel"]
-    reach = min(c.stroke_m for c in travel) / 2 - cfg.walking.travel_reserve_m
+    reach = travel_reach_m(cfg)
     # about the pivot at (x_S, 0): the parallel axis from M's centre
     i_m_pivot = max(i_m + m_m * x * x - 2.0 * x * mx_m for x in (-reach, reach))
     i_s = plate(without_rods(cfg, "sub"), sub.a_m, sub.b_m, 0.0, 0.0)[2] + rods(sub.a_m, sub.b_m)[2]
@@ -413,7 +417,7 @@ def _leg_statics_kg(cfg: ProjectConfig) -> dict[str, tuple[float, str]]:
         return out
     wm = WalkingMachine(cfg)
     travel = [c for c in cfg.cylinders if c.role == "travel"]
-    reach = min(c.stroke_m for c in travel) / 2 - cfg.walking.travel_reserve_m
+    reach = travel_reach_m(cfg)
     subs = [c for c in cfg.cylinders if c.role == "sub_leg"]
     for x_s in (-reach, 0.0, reach):
         pts = wm.legs_xy(x_s)
@@ -604,8 +608,7 @@ def smallest_share_n(cfg: ProjectConfig) -> float:
         wm = WalkingMachine(cfg, unloaded=True)
     except ValueError:  # no workpiece body: it never walks unloaded
         wm = WalkingMachine(cfg)
-    travel = [c for c in cfg.cylinders if c.role == "travel"]
-    reach = min(c.stroke_m for c in travel) / 2 - cfg.walking.travel_reserve_m
+    reach = travel_reach_m(cfg)
     return min(
         float(np.min(support_forces(wm.legs_xy(x), wm.mass_kg, wm.cog(x), wm.g_base)))
         for x in (-reach, 0.0, reach)

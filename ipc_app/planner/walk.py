@@ -40,6 +40,7 @@ from typing import Any
 import numpy as np
 
 from config import units
+from config.derived import travel_reach_m
 from config.schema import ProjectConfig
 from ipc_app.model.kinematics import Array, fit_layer
 from ipc_app.model.support import (
@@ -367,8 +368,7 @@ class _Planner:
             d: pressure_limit_pa(cfg, d) for d in ("moves", "holds")
         }
         self.leg_limit = np.array([c.stroke_m / 2 - cfg.layers.lower.reserve_m for c in legs])
-        travel = [cfg.cylinder(cid) for cid in self.travel_ids]
-        self.x_s_limit = min(c.stroke_m for c in travel) / 2 - self.walk.travel_reserve_m
+        self.x_s_limit = travel_reach_m(cfg)
         traj = cfg.planner.trajectory
         self.travel_move = (self.walk.travel_speed_m_s, self.walk.travel_accel_m_s2)
         self.leg_move = (traj.max_rod_speed_m_s, traj.max_rod_accel_m_s2)
