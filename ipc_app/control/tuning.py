@@ -131,10 +131,8 @@ class GroupLoad:
     mode_rad_s: float
     mode_damping: float
     #: the relative modes' load per cylinder, kg, where it is not the common one (the
-    #: travel pair turning a frame), and their oil column's mode
+    #: travel pair turning M, the heavier frame: :func:`turn_plant`)
     relative_kg: float | None = None
-    relative_mode_rad_s: float | None = None
-    relative_mode_damping: float | None = None
 
 
 @dataclass(frozen=True)
@@ -467,14 +465,10 @@ def group_loads(cfg: ProjectConfig) -> tuple[GroupLoad, ...]:
             kg, case = plant.moving_mass_kg, "the plant's moving_mass_kg"
         k = _lowest_stiffness_n_m(cfg, cyl)
         damping = viscous_damping_n_s_m(cyl, plant, cfg.hydraulics)
-        turned = _turned_kg(cfg, cyl)
-        rel: tuple[float | None, ...] = (None, None, None)
-        if turned is not None:
-            rel = (turned, math.sqrt(k / turned), damping / (2 * math.sqrt(k * turned)))
         out.append(
             GroupLoad(
                 cyl.group, cyl, kg, case, k, math.sqrt(k / kg), damping / (2 * math.sqrt(k * kg)),
-                *rel,
+                _turned_kg(cfg, cyl),
             )
         )  # fmt: skip
     return tuple(out)
@@ -508,10 +502,11 @@ def turn_plant(cfg: ProjectConfig, load: GroupLoad, frame: str = "main") -> Loop
     """The travel pair's turn of ``frame`` (the lifted one): the rods against each other
     turning it about the pivot (its relative mode, :func:`_turned_kg`), the dual error
     acting on it."""
-    kg = _turned_kg(cfg, load.cylinder, frame)
+    cyl = load.cylinder
+    kg = _turned_kg(cfg, cyl, frame)
     assert kg is not None
     k = load.stiffness_n_m
-    damping_n_s_m = load.mode_damping * 2.0 * math.sqrt(k * load.load_kg)
+    damping_n_s_m = viscous_damping_n_s_m(cyl, cfg.plant_of(cyl), cfg.hydraulics)
     return replace(
         position_plant(cfg, load),
         mode_rad_s=math.sqrt(k / kg),

@@ -86,6 +86,12 @@ class StepTurn:
         }
 
 
+def _stepped(here: OnAxis, chainage_m: float, error_rad: float, along_m: float) -> OnAxis:
+    """Where a step of ``along_m`` (signed) ends at ``chainage_m``, walked with the heading
+    error ``error_rad``: the offset grows by the distance times its sine."""
+    return OnAxis(chainage_m, error_rad, here.lateral_m + along_m * math.sin(error_rad))
+
+
 def walked(
     cfg: ProjectConfig, start: OnAxis, turns: list[StepTurn], measured: list[float], back: bool
 ) -> OnAxis:
@@ -98,8 +104,7 @@ def walked(
     here = start
     for turn, made in zip(turns, measured, strict=False):
         error = here.heading_error_rad + made - turn.axis_turn_rad
-        lateral = here.lateral_m + sign * s * math.sin(error)
-        here = OnAxis(turn.after.chainage_m, error, lateral)
+        here = _stepped(here, turn.after.chainage_m, error, sign * s)
     return here
 
 
@@ -133,9 +138,7 @@ def step_turns(cfg: ProjectConfig, start: OnAxis, steps: int, direction: str) ->
         # the heading error after the step that closes the offset over the next step
         want = -sign * here.lateral_m / s
         correction = min(bound, max(-bound, want - here.heading_error_rad)) + 0.0
-        error = here.heading_error_rad + correction
-        lateral = here.lateral_m + sign * s * math.sin(error)
-        after = OnAxis(chainage, error, lateral)
+        after = _stepped(here, chainage, here.heading_error_rad + correction, sign * s)
         out.append(StepTurn(k, axis_turn, correction, axis_turn + correction, after))
         here, heading = after, heading_next
     return out
