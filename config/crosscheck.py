@@ -27,7 +27,7 @@ from collections.abc import Callable, Collection, Sequence
 from dataclasses import dataclass
 from typing import TypeVar
 
-from config import derived
+from config import derived, units
 from config.schema import WORKPIECE_BODY, HorizontalElement, ProjectConfig, VerticalElement
 
 #: A rule's check: ``None`` if the project keeps the rule, else the one-line reason.
@@ -316,6 +316,30 @@ def _steepest_grade(cfg: ProjectConfig) -> str | None:
     return None
 
 
+def _vertical_curve(cfg: ProjectConfig) -> str | None:
+    al, w = cfg.tunnel.alignment, cfg.walking
+    if al is None or al.vertical is None or w is None:
+        return None
+    # a lowering foot meets the invert a step ahead of where its frame stood, off the
+    # plane of the standing feet by the curve's rise (curves.md section 3)
+    reach = cfg.layers.lower.a_m + w.step_length_m
+    window = units.mm(w.touchdown_travel_mm)
+    for i, e in _ring_elements(al.vertical.elements, al.first_ring_chainage_m):
+        if e.radius_m is None:
+            continue
+        rise = reach * reach / (2.0 * e.radius_m)
+        if rise > window + 1e-9:
+            return (
+                f"tunnel.alignment.vertical.elements[{i}].radius_m: {_g(e.radius_m)} m "
+                f"raises the invert {units.to_mm(rise):.1f} mm under a foot landing "
+                f"{reach:.2f} m ahead (layers.lower.half_span_x_m + walking.step_length_mm), "
+                f"beyond walking.touchdown_travel_mm {_g(w.touchdown_travel_mm)}; expected "
+                f"radius_m >= {reach * reach / (2.0 * window):.0f}, or a longer touch-down "
+                f"travel"
+            )
+    return None
+
+
 def _base_pitch(cfg: ProjectConfig) -> str | None:
     rng = pitch_range_deg(cfg)
     if rng is None:
@@ -504,6 +528,19 @@ RULES: tuple[Rule, ...] = (
         f"`gradient_percent`, a table's segments' grades, every grade element the rings lie "
         f"on: within ±{_g(STEEPEST_GRADE_PERCENT)} % (`STEEPEST_GRADE_PERCENT`, curves.md)",
         _steepest_grade,
+    ),
+    Rule(
+        "vertical-curve-the-machine-takes",
+        (
+            "tunnel.alignment.vertical",
+            "walking.touchdown_travel_mm",
+            "layers.lower.half_span_x_m",
+            "walking.step_length_mm",
+        ),
+        "every vertical curve the rings lie on: the invert's rise (`half_span_x_m` + "
+        "`step_length_mm`)^2 / (2 `radius_m`) under a foot landing a step ahead of where it "
+        "stood <= `touchdown_travel_mm` (the lowering finds the invert in that window)",
+        _vertical_curve,
     ),
     Rule(
         "legs-within-the-envelope",

@@ -94,6 +94,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from config.alignment import invert_rise_m
 from config.derived import without_rods
 from config.schema import ProjectConfig
 from hil_sim._jit import jit
@@ -138,10 +139,42 @@ N_YAW = 16
 N_GROUND = 8
 
 
+#: the invert's profile along x (:func:`invert_profile`): this far either way of the start,
+#: sampled this finely (linear between samples: 0.4 um off a 3 km vertical curve)
+PROFILE_REACH_M = 120.0
+PROFILE_STEP_M = 0.1
+
+
+def invert_profile(cfg: ProjectConfig, m_leg_x_m: tuple[float, float]) -> FloatArray:
+    """The invert's rise along the base's x under the frames (curves.md section 3): the
+    design axis's (:func:`config.alignment.invert_rise_m`) less the line through it at
+    M's rear and front legs' x (``m_leg_x_m``), so the base plane is the invert under M's
+    feet where the machine starts (the body starts where the attitude rig's does). As
+    :func:`ground_height` reads it: ``[x_first, dx, rise_0, rise_1, ...]``, m."""
+    n = round(2.0 * PROFILE_REACH_M / PROFILE_STEP_M) + 1
+    x = np.linspace(-PROFILE_REACH_M, PROFILE_REACH_M, n)
+    alignment = cfg.tunnel.alignment
+    rise = invert_rise_m(alignment, x)
+    a, b = m_leg_x_m
+    ra, rb = invert_rise_m(alignment, np.array([a, b]))
+    rise = rise - (ra + (rb - ra) * (x - a) / (b - a))
+    return np.concatenate([[x[0], x[1] - x[0]], rise])
+
+
 @jit
-def ground_height(xw, yw, ground):
-    """Invert height above the base plane at ``(xw, yw)``: the sum of the offsets there."""
-    z = 0.0
+def ground_height(xw, yw, ground, profile):
+    """Invert height above the base plane at ``(xw, yw)``: the profile's rise at ``xw``
+    (linear between its samples, held beyond its ends) plus the offsets there."""
+    u = (xw - profile[0]) / profile[1]
+    last = profile.shape[0] - 3
+    if u <= 0.0:
+        z = profile[2]
+    elif u >= last:
+        z = profile[2 + last]
+    else:
+        k = int(u)
+        f = u - k
+        z = profile[2 + k] + f * (profile[3 + k] - profile[2 + k])
     for k in range(ground.shape[0]):
         if ground[k, 0] <= xw < ground[k, 1] and ground[k, 2] <= yw < ground[k, 3]:
             z += ground[k, 4]
@@ -161,8 +194,8 @@ def _capped(force, cap):
 @jit
 def _walk_derivative(
     y, dy, u, ports, leak, f_ext, p, up_idx, up_xy, up_half, leg_idx, leg_xy, leg_sub,
-    leg_half, travel_idx, e0, m_inv, q_g, foot_m, foot_inertia, g_b, k_c, c_c, ground, fric, anchor,
-    k_t, c_t, mass_x, yaw, pads, x_out, f_out, n_out, pad_out,
+    leg_half, travel_idx, e0, m_inv, q_g, foot_m, foot_inertia, g_b, k_c, c_c, ground, profile,
+    fric, anchor, k_t, c_t, mass_x, yaw, pads, x_out, f_out, n_out, pad_out,
 ):  # fmt: skip
     q = y[_Q : _Q + 6]
     qd = y[_QD : _QD + 6]
@@ -217,7 +250,7 @@ def _walk_derivative(
         ly = leg_xy[j, 1]
         xw = y[_XW + 2 * frame] + lx * ch[frame] - ly * sh[frame]
         yw = yaw[_Y_PY + frame] + lx * sh[frame] + ly * ch[frame]
-        pen = ground_height(xw, yw, ground) - y[_H + j]
+        pen = ground_height(xw, yw, ground, profile) - y[_H + j]
         nf = 0.0
         if pen > 0.0:
             nf = k_c * pen - c_c * y[_HD + j]
@@ -289,8 +322,8 @@ def _walk_derivative(
 def _walk_advance(
     y, u, ports, leak, f_ext, p, up_idx, up_xy, up_half, leg_idx, leg_xy, leg_sub, leg_half,
     travel_idx, e0, body_m, body_c, body_i, body_layer, rod_xy, rod_m, origin_u, foot_m,
-    foot_inertia, g_b, k_c, c_c, ground, fric, anchor, slip, k_t, c_t, mass_x, yaw, pads, h,
-    n_steps, x_out, f_out, n_out, pad_out,
+    foot_inertia, g_b, k_c, c_c, ground, profile, fric, anchor, slip, k_t, c_t, mass_x, yaw, pads,
+    h, n_steps, x_out, f_out, n_out, pad_out,
 ):  # fmt: skip
     """``n_steps`` RK4 steps; after each, the friction anchors (along x and in yaw) follow
     a slipping frame, and the lifted frame's lateral plan position follows the standing
@@ -309,8 +342,8 @@ def _walk_advance(
     h6 = h / 6.0
     args = (
         u, ports, leak, f_ext, p, up_idx, up_xy, up_half, leg_idx, leg_xy, leg_sub, leg_half,
-        travel_idx, e0, m_inv, q_g, foot_m, foot_inertia, g_b, k_c, c_c, ground, fric, anchor,
-        k_t, c_t, mass_x, yaw, pads, x_out, f_out, n_out, pad_out,
+        travel_idx, e0, m_inv, q_g, foot_m, foot_inertia, g_b, k_c, c_c, ground, profile, fric,
+        anchor, k_t, c_t, mass_x, yaw, pads, x_out, f_out, n_out, pad_out,
     )  # fmt: skip
     normals = np.zeros(2)
     if n_steps == 0:
@@ -469,6 +502,8 @@ class WalkingRig(Rig):
         # rows 1..N_GROUND: the scenario's offsets
         self.ground = np.zeros((N_GROUND + 1, 5))
         self.ground[0, :4] = (-math.inf, math.inf, -math.inf, math.inf)
+        #: the invert's rise along x (:func:`invert_profile`)
+        self.profile = invert_profile(cfg, (-lo.a_m, lo.a_m))
         self.friction = np.full(2, walk.foot_friction_coefficient)
         # the friction anchors: along x (M, S), then in yaw (M, S)
         self._anchor = np.zeros(4)
@@ -597,7 +632,8 @@ class WalkingRig(Rig):
         self.ground[0, 4] = np.linalg.lstsq(jac[:4], press, rcond=None)[0][0]
         h = np.array(
             [
-                ground_height(self._leg_xy[j, 0], self._leg_xy[j, 1], self.ground) - press[j]
+                ground_height(self._leg_xy[j, 0], self._leg_xy[j, 1], self.ground, self.profile)
+                - press[j]
                 for j in range(4)
             ]
         )
@@ -606,7 +642,9 @@ class WalkingRig(Rig):
         y[_H : _H + 4] = h
         for j in range(4, 8):
             xw = x_s + self._leg_xy[j, 0]
-            y[_H + j] = ground_height(xw, self._leg_xy[j, 1], self.ground) + walk.clearance_m
+            y[_H + j] = (
+                ground_height(xw, self._leg_xy[j, 1], self.ground, self.profile) + walk.clearance_m
+            )
         self.park(forces)
         self.advance(0)
 
@@ -683,7 +721,7 @@ class WalkingRig(Rig):
             self._leg_sub, self._leg_half, self._travel_idx, self.travel_mid_m, self._body_m,
             self._body_c, self._body_i, self._body_layer, self._rod_xy, self._rod_m,
             self._origin_u, self.rod_mass_kg, self.foot_inertia_kg, self.g_base, self._k_c,
-            self._c_c, self.ground, self.friction, self._anchor, self._slip,
+            self._c_c, self.ground, self.profile, self.friction, self._anchor, self._slip,
             self.shear_stiffness_n_m, self._c_t, self._mass_x, self._yaw, self._pads,
             self.step_s, int(n_steps), self._xv, self._force, self.foot_force_n,
             self.pad_force_n,
@@ -699,7 +737,8 @@ class WalkingRig(Rig):
             self._p, self.upper_index, self._up_xy, self._up_half, self._leg_idx, self._leg_xy,
             self._leg_sub, self._leg_half, self._travel_idx, self.travel_mid_m, inverse(m_mat),
             q_g, self.rod_mass_kg, self.foot_inertia_kg, self.g_base, self._k_c, self._c_c,
-            self.ground, self.friction, self._anchor.copy(), self.shear_stiffness_n_m, self._c_t,
+            self.ground, self.profile, self.friction, self._anchor.copy(), self.shear_stiffness_n_m,
+            self._c_t,
             self._mass_x, self._yaw.copy(), self._pads, np.zeros((2, N)), np.zeros(N),
             np.zeros(8), np.zeros(4),
         )  # fmt: skip

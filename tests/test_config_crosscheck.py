@@ -53,11 +53,16 @@ def _pitch_table(d: dict[str, Any]) -> None:
     }
 
 
-def _axis(radius_m: float, taper_mm: float, grades: tuple[float, ...] = (-0.3,)) -> Edit:
+def _axis(
+    radius_m: float,
+    taper_mm: float,
+    grades: tuple[float, ...] = (-0.3,),
+    vertical_radius_m: float = 2000.0,
+) -> Edit:
     """The axis by chainage: a straight to chainage 0 (behind ring 1), then an arc of
     ``radius_m``; ``grades`` from chainage -50, each joined to the next by a vertical curve
-    of 2000 m (the first is the shipped -0.3 %: the shipped base pitch); parts tapered
-    ``taper_mm``."""
+    of ``vertical_radius_m`` from chainage 100 (the first is the shipped -0.3 %: the
+    shipped base pitch); parts tapered ``taper_mm``."""
 
     def edit(d: dict[str, Any]) -> None:
         vertical: list[dict[str, float]] = [
@@ -65,8 +70,8 @@ def _axis(radius_m: float, taper_mm: float, grades: tuple[float, ...] = (-0.3,))
         ]
         at = 100.0
         for g0, g1 in itertools.pairwise(grades):
-            vertical.append({"start_chainage_m": at, "radius_m": 2000.0})
-            at += 2000.0 * abs(g1 - g0) / 100.0
+            vertical.append({"start_chainage_m": at, "radius_m": vertical_radius_m})
+            at += vertical_radius_m * abs(g1 - g0) / 100.0
             vertical.append({"start_chainage_m": at, "gradient_percent": g1})
             at += 100.0
         d["tunnel"]["alignment"] = {
@@ -141,6 +146,15 @@ BREAKS: dict[str, tuple[Edit, tuple[str, ...]]] = {
     "grade-the-machine-takes": (
         _axis(400.0, 47.5, (-0.3, -6.0)),
         ("tunnel.alignment.vertical.elements[2].gradient_percent",),
+    ),
+    "vertical-curve-the-machine-takes": (
+        _axis(400.0, 47.5, (-0.3, 0.3), vertical_radius_m=1000.0),  # 11.5 mm at 4.8 m
+        (
+            "tunnel.alignment.vertical.elements[1].radius_m",
+            "walking.touchdown_travel_mm",
+            "layers.lower.half_span_x_m",
+            "walking.step_length_mm",
+        ),
     ),
     "legs-within-the-envelope": (
         _set("robot.length_mm", 5700),

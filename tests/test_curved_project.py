@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import math
+from pathlib import Path
 from typing import Any
 
 import pytest
@@ -121,3 +122,37 @@ def test_a_step_on_the_curve_turns_the_machine_with_the_axis(
     assert math.degrees(on_axis.heading_error_rad) == pytest.approx(
         step["turn_deg"] - math.degrees(2.0 / 400.0) * 0.99955, abs=1e-3
     )
+
+
+@pytest.mark.slow
+def test_a_step_in_its_sag_curve_sets_each_foot_on_the_invert_there(tmp_path: Path) -> None:
+    """curves.md section 3: the invert under each frame follows the axis's grade at its
+    chainage. Ring 1 moved back into the project's 3 km sag curve (0.3 % to 3 %, the base
+    pitched to the grade there, -0.934 deg): a step passes its goals, and after it M's
+    feet stand on the curve, the front pair (x = 4.8 m) 3.7 mm higher than the rear
+    (-0.8 m) against the start's chord."""
+    text = CURVED.read_text()
+    sag = text.replace("first_ring_chainage_m: 0.0", "first_ring_chainage_m: -60.0")
+    sag = sag.replace("  pitch_deg: -1.72", "  pitch_deg: -0.934")
+    assert sag.count("-60.0") == 1 and "-0.934" in sag
+    path = tmp_path / "sag.yaml"
+    path.write_text(sag)
+    cfg = load_project(path)
+    heights: list[Any] = []
+
+    def keep(h: Any) -> None:
+        heights[:] = [h.sim.rig.foot_heights_m, h.sim.rig.foot_forces_n]
+
+    out = run_walk(str(path), 1, mode="lockstep", on_cycle=keep)
+    assert out["passed"], out["missed"]
+    feet, forces = heights
+    g0 = 0.003 + 40.0 / 3000.0
+    cos_a = 1.0 / math.hypot(1.0, g0)
+    a = cfg.layers.lower.a_m
+    x_front, x_rear = 2.0 + a, 2.0 - a
+    want = ((x_front * cos_a) ** 2 - (x_rear * cos_a) ** 2) / (2.0 * 3000.0) * cos_a
+    # each foot pressed into the invert by its load over the contact's stiffness
+    assert cfg.walking is not None
+    invert = feet[:4] + forces[:4] / cfg.walking.contact.stiffness_n_m
+    front, rear = invert[[0, 3]].mean(), invert[[1, 2]].mean()  # legs at +a: 1, 4
+    assert front - rear == pytest.approx(want, abs=1e-4)

@@ -3,6 +3,7 @@ leaking load-holding valves, and the scenario events that drive them."""
 
 from __future__ import annotations
 
+import math
 import uuid
 from pathlib import Path
 
@@ -10,12 +11,13 @@ import can
 import numpy as np
 import pytest
 
-from config import ConfigError, ProjectConfig, units
+from config import ConfigError, ProjectConfig, load_project, units
 from config.hil_scenario import HilScenario
 from hil_sim.rig import Rig
 from hil_sim.simulator import HilSimulator
 from hil_sim.walking import WalkingRig
 
+CURVED = Path(__file__).parents[1] / "config" / "projects" / "curved_grade_heavy_part.yaml"
 SCAN = 4  # RK4 steps of 0.25 ms per PLC scan
 
 
@@ -208,3 +210,31 @@ def test_the_transducers_read_the_walking_rigs_own_state(project: ProjectConfig)
     rig.advance(40)
     assert np.array_equal(rig.x_view, rig.rod_positions_m)
     assert np.array_equal(rig.pressure_view, rig.pressures_pa.T.ravel())
+
+
+def test_the_feet_stand_on_the_axis_vertical_curve() -> None:
+    """curves.md section 3: the invert under each frame follows the axis's grade at its
+    chainage. The curved project moved back into its sag curve (3 km: 0.3 % to 3 %): M
+    stands on the chord of its feet (the body level, where the rigid rig's is); S's feet,
+    lifted a step behind, hang their clearance above the invert there, which the curve
+    raises by x^2 / 2R less the chord's."""
+    cfg = load_project(CURVED)
+    assert cfg.tunnel.alignment is not None and cfg.walking is not None
+    alignment = cfg.tunnel.alignment.model_copy(update={"first_ring_chainage_m": -60.0})
+    sag = cfg.model_copy(update={"tunnel": cfg.tunnel.model_copy(update={"alignment": alignment})})
+    flat = settled(cfg)
+    rig = settled(sag)
+    a = cfg.layers.lower.a_m
+    assert rig.q[:3] == pytest.approx(flat.q[:3], abs=1e-6)  # heave, roll, pitch as on the grade
+    assert rig.foot_forces_n[:4] == pytest.approx(flat.foot_forces_n[:4], rel=1e-3)
+    cos_a = 1.0 / math.hypot(1.0, 0.003 + 40.0 / 3000.0)
+
+    def rise(x: float) -> float:  # above the chord through M's feet
+        return ((x * cos_a) ** 2 - (a * cos_a) ** 2) / (2.0 * 3000.0) * cos_a
+
+    x_s = rig.world_x_m[1]
+    assert cfg.frames is not None
+    for j, (sx, _sy) in enumerate(((1, 1), (-1, 1), (-1, -1), (1, -1))):
+        x = x_s + sx * cfg.frames.sub.a_m
+        lifted = rig.foot_heights_m[4 + j] - flat.foot_heights_m[4 + j]
+        assert lifted == pytest.approx(rise(x), abs=2e-5)

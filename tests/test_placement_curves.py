@@ -11,8 +11,8 @@ import pytest
 from pydantic import ValidationError
 
 from config import ProjectConfig, load_project, units
+from config.alignment import along_axis_m, invert_rise_m, start_chainage_m
 from config.schema import Alignment
-from ipc_app.model.alignment import along_axis_m
 from ipc_app.model.placement import (
     Pose,
     axis_pose,
@@ -122,6 +122,42 @@ def test_a_vertical_curves_grade_changes_linearly_and_its_level_is_continuous() 
     z_end = 0.3 + 0.003 * 81 + 81**2 / (2 * rv)
     assert axis_pose(axis, 181.0).z == pytest.approx(z_end, abs=1e-12)
     assert axis_pose(axis, 281.0).z == pytest.approx(z_end + 3.0, abs=1e-12)
+
+
+def test_the_invert_rises_over_its_grades_plane_on_a_vertical_curve_only() -> None:
+    """curves.md section 3: the invert under each frame follows the axis's grade at its
+    chainage; what the simulator's feet stand on is its rise above the start's grade."""
+    rv = 3000.0
+    h = [{"start_chainage_m": -200, "kind": "straight"}]
+    v = [
+        {"start_chainage_m": -200, "gradient_percent": 0.3},
+        {"start_chainage_m": -100, "radius_m": rv},  # a sag: 0.3 % to 3 % over 81 m
+        {"start_chainage_m": -19, "gradient_percent": 3.0},
+    ]
+    x = np.linspace(-8.0, 8.0, 33)
+    on_grade = _axis(h, v)  # ring 1 at chainage 0, on the 3 % grade
+    assert np.abs(invert_rise_m(on_grade, x)).max() < 1e-12
+    assert np.all(invert_rise_m(None, x) == 0.0)
+    in_curve = on_grade.model_copy(update={"first_ring_chainage_m": -60.0})
+    assert start_chainage_m(in_curve) == -60.0 and start_chainage_m(None) == 0.0
+    g0 = 0.003 + 40.0 / rv
+    cos_a = 1.0 / math.hypot(1.0, g0)
+    assert invert_rise_m(in_curve, x) == pytest.approx(
+        (x * cos_a) ** 2 / (2.0 * rv) * cos_a, abs=1e-9
+    )  # 10.7 mm 8 m ahead
+    # a table of points: the kink's rise beyond it, none before
+    table = Alignment.model_validate(
+        {
+            "points": [
+                {"chainage_m": -10, "x_m": -10, "y_m": 0, "z_m": 0.0},
+                {"chainage_m": 2, "x_m": 2, "y_m": 0, "z_m": 0.0},
+                {"chainage_m": 20, "x_m": 20, "y_m": 0, "z_m": 0.18},
+            ]
+        }
+    )
+    assert invert_rise_m(table, np.array([-5.0, 1.0, 6.0])) == pytest.approx(
+        [0.0, 0.0, 0.04], abs=1e-9
+    )
 
 
 def test_rings_are_laid_along_the_axis_not_the_chainage_in_plan() -> None:

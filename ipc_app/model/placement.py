@@ -33,8 +33,8 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from config import units
+from config.alignment import chainage_after, level, plan_point
 from config.schema import Alignment, ProjectConfig
-from ipc_app.model.alignment import chainage_after, level, plan_point
 from ipc_app.model.kinematics import Array, attitude_matrix, rot_z
 
 #: Names of a pose's six coordinates, in order.
@@ -135,7 +135,7 @@ def axis_pose(alignment: Alignment, chainage_m: float) -> Pose:
     ``gradient_percent``; a table is linear between its rows (its tangent is the row
     segment's; beyond the ends the end segments go on); an axis by chainage has the
     point, heading (the pose's yaw) and grade (its pitch: ``-atan(grade)``) of its
-    horizontal and vertical elements (:mod:`ipc_app.model.alignment`).
+    horizontal and vertical elements (:mod:`config.alignment`).
     """
     if alignment.horizontal is not None and alignment.vertical is not None:
         p = plan_point(alignment.horizontal, chainage_m)
@@ -166,7 +166,7 @@ def axis_pose(alignment: Alignment, chainage_m: float) -> Pose:
 def chainage_along(alignment: Alignment, chainage_m: float, along_m: float) -> float:
     """The chainage ``along_m`` further along the axis than ``chainage_m``: for an axis by
     chainage (measured in plan) the axis's length with its grades
-    (:func:`~ipc_app.model.alignment.chainage_after`), else ``chainage_m + along_m`` (the
+    (:func:`~config.alignment.chainage_after`), else ``chainage_m + along_m`` (the
     straight axis's chainage runs along it; a table's is as its rows say)."""
     if alignment.vertical is not None:
         return chainage_after(alignment.vertical, chainage_m, along_m)

@@ -30,6 +30,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from config import units
+from config.alignment import start_chainage_m
 from config.schema import ProjectConfig
 from ipc_app.model.placement import axis_pose, chainage_along
 
@@ -55,8 +56,7 @@ class OnAxis:
 def on_axis_at_start(cfg: ProjectConfig) -> OnAxis:
     """The machine on the axis at ring 1's rear joint face (its commissioning place;
     chainage 0 without an alignment)."""
-    alignment = cfg.tunnel.alignment
-    return OnAxis(0.0 if alignment is None else alignment.first_ring_chainage_m)
+    return OnAxis(start_chainage_m(cfg.tunnel.alignment))
 
 
 @dataclass(frozen=True)

@@ -1,6 +1,7 @@
 """The design axis by chainage (curves.md section 1; docs/curves.md): the horizontal
 alignment's point and heading and the vertical alignment's level and grade at a
-chainage, and the chainage a distance along the axis further.
+chainage, the chainage a distance along the axis further, and the invert's rise under
+the machine (what the simulator's feet stand on).
 
 :func:`ipc_app.model.placement.axis_pose` is the one place that turns these into the
 tunnel frame; this module holds the elements' formulas it uses for an alignment given
@@ -34,8 +35,11 @@ import math
 from typing import NamedTuple
 
 import numpy as np
+from numpy.typing import NDArray
 
-from config.schema import HorizontalAlignment, VerticalAlignment
+from config.schema import Alignment, HorizontalAlignment, VerticalAlignment
+
+FloatArray = NDArray[np.float64]
 
 _NODES, _WEIGHTS = np.polynomial.legendre.leggauss(16)
 
@@ -166,3 +170,49 @@ def chainage_after(v: VerticalAlignment, chainage_m: float, along_m: float) -> f
         g = level(v, c).grade
         c += err / math.sqrt(1.0 + g * g)
     return c
+
+
+# ------------------------------------------------------ the invert under the machine
+
+
+def start_chainage_m(alignment: Alignment | None) -> float:
+    """M's centre's chainage where the machine starts: ring 1's rear joint face (its
+    commissioning place; the walk's steering and the simulator's invert start there), 0
+    without an alignment."""
+    return 0.0 if alignment is None else alignment.first_ring_chainage_m
+
+
+def _levels(alignment: Alignment, chainage_m: FloatArray) -> FloatArray:
+    """The axis's level (m) at each chainage: the vertical elements', a table's rows'
+    (linear between them, the end segments going on), a straight grade's."""
+    if alignment.vertical is not None:
+        v = alignment.vertical
+        return np.array([level(v, float(c)).z for c in chainage_m])
+    if alignment.points:
+        ch = np.array([p.chainage_m for p in alignment.points])
+        z = np.array([p.z_m for p in alignment.points])
+        i = np.clip(np.searchsorted(ch, chainage_m) - 1, 0, len(ch) - 2)
+        f = (chainage_m - ch[i]) / (ch[i + 1] - ch[i])
+        return np.asarray(z[i] + f * (z[i + 1] - z[i]), dtype=np.float64)
+    g = (alignment.gradient_percent or 0.0) / 100.0
+    return np.asarray(chainage_m * g, dtype=np.float64)
+
+
+def invert_rise_m(alignment: Alignment | None, along_m: FloatArray) -> FloatArray:
+    """The invert's rise (m, normal to it) at ``along_m`` (m) from the machine's start
+    (:func:`start_chainage_m`) along its heading there, above the plane of the axis's
+    grade at the start: 0 on a straight grade, ``x^2 / (2 R)`` on a vertical curve of
+    radius ``R`` (curves.md section 3: the invert under each frame follows the axis's
+    grade at its chainage). First order in the horizontal curve (the machine's few metres
+    of a curve of hundreds are taken as along the axis)."""
+    x = np.asarray(along_m, dtype=np.float64)
+    if alignment is None:
+        return np.zeros_like(x)
+    c0 = start_chainage_m(alignment)
+    eps = 1e-3
+    z0, z1 = _levels(alignment, np.array([c0 - eps, c0 + eps]))
+    grade = (z1 - z0) / (2.0 * eps)
+    cos_a = 1.0 / math.sqrt(1.0 + grade * grade)
+    run = x * cos_a  # in plan
+    z = _levels(alignment, c0 + run) - _levels(alignment, np.array([c0]))[0]
+    return np.asarray((z - grade * run) * cos_a, dtype=np.float64)
