@@ -1047,7 +1047,7 @@ class Walking(Strict):
     travel_sync_band_mm: Annotated[Finite, Field(gt=0, le=100)] = 5.0
     #: b_T: the travel pair's rods act at y = -/+ this from the frames' centreline (the
     #: lower can_index on the right, -y); S's yaw in M is asin((e_1 - e_2) / (2 b_T))
-    travel_half_span_mm: Annotated[Finite, Field(gt=0, le=10_000)] = 800.0
+    travel_half_span_mm: Annotated[Finite, Field(gt=0, le=10_000)] = 1200.0
     #: S's yaw in M about the rails' pivot at S's centre: the most a step may turn
     max_yaw_deg: Annotated[Finite, Field(gt=0, le=10)] = 1.0
     #: steering back onto the axis: a step turns the machine by the axis's own turn plus at

@@ -55,10 +55,10 @@ Model (what :class:`hil_sim.rig.Rig` has, and how this differs)
   (``I_M + m_M x_S^2 - 2 x_S m_M xbar_M``: M turns about it when S stands, and when M
   stands its feet hold it). Shipped project: M 131 400 kg m^2 about its centre (194 800
   at ``x_S = -1 m``), S 13 840 kg m^2. On the travel pair the differential (yaw) mode
-  weighs ``I / (2 b_T^2)`` per rod: S 10.8 t, M 103 t at ``x_S = 0`` and 152 t at
-  ``x_S = +-1 m``, against 4.3 t and 31.7 t in the common (along the rails) mode: with
-  M lifted the pair's oil column holds M's yaw at about 8-10 rad/s, half the common
-  mode's 17.8 rad/s.
+  weighs ``I / (2 b_T^2)`` per rod: S 4.8 t, M 46 t at ``x_S = 0`` and 68 t at
+  ``x_S = +-1 m`` (b_T 1.2 m), against 4.3 t and 31.7 t in the common (along the rails)
+  mode: with M lifted the pair's oil column holds M's yaw at about 12-15 rad/s, below
+  the common mode's 17.8 rad/s.
 - A standing frame's feet hold its yaw with the x model's bristle model turned: a
   rotational spring ``k_t r^2`` to an anchor with damping (0.7 of critical), the torque
   capped at ``mu * sum N * r``, ``r`` the feet's distance from the frame's centre

@@ -196,8 +196,8 @@ def test_ladrc_from_config_needs_bandwidths() -> None:
 
 def test_the_travel_pairs_turn_is_its_own_loop_on_the_frames_yaw() -> None:
     """curves.md section 3: the rods against each other turn the lifted frame about the
-    pivot, on each rod I / (2 b_T^2): M with the part about 156 t against its 31.7 t along
-    the rails, S about 11 t. Each turn loop is tuned on its frame's mode with the dual
+    pivot, on each rod I / (2 b_T^2): M with the part about 69 t against its 31.7 t along
+    the rails, S about 5 t. Each turn loop is tuned on its frame's mode with the dual
     error on it; the common loop on the pair moving the frame, without it (it does not act
     there)."""
     cfg = load_project()
@@ -206,7 +206,7 @@ def test_the_travel_pairs_turn_is_its_own_loop_on_the_frames_yaw() -> None:
     i_m, i_s = yaw_inertias_kg_m2(cfg)
     b_t = cfg.walking.travel_half_span_m
     assert ld.relative_kg == pytest.approx(i_m / (2 * b_t**2))
-    assert ld.relative_kg > 4 * ld.load_kg and i_s < i_m / 10
+    assert ld.relative_kg > 2 * ld.load_kg and i_s < i_m / 10
     t = derive(cfg)
     common, turn_m, turn_s = (t.loop("travel", k) for k in ("position", "turn_main", "turn_sub"))
     assert common.plant.coupling == 1.0
@@ -214,7 +214,7 @@ def test_the_travel_pairs_turn_is_its_own_loop_on_the_frames_yaw() -> None:
     assert turn_m.plant.mode_rad_s == pytest.approx(math.sqrt(ld.stiffness_n_m / ld.relative_kg))
     assert turn_s.plant.mode_rad_s == pytest.approx(math.sqrt(ld.stiffness_n_m * 2 * b_t**2 / i_s))
     # M's turn the slowest loop, S's about as fast as the common one
-    assert turn_m.wo_rad_s < common.wo_rad_s / 2 and turn_s.wo_rad_s > common.wo_rad_s * 0.8
+    assert turn_m.wo_rad_s < common.wo_rad_s * 0.6 and turn_s.wo_rad_s > common.wo_rad_s * 0.8
     assert min(turn_m.delay_margin_s, turn_s.delay_margin_s) >= MARGIN_FACTOR * 0.02
     # tuned as fast as the common loop, M's turn is unstable in the model
     assert delay_margin_s(turn_m.plant, common.wc_rad_s, common.wo_rad_s) == 0.0

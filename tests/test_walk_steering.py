@@ -123,12 +123,13 @@ def test_a_turn_beyond_max_yaw_is_refused_naming_the_key(curved: ProjectConfig) 
 
 
 def test_rods_beyond_the_travel_reserve_are_refused(curved: ProjectConfig) -> None:
-    """1002 mm of travel each way: the straight step's 1000 fits, the turned rod's 1004
-    does not."""
+    """1002 mm of travel each way: the straight step's 1000 fits, the turned rod's 1000
+    + b_T sin(turn) does not."""
     cfg = _walking(curved, travel_reserve_mm=98.0)
     ref = plan_walk(cfg, 1).refusal
-    assert ref is not None and ref.constraint == "travel_stroke"
-    assert "walking.travel_reserve_mm" in ref.message and "+1004.0 mm" in ref.message
+    assert ref is not None and ref.constraint == "travel_stroke" and cfg.walking is not None
+    turned = 1000.0 + cfg.walking.travel_half_span_mm * math.sin(2.0 / 400.0)
+    assert "walking.travel_reserve_mm" in ref.message and f"+{turned:.1f} mm" in ref.message
     straight = load_project(PROJECTS / "shanghai_airport_link.yaml")
     assert plan_walk(_walking(straight, travel_reserve_mm=98.0), 1).feasible
 

@@ -439,7 +439,7 @@ TURNED_FRAMES: tuple[str, ...] = ("main", "sub")
 def _turned_kg(cfg: ProjectConfig, cyl: Cylinder, frame: str = "main") -> float | None:
     """The travel pair's relative mode: the rods against each other turn the lifted frame
     about the pivot (curves.md section 3), on each rod ``I / (2 b_T^2)`` (M with the part
-    156 t on the shipped machine, against 31.7 t along the rails; S 10.8 t). None: a
+    69 t on the shipped machine, against 31.7 t along the rails; S 4.8 t). None: a
     group whose relative modes move its common load."""
     if cyl.role != "travel" or cfg.walking is None or cfg.frames is None:
         return None
