@@ -9,6 +9,7 @@ import importlib
 import json
 import math
 from collections.abc import Iterator
+from pathlib import Path
 from typing import Any
 
 import can
@@ -24,6 +25,7 @@ from ipc_app.service.ctl import Request, dispatch, parse
 from ipc_app.service.motions.walk import WalkMotion, plan_walk_here
 from plc_bridge.link import IpcLink
 from tests.machine_inputs import machine_inputs
+from wara.cli import main
 
 
 class InProcessPlanner:
@@ -162,3 +164,21 @@ def test_locate_is_refused_without_a_walking_section() -> None:
             "cannot walk",
         }
         assert core.on_axis is None
+
+
+def test_wara_ctl_locate_checks_its_values_before_sending(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.setenv("WARA_CTL_SOCKET", str(tmp_path / "none.sock"))  # no service there
+    base = ["ctl", "locate", "--chainage", "812.4", "--heading-error", "0.02"]
+    for argv, text in [
+        ([*base, "--offset", "600"], "--offset must be within -500..500 mm"),
+        (["ctl", "locate", "--chainage", "1", "--heading-error", "-7", "--offset", "0"],
+         "--heading-error must be within -5..5 deg"),
+        ([*base, "--offset", "-3"], "none.sock"),  # checked, sent: nobody listens
+    ]:  # fmt: skip
+        assert main(argv) == 2, argv
+        assert text in capsys.readouterr().err, argv
+    with pytest.raises(SystemExit) as exc:
+        main([*base, "--offset", "nan"])
+    assert exc.value.code == 2
