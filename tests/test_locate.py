@@ -1,6 +1,8 @@
 """Where the machine stands, surveyed (curves.md section 3; docs/curves.md "Walking on a
 curve"): ``wara ctl locate`` sets the service's ``on_axis``, checked and refused where
-a walk's end would overwrite it; the next walk steers from it."""
+a walk's end would overwrite it; the next walk steers from it; the simulated surveyor of
+``wara cycle`` sees M through two prisms with the survey's noise and gives it to the
+service."""
 
 from __future__ import annotations
 
@@ -10,9 +12,11 @@ import json
 import math
 from collections.abc import Iterator
 from pathlib import Path
+from types import SimpleNamespace
 from typing import Any
 
 import can
+import numpy as np
 import pytest
 from structlog.testing import capture_logs
 
@@ -26,6 +30,10 @@ from ipc_app.service.motions.walk import WalkMotion, plan_walk_here
 from plc_bridge.link import IpcLink
 from tests.machine_inputs import machine_inputs
 from wara.cli import main
+from wara.cycle import _Cycle, simulated_machine_survey
+from wara.walk import against_axis
+
+PROJECTS = Path(__file__).resolve().parents[1] / "config" / "projects"
 
 
 class InProcessPlanner:
@@ -182,3 +190,62 @@ def test_wara_ctl_locate_checks_its_values_before_sending(
     with pytest.raises(SystemExit) as exc:
         main([*base, "--offset", "nan"])
     assert exc.value.code == 2
+
+
+# --------------------------------------------------------------------------- the surveyor
+
+
+@pytest.mark.parametrize("name", ["shanghai_airport_link", "curved_grade_heavy_part"])
+def test_the_machine_survey_is_the_truth_plus_two_prisms_noise(name: str) -> None:
+    """Over many draws: centred on the truth against the axis, the heading's spread
+    ``sqrt(2) sigma / (2 a_M)``, the offset's ``sigma / sqrt(2)``, the two independent;
+    the chainage the one given."""
+    cfg = load_project(PROJECTS / f"{name}.yaml")
+    assert cfg.cycle is not None
+    sigma, a_m = cfg.cycle.survey_noise_m, cfg.layers.lower.a_m
+    assert sigma > 0
+    chainage = on_axis_at_start(cfg).chainage_m + 6.0
+    xy, heading = (5.9, 0.012), 0.004
+    truth = against_axis(cfg, chainage, xy, heading)
+    rng = np.random.default_rng(7)
+    n = 5000
+    draws = [simulated_machine_survey(cfg, chainage, xy, heading, rng) for _ in range(n)]
+    assert {d.chainage_m for d in draws} == {chainage}
+    h = np.array([d.heading_error_rad for d in draws]) - truth[0]
+    lat = np.array([d.lateral_m for d in draws]) - truth[1]
+    sd_h, sd_lat = math.sqrt(2.0) * sigma / (2.0 * a_m), sigma / math.sqrt(2.0)
+    assert abs(h.mean()) < 4 * sd_h / math.sqrt(n) and abs(lat.mean()) < 4 * sd_lat / math.sqrt(n)
+    assert h.std() == pytest.approx(sd_h, rel=0.05)
+    assert lat.std() == pytest.approx(sd_lat, rel=0.05)
+    assert abs(np.corrcoef(h, lat)[0, 1]) < 0.05
+    # the same seed, the same survey
+    again = simulated_machine_survey(cfg, chainage, xy, heading, np.random.default_rng(7))
+    assert again == draws[0]
+    # without noise: the truth against the axis
+    quiet = cfg.model_copy(update={"cycle": cfg.cycle.model_copy(update={"survey_noise_mm": 0})})
+    exact = simulated_machine_survey(quiet, chainage, xy, heading, rng)
+    assert (exact.heading_error_rad, exact.lateral_m) == truth
+
+
+def test_the_cycle_surveys_the_machine_into_the_service(core: ServiceCore) -> None:
+    """The ring cycle's surveyor (``wara cycle``, in one process): M's truth from the
+    simulator against the axis at the service's chainage, given to the service as
+    ``locate``; the reply kept with the truth. A rig that does not walk: nothing."""
+    cfg = core.cfg
+    m_truth = SimpleNamespace(
+        plan_xy_m=np.array([[0.01, -0.004], [0.0, 0.0]]), heading_rad=np.array([0.002, 0.0])
+    )
+    truth: dict[str, Any] = {"walk": m_truth}
+    sim = SimpleNamespace(truth=lambda: SimpleNamespace(**truth))
+    h: Any = SimpleNamespace(core=core, sim=sim, mode="lockstep", period=cfg.control.period_s)
+    cyc = _Cycle(cfg, h, Path("unused.sqlite"), np.random.default_rng(3), print, None)
+    got = cyc._locate(2)
+    start = on_axis_at_start(cfg)
+    assert got is not None and core.on_axis is not None
+    assert got["on_axis"] == core.on_axis.to_dict() and got["replaced"] == start.to_dict()
+    want = simulated_machine_survey(cfg, start.chainage_m, (0.01, -0.004), 0.002,
+                                    np.random.default_rng(3))  # fmt: skip
+    assert core.on_axis == want
+    assert got["truth"] == OnAxis(start.chainage_m, 0.002, -0.004).to_dict()  # straight axis
+    truth["walk"] = None
+    assert cyc._locate(2) is None and core.on_axis == want
