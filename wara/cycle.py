@@ -24,6 +24,9 @@ shows in the service's status (``cycle``), run record (``cycle_phase`` events) a
 6. ``survey``: ``cycle.survey_points`` points on the part's front joint face, the
    frozen truth plus ``cycle.survey_noise_mm`` of noise per coordinate, fitted as
    ``wara survey import`` fits a file (:func:`~ipc_app.planner.survey.fit_survey`);
+   when the cycle walks, the machine too (:func:`simulated_machine_survey`: M's truth
+   against the axis plus the survey's noise), given to the service as ``wara ctl
+   locate`` gives it before the part's survey (the walk back is planned from it);
 7. ``record``: the ring's acceptance record (the surveyed Table 4 items) and, attached,
    the plan, the cycle's figures and the surveyed pose (where the next ring's plan and
    ``wara place plan --from-store`` find it);
@@ -46,6 +49,7 @@ from config import load_project, units
 from config.hil_scenario import HilScenario
 from config.schema import ProjectConfig
 from ipc_app.model.placement import Pose, deviation, face_points, to_ring_frame, tunnel_frame
+from ipc_app.planner.steering import OnAxis, on_axis_at_start
 from ipc_app.planner.survey import SurveyPoint
 from ipc_app.service.cycle import previous_from_deviation
 from ipc_app.service.modes import Mode
@@ -55,7 +59,7 @@ from wara.goals import POSITION_TOL_MM, judge, ring_figures, ring_goals
 from wara.harness import Harness
 from wara.place import motion_limit_s, placed_figures
 from wara.ring_records import StoreRecords
-from wara.walk import walk_scenario
+from wara.walk import against_axis, walk_scenario
 
 #: The allowance over the project's bound on a motion (``cycle.max_motion_min``) for a
 #: phase that waits on the machine or the operator before its motion, s: past it the
@@ -95,6 +99,29 @@ def simulated_survey(
         SurveyPoint(k + 1, f"P{k}", (fy, fz), (float(p[0]), float(p[1]), float(p[2])))
         for k, ((fy, fz), p) in enumerate(zip(faces, world, strict=True), start=1)
     ]
+
+
+def simulated_machine_survey(
+    cfg: ProjectConfig,
+    chainage_m: float,
+    xy: tuple[float, float],
+    heading_rad: float,
+    rng: np.random.Generator,
+) -> OnAxis:
+    """Where the machine stands as a total station surveys it: M's centre ``xy`` and its
+    heading (the simulator's truth, in the walk's base frame) against the axis at
+    ``chainage_m`` (:func:`~wara.walk.against_axis`), seen through two prisms on M at its
+    front and rear leg lines (``+-a_M`` along M's x, the lower layer's
+    ``half_span_x_m``), each coordinate with ``cycle.survey_noise_mm`` of noise. Across
+    the axis that is the heading's error the difference of the two prisms' lateral
+    errors over the ``2 a_M`` between them, and the offset's their mean; along the axis
+    and in height the noise changes neither (to first order), and the chainage is the
+    one given (the walk's, as the service counts it)."""
+    assert cfg.cycle is not None
+    heading, lateral = against_axis(cfg, chainage_m, xy, heading_rad)
+    front, rear = rng.normal(0.0, cfg.cycle.survey_noise_m, 2)
+    baseline_m = 2.0 * cfg.layers.lower.a_m
+    return OnAxis(chainage_m, heading + (front - rear) / baseline_m, lateral + (front + rear) / 2)
 
 
 class _Cycle:
@@ -142,6 +169,7 @@ class _Cycle:
         waited = 0.0
         phase_limit_s = motion_limit_s(cfg) + PHASE_ALLOWANCE_S
         part_load_kn: dict[str, float] = {}
+        located: dict[str, Any] | None = None
         while cyc.active:
             if cyc.phase != self.phase:
                 self.phase, waited = cyc.phase, 0.0
@@ -168,6 +196,8 @@ class _Cycle:
                     raise RuntimeError(f"ring {ring}: the bolted part moved: {truth} != {as_built}")
                 part_load_kn["released"] = sim.rig.part_load_n / units.KN
                 pts = simulated_survey(cfg, ring, truth, self.rng)
+                if cyc.walk_steps > 0:  # before the part's: the walk back follows it
+                    located = self._locate(ring)
                 out = core.submit_survey(points=pts)
                 if not out.get("ok"):
                     raise RuntimeError(f"ring {ring}: {out.get('error')}")
@@ -192,10 +222,29 @@ class _Cycle:
             survey_rms_residual_mm=units.to_mm(fit.rms_residual_m) if fit else None,
             times=dict(cyc.phase_times_s), place_settled=settled,
             release=cyc.release_figures, walks=cyc.walk_figures,
-            platform_part_load_kn=part_load_kn,
+            platform_part_load_kn=part_load_kn, machine_survey=located,
         )  # fmt: skip
         self._surveyed, self._truth = cyc.surveyed, as_built
         return row
+
+    def _locate(self, ring: int) -> dict[str, Any] | None:
+        """The machine surveyed (:func:`simulated_machine_survey`) at the chainage the
+        service counts, given to it as ``wara ctl locate`` gives it; the reply with the
+        truth it was surveyed from (None: the rig does not walk)."""
+        cfg, core = self.cfg, self.h.core
+        walk = self.h.sim.truth().walk
+        if walk is None:
+            return None
+        chainage = (core.on_axis or on_axis_at_start(cfg)).chainage_m
+        xy = (float(walk.plan_xy_m[0, 0]), float(walk.plan_xy_m[0, 1]))
+        heading = float(walk.heading_rad[0])
+        surveyed = simulated_machine_survey(cfg, chainage, xy, heading, self.rng)
+        out = core.locate(surveyed)
+        if not out.get("ok"):
+            raise RuntimeError(f"ring {ring}: {out.get('error')}")
+        truth_heading, truth_lateral = against_axis(cfg, chainage, xy, heading)
+        truth = OnAxis(chainage, truth_heading, truth_lateral).to_dict()
+        return {k: out[k] for k in ("on_axis", "replaced")} | {"truth": truth}
 
 
 def ring_row(
@@ -212,8 +261,9 @@ def ring_row(
     truth (:func:`~wara.place.placed_figures`), its deviation from ``design``, the machine
     time (``times`` less the fixing hold) and ``figures`` (``surveyed``,
     ``target_deviation``, ``survey_rms_residual_mm``, ``place_settled``, ``release``,
-    ``walks``, ``platform_part_load_kn``), as the one-process and the two-process
-    forms give them."""
+    ``walks``, ``platform_part_load_kn``; in one process ``machine_survey``: the
+    service's ``locate`` reply, ``on_axis`` and ``replaced``, with the ``truth``), as the
+    one-process and the two-process forms give them."""
     truth_dev = deviation(as_built, design)
     row: dict[str, Any] = {
         "ring": ring,

@@ -52,6 +52,14 @@ class OnAxis:
             if not math.isfinite(v):
                 raise ValueError(f"the machine's {name} must be finite, got {v}")
 
+    def to_dict(self) -> dict[str, float]:
+        """In the control channel's units (``wara ctl locate``'s): m, deg, mm."""
+        return {
+            "chainage_m": round(self.chainage_m, 4),
+            "heading_error_deg": round(units.to_deg(self.heading_error_rad), 5),
+            "lateral_mm": round(units.to_mm(self.lateral_m), 2),
+        }
+
 
 def on_axis_at_start(cfg: ProjectConfig) -> OnAxis:
     """The machine on the axis at ring 1's rear joint face (its commissioning place;

@@ -31,6 +31,7 @@ import structlog
 
 from config import ProjectConfig, load_project, units
 from ipc_app.model.placement import POSE_DICT_KEYS, Pose, sheet_deviation
+from ipc_app.planner.steering import OnAxis
 from ipc_app.planner.survey import SurveyPoint, as_built_problems
 from ipc_app.service.core import ServiceCore
 from ipc_app.service.ctl import CtlError, CtlHandlers, CtlServer
@@ -98,6 +99,7 @@ def service_handlers(
         cycle=lambda r, prev, n, u: _reply(_cycle(core(), records, r, prev, n, u)),
         confirm_fixed=lambda user: _reply(core().confirm_fixed(user)),
         survey=lambda pts, pose: _reply(_survey(core(), pts, pose)),
+        locate=lambda c, h, lat: _reply(core().locate(OnAxis(c, units.deg(h), units.mm(lat)))),
         motion=lambda kind, args: _reply(core().start_motion(kind, args, wait_s=wait_s)),
     )
 

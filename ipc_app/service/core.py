@@ -37,7 +37,7 @@ from config.schema import ProjectConfig
 from ipc_app.control.attitude import AttitudeController
 from ipc_app.model.placement import Pose
 from ipc_app.planner.placement import PlacementPlan
-from ipc_app.planner.steering import OnAxis
+from ipc_app.planner.steering import OnAxis, on_axis_at_start
 from ipc_app.planner.survey import SurveyPoint
 from ipc_app.planner.walk import WalkStart
 from ipc_app.service.cycle import RingCycle, RingRecords
@@ -346,6 +346,33 @@ class ServiceCore:
         if self.record is not None:
             self.record.event(self._now, "audit", user=user, action=action, result=result)
         return {}
+
+    def locate(self, where: OnAxis) -> dict[str, Any]:
+        """Where the machine stands against the axis, surveyed (``wara ctl locate``; curves.md
+        section 3): :attr:`on_axis` is set to ``where``, the next walk is planned and
+        steered from it. Refused without a walking section, and while a walk has not
+        ended (executing, held, suspended or stopped part-way: its end sets
+        :attr:`on_axis` from the turns it measured). The reply: what it set, the
+        estimate it replaced (the start's when none) and the change."""
+        cfg = self.cfg
+        if cfg.walking is None or cfg.frames is None:
+            why = "locate refused: the project has no frames and walking sections: it cannot walk"
+            return Reply.refused(why).to_dict()
+        m = self.motions.active
+        if isinstance(m, WalkMotion) and m.on_axis_pending:
+            why = (
+                f"locate refused: the walk ({m.describe()}) has not ended (the service is "
+                f"{self.modes.mode}); its end sets where the machine stands from the turns "
+                "it measured: locate once it has ended"
+            )
+            return Reply.refused(why).to_dict()
+        before = self.on_axis or on_axis_at_start(cfg)
+        self.on_axis = where
+        now, was = where.to_dict(), before.to_dict()
+        change = {k: round(now[k] - was[k], 5) for k in now}
+        log.info("locate", on_axis=now, replaced=was, change=change)
+        self.event("locate", on_axis=now, replaced=was, change=change)
+        return Reply.accepted(on_axis=now, replaced=was, change=change).to_dict()
 
     def stop(self, reason: str) -> dict[str, Any]:
         """A controlled stop (``wara ctl stop``); a running ring cycle ends with it."""

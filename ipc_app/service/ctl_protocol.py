@@ -65,6 +65,9 @@ class CtlHandlers:
     confirm_fixed: Callable[[str], Reply] | None = None
     #: the cycle's survey: points (name, face y, face z, x, y, z; m) or a pose (6 numbers)
     survey: Callable[[tuple[Any, ...] | None, tuple[float, ...] | None], Reply] | None = None
+    #: where the machine stands, surveyed: M's centre's chainage (m), its heading error
+    #: (deg) and offset (mm) against the axis, both positive to the left
+    locate: Callable[[float, float, float], Reply] | None = None
     #: a motion of :data:`TABLE` started by its class and arguments (``home``)
     motion: Callable[[type[Motion], tuple[Any, ...]], Reply] | None = None
 
@@ -210,6 +213,14 @@ def _survey(req: Mapping[str, Any]) -> tuple[Any, ...]:
     return tuple(out), None
 
 
+def _locate(req: Mapping[str, Any]) -> tuple[Any, ...]:
+    return (
+        rq.bounded(req.get("chainage_m"), "chainage_m", "chainage_m"),
+        rq.bounded(req.get("heading_error_deg"), "heading_error_deg", "heading_error_deg"),
+        rq.bounded(req.get("lateral_mm"), "lateral_mm", "lateral_mm"),
+    )
+
+
 _MODE = "`mode`"
 _DEVIATION = "the previous part's deviation [y_mm, z_mm, roll_deg, pitch_deg, yaw_deg]"
 
@@ -306,6 +317,17 @@ TABLE: dict[str, Command] = {
             "`ring`, `rms_residual_mm`; a refused fit answered with its reason, the cycle "
             "still waiting",
             "the cycle's survey", _survey, "survey",
+        ),
+        Command(
+            "locate",
+            (Arg("chainage_m", "M's centre's chainage", ("chainage_m",)),
+             Arg("heading_error_deg", "the machine's heading less the axis's (+ left)",
+                 ("heading_error_deg",)),
+             Arg("lateral_mm", "M's centre's offset from the axis (+ left)", ("lateral_mm",))),
+            "`on_axis` (what it set), `replaced` (the estimate before), `change`; refused "
+            "while a walk has not ended (its end sets it) or without a walking section",
+            "where the machine stands, surveyed: the next walk steers from it",
+            _locate, "locate",
         ),
         Command(
             "home", (), f"{_MODE}, `duration_s`",

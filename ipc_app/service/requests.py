@@ -129,6 +129,11 @@ LIMITS: dict[str, Limit] = {
     "deviation_deg": Limit(
         -10, 10, "deg", "a survey sheet's deviation turned (roll, pitch, yaw): more is a typo"
     ),
+    "chainage_m": Limit(-1e6, 1e6, "m", "a chainage of the design axis (as the alignment's)"),
+    "heading_error_deg": Limit(
+        -5, 5, "deg", "the machine's surveyed heading less the axis's: more is a typo"
+    ),
+    "lateral_mm": Limit(-500, 500, "mm", "M's centre surveyed off the axis: more is a typo"),
     "status_wait_ms": Limit(0, 1000, "ms", "how long a status may wait for a change of mode"),
     "survey_points": Limit(1, 200, "", "the points one survey request carries"),
     "audit_chars": Limit(0, 400, "characters", "an audit entry's result (one log line)"),
@@ -177,6 +182,16 @@ def integer(v: Any, key: str, limit: str) -> int:
     if isinstance(v, bool) or not isinstance(v, int) or not lim.holds(v):
         raise ValueError(f"{key!r} must be an integer {lim.text()}, got {brief(v)}")
     return v
+
+
+def bounded(v: Any, key: str, limit: str) -> float:
+    """``v`` as a finite float within ``LIMITS[limit]`` (in its unit); ValueError naming
+    ``key`` otherwise."""
+    lim = LIMITS[limit]
+    f = number(v, key, lim.unit)
+    if not lim.holds(f):
+        raise ValueError(f"{key!r} must be within {lim.text()} ({lim.why}), got {f:g}")
+    return f
 
 
 def within(v: int, limit: str, what: str) -> str | None:

@@ -9,6 +9,7 @@
     wara ctl jog --cylinder main_leg_1 --distance-mm 2   # MANUAL only
     wara ctl place --ring 5 --previous-deviation 6,-6,0,0,0.03
     wara ctl home                   # each attitude layer to mid-stroke, level
+    wara ctl locate --chainage 812.4 --heading-error 0.02 --offset -3   # surveyed
     wara ctl --socket /tmp/wara-test/ctl.sock status
 
 The socket defaults to the service's (``$WARA_CTL_SOCKET``, ``/run/wara/ctl.sock`` on an
@@ -139,6 +140,28 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="the as-built pose wara survey import --db attached to the cycle's ring",
     )
     survey.add_argument("--db", default=None, metavar="PATH", help="acceptance store to read")
+    loc = verbs.add_parser(
+        "locate",
+        parents=[common],
+        help="where the machine stands, surveyed: the next walk steers from it",
+    )
+    loc.add_argument(
+        "--chainage", type=decimal, required=True, metavar="M", help="M's centre's chainage, m"
+    )
+    loc.add_argument(
+        "--heading-error",
+        type=decimal,
+        required=True,
+        metavar="DEG",
+        help="the machine's heading less the axis's, deg, positive to the left",
+    )
+    loc.add_argument(
+        "--offset",
+        type=decimal,
+        required=True,
+        metavar="MM",
+        help="M's centre's offset from the axis, mm, positive to the left",
+    )
     from ipc_app.service.ctl_protocol import TABLE
 
     for row in TABLE.values():  # the motions without arguments (home), from the protocol
@@ -217,6 +240,23 @@ def _survey_fields(args: argparse.Namespace) -> dict[str, Any]:
     return {"points": [[p.name, *p.face, *p.measured] for p in points]}
 
 
+def _locate_fields(args: argparse.Namespace) -> dict[str, Any]:
+    """``wara ctl locate``'s request, each value checked against its limit first (the
+    service checks them again)."""
+    from ipc_app.service.requests import LIMITS
+
+    given = (
+        ("chainage_m", "--chainage", args.chainage),
+        ("heading_error_deg", "--heading-error", args.heading_error),
+        ("lateral_mm", "--offset", args.offset),
+    )
+    for key, opt, v in given:
+        lim = LIMITS[key]
+        if not lim.holds(v):
+            raise UsageError(f"{opt} must be within {lim.text()} ({lim.why}), got {v:g}")
+    return {key: v for key, _, v in given}
+
+
 def run(args: argparse.Namespace) -> int:
     fields: dict[str, Any] = {}
     timeout_s = 10.0
@@ -252,6 +292,8 @@ def run(args: argparse.Namespace) -> int:
         fields = {"user": args.user}
     elif args.verb == "survey":
         fields, timeout_s = _survey_fields(args), 30.0
+    elif args.verb == "locate":
+        fields = _locate_fields(args)
     elif args.verb == "unit-mode":
         fields = {"unit_mode": args.unit_mode}
     elif args.verb == "jog":

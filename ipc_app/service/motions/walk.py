@@ -221,6 +221,12 @@ class WalkMotion(Motion):
         self._walked()
         return event("walk_done", steps=[s.to_dict() for s in self.walker.steps])
 
+    @property
+    def on_axis_pending(self) -> bool:
+        """Its end has yet to set where the machine stands (:meth:`_walked`): a survey
+        given meanwhile would be overwritten (``wara ctl locate`` is refused)."""
+        return not self._walked_done
+
     def _walked(self) -> None:
         """Where the machine now stands against the axis, from the turns its finished
         steps measured (:func:`~ipc_app.planner.steering.walked`; a step stopped
