@@ -30,7 +30,7 @@ from ipc_app.service.motions.walk import WalkMotion, plan_walk_here
 from plc_bridge.link import IpcLink
 from tests.machine_inputs import machine_inputs
 from wara.cli import main
-from wara.cycle import _Cycle, simulated_machine_survey
+from wara.cycle import LOCATE_GATE_SIGMA, _Cycle, machine_survey_sigma, simulated_machine_survey
 from wara.walk import against_axis
 
 PROJECTS = Path(__file__).resolve().parents[1] / "config" / "projects"
@@ -247,5 +247,15 @@ def test_the_cycle_surveys_the_machine_into_the_service(core: ServiceCore) -> No
                                     np.random.default_rng(3))  # fmt: skip
     assert core.on_axis == want
     assert got["truth"] == OnAxis(start.chainage_m, 0.002, -0.004).to_dict()  # straight axis
+    # a survey within 3 sigma of the estimate (0.76 mrad, 2.1 mm here) is not given
+    m_truth.heading_rad[0], m_truth.plan_xy_m[0, 1] = want.heading_error_rad + 2e-4, -0.003
+    kept = cyc._locate(2)
+    assert kept is not None and "on_axis" not in kept and core.on_axis == want
+    assert kept["kept"] == want.to_dict()
+    sigma_h, sigma_l = machine_survey_sigma(cfg)
+    assert abs(kept["surveyed"]["heading_error_deg"] - kept["kept"]["heading_error_deg"]) <= (
+        math.degrees(LOCATE_GATE_SIGMA * sigma_h)
+    )
+    assert sigma_l == pytest.approx(cfg.cycle.survey_noise_m / math.sqrt(2.0))  # type: ignore[union-attr]
     truth["walk"] = None
     assert cyc._locate(2) is None and core.on_axis == want

@@ -340,17 +340,20 @@ def test_a_cycle_that_walks_goes_to_the_ring_and_back(tmp_path: Path) -> None:
             assert 1.0 < step["max_leg_force_ratio"] <= 1.10
             assert step["min_stability_margin_m"] >= 0.25
             assert 10 < step["duration_s"] < 120
-        # the machine surveyed before the part's survey (docs/curves.md): the service's
-        # estimate is the truth plus the survey's noise (0.7 mm, 0.014 deg: 7 sigma here)
+        # the machine surveyed before the part's survey (docs/curves.md): the truth plus
+        # the survey's noise (0.7 mm, 0.014 deg: 7 sigma here), given to the service
+        # where it disagrees with its estimate beyond that noise, else the estimate kept
         ms = row["machine_survey"]
-        assert abs(ms["on_axis"]["lateral_mm"] - ms["truth"]["lateral_mm"]) < 5.0
-        assert abs(ms["on_axis"]["heading_error_deg"] - ms["truth"]["heading_error_deg"]) < 0.1
+        seen = ms.get("surveyed") or ms["on_axis"]
+        assert abs(seen["lateral_mm"] - ms["truth"]["lateral_mm"]) < 5.0
+        assert abs(seen["heading_error_deg"] - ms["truth"]["heading_error_deg"]) < 0.1
     assert out["rings"][1]["phase_times_s"]["load"] > 5.0  # the crane's 5 s, then settled
     walks = [e for e in map(json.loads, (tmp_path / "run" / "events.jsonl").open())
              if e["kind"] == "walk"]  # fmt: skip
     located = [e for e in map(json.loads, (tmp_path / "run" / "events.jsonl").open())
                if e["kind"] == "locate"]  # fmt: skip
-    assert [e["on_axis"] for e in located] == [r["machine_survey"]["on_axis"] for r in out["rings"]]
+    given = [r["machine_survey"] for r in out["rings"] if "on_axis" in r["machine_survey"]]
+    assert [e["on_axis"] for e in located] == [ms["on_axis"] for ms in given]
     assert [(w["direction"], w["unloaded"]) for w in walks] == [
         ("forward", False), ("back", True), ("forward", False), ("back", True),
     ]  # fmt: skip

@@ -26,7 +26,8 @@ shows in the service's status (``cycle``), run record (``cycle_phase`` events) a
    ``wara survey import`` fits a file (:func:`~ipc_app.planner.survey.fit_survey`);
    when the cycle walks, the machine too (:func:`simulated_machine_survey`: M's truth
    against the axis plus the survey's noise), given to the service as ``wara ctl
-   locate`` gives it before the part's survey (the walk back is planned from it);
+   locate`` gives it before the part's survey (the walk back is planned from it) where
+   it disagrees with the service's estimate beyond its noise (:data:`LOCATE_GATE_SIGMA`);
 7. ``record``: the ring's acceptance record (the surveyed Table 4 items) and, attached,
    the plan, the cycle's figures and the surveyed pose (where the next ring's plan and
    ``wara place plan --from-store`` find it);
@@ -38,6 +39,7 @@ safely (valves closed) and ends the cycle with the phase it was in.
 
 from __future__ import annotations
 
+import math
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -122,6 +124,20 @@ def simulated_machine_survey(
     front, rear = rng.normal(0.0, cfg.cycle.survey_noise_m, 2)
     baseline_m = 2.0 * cfg.layers.lower.a_m
     return OnAxis(chainage_m, heading + (front - rear) / baseline_m, lateral + (front + rear) / 2)
+
+
+#: The surveyor corrects the service's estimate of where the machine stands only where
+#: the survey disagrees with it by more than this many of its own standard deviations: a
+#: survey within its noise of the estimate tells it nothing it could steer on.
+LOCATE_GATE_SIGMA = 3.0
+
+
+def machine_survey_sigma(cfg: ProjectConfig) -> tuple[float, float]:
+    """The standard deviations of :func:`simulated_machine_survey`'s heading (rad) and
+    offset (m): two prisms ``2 a_M`` apart, ``cycle.survey_noise_mm`` each."""
+    assert cfg.cycle is not None
+    sigma = cfg.cycle.survey_noise_m
+    return math.sqrt(2.0) * sigma / (2.0 * cfg.layers.lower.a_m), sigma / math.sqrt(2.0)
 
 
 class _Cycle:
@@ -239,11 +255,19 @@ class _Cycle:
         xy = (float(walk.plan_xy_m[0, 0]), float(walk.plan_xy_m[0, 1]))
         heading = float(walk.heading_rad[0])
         surveyed = simulated_machine_survey(cfg, chainage, xy, heading, self.rng)
+        truth_heading, truth_lateral = against_axis(cfg, chainage, xy, heading)
+        truth = OnAxis(chainage, truth_heading, truth_lateral).to_dict()
+        here = core.on_axis or on_axis_at_start(cfg)
+        sigma_heading, sigma_lateral = machine_survey_sigma(cfg)
+        if (
+            abs(surveyed.heading_error_rad - here.heading_error_rad)
+            <= LOCATE_GATE_SIGMA * sigma_heading
+            and abs(surveyed.lateral_m - here.lateral_m) <= LOCATE_GATE_SIGMA * sigma_lateral
+        ):  # within the survey's noise of the estimate: kept
+            return {"surveyed": surveyed.to_dict(), "kept": here.to_dict(), "truth": truth}
         out = core.locate(surveyed)
         if not out.get("ok"):
             raise RuntimeError(f"ring {ring}: {out.get('error')}")
-        truth_heading, truth_lateral = against_axis(cfg, chainage, xy, heading)
-        truth = OnAxis(chainage, truth_heading, truth_lateral).to_dict()
         return {k: out[k] for k in ("on_axis", "replaced")} | {"truth": truth}
 
 
