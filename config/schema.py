@@ -1057,6 +1057,9 @@ class Walking(Strict):
     sync_band_timeout_s: Annotated[Finite, Field(gt=0, le=600)] = 5.0
     #: a leg force above this share of its expected force: stop, latched
     overload_percent: Annotated[Finite, Field(gt=100, le=1000)] = 110.0
+    #: the body's roll and pitch change at most this while a transfer moves the load
+    #: between the frames (walking.md section 4: the attitude held; ``wara walk``'s goal)
+    max_transfer_attitude_change_deg: Annotated[Finite, Field(gt=0, le=1)] = 0.01
     #: a lowering foot has touched down when its cap pressure rose this much
     touch_mpa: Annotated[Finite, Field(gt=0, le=70)] = 1.0
     #: a foot not touched down this far below the expected ground: stop (hole, obstacle)

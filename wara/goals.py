@@ -29,8 +29,7 @@ from ipc_app.service.cycle import RECORD_KEYS
 # ------------------------------------------------------------ the simulation's own goals
 
 #: The workpiece's attitude: at rest within this of the target (the reference machine's
-#: examples), placed within this of the placement target (each angle), and changed by at
-#: most this during a walk's transfer of the load.
+#: examples) and placed within this of the placement target (each angle).
 ATTITUDE_TOL_DEG = 0.01
 #: A layer's largest twist during an attitude adjustment.
 TWIST_TOL_MM = 0.5
@@ -187,7 +186,11 @@ def walk_step_goals(cfg: ProjectConfig) -> tuple[Goal, ...]:
         Goal("distance_error_mm", DISTANCE_TOL_MM),
         Goal("max_leg_sync_error_mm", w.leg_sync_band_mm, "walking.leg_sync_band_mm"),
         Goal("max_travel_sync_error_mm", w.travel_sync_band_mm, "walking.travel_sync_band_mm"),
-        Goal("max_transfer_attitude_change_deg", ATTITUDE_TOL_DEG),
+        Goal(
+            "max_transfer_attitude_change_deg",
+            w.max_transfer_attitude_change_deg,
+            "walking.max_transfer_attitude_change_deg",
+        ),
         Goal("max_leg_force_ratio", w.overload_percent / 100.0, "walking.overload_percent"),
         Goal("min_stability_margin_m", w.min_stability_margin_m, "walking.min_stability_margin_m"),
         Goal(
