@@ -119,6 +119,7 @@ def test_locate_sets_where_the_machine_stands_and_says_what_it_replaced(
     assert out["on_axis"] == GOOD and out["replaced"] == start
     assert out["change"] == {k: pytest.approx(GOOD[k] - start[k]) for k in GOOD}
     assert next(e for e in logs if e["event"] == "locate")["on_axis"] == GOOD
+    assert core.snapshot()["on_axis"] == GOOD  # `wara ctl status` shows it
     again = dispatch(handlers, _locate(chainage_m=814.4, heading_error_deg=0, lateral_mm=0))
     assert again["replaced"] == GOOD and again["change"]["heading_error_deg"] == 0.02
 

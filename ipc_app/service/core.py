@@ -444,10 +444,15 @@ class ServiceCore:
     # ------------------------------------------------------------------ status
 
     def snapshot(self) -> dict[str, Any]:
-        """The last cycle's status (safe to call from any thread)."""
+        """The last cycle's status (safe to call from any thread); with ``on_axis`` (m, deg,
+        mm) for a machine that walks."""
         rc = self.ring_cycle
         cycle = rc.status() if rc is not None else None
-        return self.board.snapshot(self.link, self._inputs, self.motions.active, cycle)
+        snap = self.board.snapshot(self.link, self._inputs, self.motions.active, cycle)
+        if self.cfg.walking is not None and self.cfg.frames is not None:
+            # where the machine stands against the axis (what `wara ctl locate` replaces)
+            snap["on_axis"] = (self.on_axis or on_axis_at_start(self.cfg)).to_dict()
+        return snap
 
     def achieved_attitude_deg(self, x: np.ndarray) -> tuple[float, float]:
         """Workpiece (roll, pitch) from measured rod positions (sensor view)."""
