@@ -30,7 +30,13 @@ from ipc_app.service.motions.walk import WalkMotion, plan_walk_here
 from plc_bridge.link import IpcLink
 from tests.machine_inputs import machine_inputs
 from wara.cli import main
-from wara.cycle import LOCATE_GATE_SIGMA, _Cycle, machine_survey_sigma, simulated_machine_survey
+from wara.cycle import (
+    LOCATE_GATE_SIGMA,
+    _Cycle,
+    machine_survey_sigma,
+    machine_truth,
+    simulated_machine_survey,
+)
 from wara.walk import against_axis
 
 PROJECTS = Path(__file__).resolve().parents[1] / "config" / "projects"
@@ -208,9 +214,11 @@ def test_the_machine_survey_is_the_truth_plus_two_prisms_noise(name: str) -> Non
     chainage = on_axis_at_start(cfg).chainage_m + 6.0
     xy, heading = (5.9, 0.012), 0.004
     truth = against_axis(cfg, chainage, xy, heading)
+    m_truth = machine_truth(cfg, chainage, xy, heading)
+    assert (m_truth.heading_error_rad, m_truth.lateral_m) == truth
     rng = np.random.default_rng(7)
     n = 5000
-    draws = [simulated_machine_survey(cfg, chainage, xy, heading, rng) for _ in range(n)]
+    draws = [simulated_machine_survey(cfg, m_truth, rng) for _ in range(n)]
     assert {d.chainage_m for d in draws} == {chainage}
     h = np.array([d.heading_error_rad for d in draws]) - truth[0]
     lat = np.array([d.lateral_m for d in draws]) - truth[1]
@@ -220,11 +228,11 @@ def test_the_machine_survey_is_the_truth_plus_two_prisms_noise(name: str) -> Non
     assert lat.std() == pytest.approx(sd_lat, rel=0.05)
     assert abs(np.corrcoef(h, lat)[0, 1]) < 0.05
     # the same seed, the same survey
-    again = simulated_machine_survey(cfg, chainage, xy, heading, np.random.default_rng(7))
+    again = simulated_machine_survey(cfg, m_truth, np.random.default_rng(7))
     assert again == draws[0]
     # without noise: the truth against the axis
     quiet = cfg.model_copy(update={"cycle": cfg.cycle.model_copy(update={"survey_noise_mm": 0})})
-    exact = simulated_machine_survey(quiet, chainage, xy, heading, rng)
+    exact = simulated_machine_survey(quiet, m_truth, rng)
     assert (exact.heading_error_rad, exact.lateral_m) == truth
 
 
@@ -244,8 +252,9 @@ def test_the_cycle_surveys_the_machine_into_the_service(core: ServiceCore) -> No
     start = on_axis_at_start(cfg)
     assert got is not None and core.on_axis is not None
     assert got["on_axis"] == core.on_axis.to_dict() and got["replaced"] == start.to_dict()
-    want = simulated_machine_survey(cfg, start.chainage_m, (0.01, -0.004), 0.002,
-                                    np.random.default_rng(3))  # fmt: skip
+    want = simulated_machine_survey(
+        cfg, machine_truth(cfg, start.chainage_m, (0.01, -0.004), 0.002), np.random.default_rng(3)
+    )
     assert core.on_axis == want
     assert got["truth"] == OnAxis(start.chainage_m, 0.002, -0.004).to_dict()  # straight axis
     # a survey within 3 sigma of the estimate (0.76 mrad, 2.1 mm here) is not given

@@ -103,27 +103,30 @@ def simulated_survey(
     ]
 
 
-def simulated_machine_survey(
-    cfg: ProjectConfig,
-    chainage_m: float,
-    xy: tuple[float, float],
-    heading_rad: float,
-    rng: np.random.Generator,
-) -> OnAxis:
-    """Where the machine stands as a total station surveys it: M's centre ``xy`` and its
-    heading (the simulator's truth, in the walk's base frame) against the axis at
-    ``chainage_m`` (:func:`~wara.walk.against_axis`), seen through two prisms on M at its
-    front and rear leg lines (``+-a_M`` along M's x, the lower layer's
-    ``half_span_x_m``), each coordinate with ``cycle.survey_noise_mm`` of noise. Across
-    the axis that is the heading's error the difference of the two prisms' lateral
-    errors over the ``2 a_M`` between them, and the offset's their mean; along the axis
-    and in height the noise changes neither (to first order), and the chainage is the
-    one given (the walk's, as the service counts it)."""
+def simulated_machine_survey(cfg: ProjectConfig, truth: OnAxis, rng: np.random.Generator) -> OnAxis:
+    """Where the machine stands as a total station surveys it: ``truth`` (M against the
+    axis, :func:`machine_truth`) seen through two prisms on M at its front and rear leg
+    lines (``+-a_M`` along M's x, the lower layer's ``half_span_x_m``), each coordinate
+    with ``cycle.survey_noise_mm`` of noise. Across the axis that is the heading's error
+    the difference of the two prisms' lateral errors over the ``2 a_M`` between them, and
+    the offset's their mean; along the axis and in height the noise changes neither (to
+    first order), and the chainage is the truth's (the walk's, as the service counts it)."""
     assert cfg.cycle is not None
-    heading, lateral = against_axis(cfg, chainage_m, xy, heading_rad)
     front, rear = rng.normal(0.0, cfg.cycle.survey_noise_m, 2)
     baseline_m = 2.0 * cfg.layers.lower.a_m
-    return OnAxis(chainage_m, heading + (front - rear) / baseline_m, lateral + (front + rear) / 2)
+    return OnAxis(
+        truth.chainage_m,
+        truth.heading_error_rad + (front - rear) / baseline_m,
+        truth.lateral_m + (front + rear) / 2,
+    )
+
+
+def machine_truth(
+    cfg: ProjectConfig, chainage_m: float, xy: tuple[float, float], heading_rad: float
+) -> OnAxis:
+    """M's centre ``xy`` and its heading (the simulator's truth, in the walk's base frame)
+    against the axis at ``chainage_m`` (:func:`~wara.walk.against_axis`)."""
+    return OnAxis(chainage_m, *against_axis(cfg, chainage_m, xy, heading_rad))
 
 
 #: The surveyor corrects the service's estimate of where the machine stands only where
@@ -251,13 +254,11 @@ class _Cycle:
         walk = self.h.sim.truth().walk
         if walk is None:
             return None
-        chainage = (core.on_axis or on_axis_at_start(cfg)).chainage_m
-        xy = (float(walk.plan_xy_m[0, 0]), float(walk.plan_xy_m[0, 1]))
-        heading = float(walk.heading_rad[0])
-        surveyed = simulated_machine_survey(cfg, chainage, xy, heading, self.rng)
-        truth_heading, truth_lateral = against_axis(cfg, chainage, xy, heading)
-        truth = OnAxis(chainage, truth_heading, truth_lateral).to_dict()
         here = core.on_axis or on_axis_at_start(cfg)
+        xy = (float(walk.plan_xy_m[0, 0]), float(walk.plan_xy_m[0, 1]))
+        m_truth = machine_truth(cfg, here.chainage_m, xy, float(walk.heading_rad[0]))
+        surveyed = simulated_machine_survey(cfg, m_truth, self.rng)
+        truth = m_truth.to_dict()
         sigma_heading, sigma_lateral = machine_survey_sigma(cfg)
         if (
             abs(surveyed.heading_error_rad - here.heading_error_rad)
