@@ -112,6 +112,15 @@ class Limit:
             return f"over {self.lo:g} and under {self.hi:g}{unit}"
         return f"{self.lo:g}..{self.hi:g}{unit}"
 
+    def outside(self, v: float, name: str) -> str | None:
+        """Why ``v`` (given as ``name``) is outside the range, with the reason for it;
+        None: it is within."""
+        return (
+            None
+            if self.holds(v)
+            else f"{name} must be within {self.text()} ({self.why}), got {v:g}"
+        )
+
 
 #: Every bound an operator request is checked against, by the request value it bounds.
 LIMITS: dict[str, Limit] = {
@@ -189,8 +198,9 @@ def bounded(v: Any, key: str, limit: str) -> float:
     ``key`` otherwise."""
     lim = LIMITS[limit]
     f = number(v, key, lim.unit)
-    if not lim.holds(f):
-        raise ValueError(f"{key!r} must be within {lim.text()} ({lim.why}), got {f:g}")
+    why = lim.outside(f, repr(key))
+    if why:
+        raise ValueError(why)
     return f
 
 

@@ -251,9 +251,9 @@ def _locate_fields(args: argparse.Namespace) -> dict[str, Any]:
         ("lateral_mm", "--offset", args.offset),
     )
     for key, opt, v in given:
-        lim = LIMITS[key]
-        if not lim.holds(v):
-            raise UsageError(f"{opt} must be within {lim.text()} ({lim.why}), got {v:g}")
+        why = LIMITS[key].outside(v, opt)
+        if why:
+            raise UsageError(why)
     return {key: v for key, _, v in given}
 
 
