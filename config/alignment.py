@@ -32,12 +32,13 @@ from __future__ import annotations
 
 import itertools
 import math
-from typing import NamedTuple
+from collections.abc import Sequence
+from typing import Any, NamedTuple
 
 import numpy as np
 from numpy.typing import NDArray
 
-from config.schema import Alignment, HorizontalAlignment, VerticalAlignment
+from config.schema import Alignment, AlignmentPoint, HorizontalAlignment, VerticalAlignment
 
 FloatArray = NDArray[np.float64]
 
@@ -182,6 +183,15 @@ def start_chainage_m(alignment: Alignment | None) -> float:
     return 0.0 if alignment is None else alignment.first_ring_chainage_m
 
 
+def table_segment(points: Sequence[AlignmentPoint], chainage_m: Any) -> tuple[Any, Any]:
+    """A design-axis table's segment at ``chainage_m`` (a number or an array): the index
+    of its first row and how far along it (0 to 1 within it; beyond the table's ends the
+    end segments go on)."""
+    ch = np.array([p.chainage_m for p in points])
+    i = np.clip(np.searchsorted(ch, chainage_m) - 1, 0, len(ch) - 2)
+    return i, (chainage_m - ch[i]) / (ch[i + 1] - ch[i])
+
+
 def _levels(alignment: Alignment, chainage_m: FloatArray) -> FloatArray:
     """The axis's level (m) at each chainage: the vertical elements', a table's rows'
     (linear between them, the end segments going on), a straight grade's."""
@@ -189,10 +199,8 @@ def _levels(alignment: Alignment, chainage_m: FloatArray) -> FloatArray:
         v = alignment.vertical
         return np.array([level(v, float(c)).z for c in chainage_m])
     if alignment.points:
-        ch = np.array([p.chainage_m for p in alignment.points])
         z = np.array([p.z_m for p in alignment.points])
-        i = np.clip(np.searchsorted(ch, chainage_m) - 1, 0, len(ch) - 2)
-        f = (chainage_m - ch[i]) / (ch[i + 1] - ch[i])
+        i, f = table_segment(alignment.points, chainage_m)
         return np.asarray(z[i] + f * (z[i + 1] - z[i]), dtype=np.float64)
     g = (alignment.gradient_percent or 0.0) / 100.0
     return np.asarray(chainage_m * g, dtype=np.float64)

@@ -33,7 +33,7 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from config import units
-from config.alignment import chainage_after, level, plan_point
+from config.alignment import chainage_after, level, plan_point, table_segment
 from config.schema import Alignment, ProjectConfig
 from ipc_app.model.kinematics import Array, attitude_matrix, rot_z
 
@@ -149,13 +149,11 @@ def axis_pose(alignment: Alignment, chainage_m: float) -> Pose:
         origin = chainage_m * t
     else:
         pts = alignment.points
-        ch = [p.chainage_m for p in pts]
-        i = int(np.clip(np.searchsorted(ch, chainage_m) - 1, 0, len(pts) - 2))
-        a, b = pts[i], pts[i + 1]
+        k, f = table_segment(pts, chainage_m)
+        a, b = pts[int(k)], pts[int(k) + 1]
         pa = np.array([a.x_m, a.y_m, a.z_m])
         pb = np.array([b.x_m, b.y_m, b.z_m])
-        f = (chainage_m - a.chainage_m) / (b.chainage_m - a.chainage_m)
-        origin = pa + f * (pb - pa)
+        origin = pa + float(f) * (pb - pa)
         t = (pb - pa) / float(np.linalg.norm(pb - pa))
     y = np.cross([0.0, 0.0, 1.0], t)
     y /= float(np.linalg.norm(y))
