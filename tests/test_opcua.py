@@ -559,6 +559,55 @@ def test_serve_with_opcua_and_no_users_file_is_one_line(tmp_path: Path) -> None:
     assert "no users file" in last and "wara opcua adduser" in last
 
 
+class _ScriptedService:
+    """The control socket's side `wara bench opcua`'s cycles use (``call``, ``wait``), its
+    modes scripted: each adjust ends in the next of ``endings``."""
+
+    def __init__(self, endings: list[dict[str, Any]]) -> None:
+        self.endings, self.calls, self.mode = endings, [], "IDLE"
+
+    def call(self, cmd: str, **args: Any) -> dict[str, Any]:
+        self.calls.append(cmd)
+        after = {"adjust": None, "stop": "IDLE", "clear": "STOPPED", "reset": "IDLE"}[cmd]
+        self.mode = after or "ADJUST"
+        return {"ok": True}
+
+    def wait(self, pred: Any, timeout_s: float) -> dict[str, Any] | None:
+        st = self.endings.pop(0) if self.mode == "ADJUST" else {"mode": self.mode}
+        self.mode = st["mode"]
+        return st if pred(st) else None
+
+
+def test_bench_opcua_runs_a_cycle_again_after_a_silent_process_stop_only(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """A cycle the PLC stopped on a silent IPC is cleared, reset and run again, noted with
+    its faults; past ``MAX_SILENT_STOPS`` in a run, or on any other fault, the bench fails
+    with the cycle and its cause."""
+    from ipc_app.service.interlocks import Interlock
+    from plc_bridge.link import Fault
+    from wara.benches import opcua as bench
+    from wara.demo_two_process import TwoProcessError
+
+    monkeypatch.setattr(bench.time, "sleep", lambda s: None)
+    watch = SimpleNamespace(see=lambda st: None)
+    silent_ipc = {"interlock": str(Interlock.PLC_FAULT), "where": Fault.IPC_TIMEOUT.name}
+    ipc = {"mode": "ABORTED", "fault_reasons": ["plc fault: IPC_TIMEOUT"], "faults": [silent_ipc]}
+    done = {"mode": "COMPLETE"}
+    svc = _ScriptedService([done, ipc, done])
+    silent: list[dict[str, Any]] = []
+    bench._cycles(svc, watch, 2, lambda msg: None, silent=silent)
+    assert svc.calls == ["adjust", "stop", "adjust", "clear", "reset", "adjust", "stop"]
+    assert silent == [{"cycle": 1, "faults": ipc["faults"]}]
+    svc = _ScriptedService([ipc] * (bench.MAX_SILENT_STOPS + 1))
+    with pytest.raises(TwoProcessError, match=r"cycle 0: .*IPC_TIMEOUT"):
+        bench._cycles(svc, watch, 1, lambda msg: None, silent=[])
+    over = {"mode": "ABORTED", "fault_reasons": ["overload: sub_leg_1"],
+            "faults": [{"interlock": str(Interlock.OVERLOAD), "where": "sub_leg_1"}]}  # fmt: skip
+    with pytest.raises(TwoProcessError, match="overload"):
+        bench._cycles(_ScriptedService([over]), watch, 1, lambda msg: None, silent=[])
+
+
 @pytest.mark.realtime
 @pytest.mark.slow
 def test_bench_opcua_reports_the_loop_and_the_latency_with_its_parts() -> None:
@@ -566,7 +615,8 @@ def test_bench_opcua_reports_the_loop_and_the_latency_with_its_parts() -> None:
     phases' loop figures, the latency of the clients' state notifications and the part of it
     before the server wrote the value, the server's feed reports, and the operator's method
     calls timed to their state notifications (no timing goal)."""
-    from wara.demo_two_process import netns_problem
+    from wara.benches.opcua import MAX_SILENT_STOPS
+    from wara.demo_two_process import netns_problem, silent_process_stop
 
     why = netns_problem()
     if why is not None:
@@ -599,7 +649,11 @@ def test_bench_opcua_reports_the_loop_and_the_latency_with_its_parts() -> None:
     # the with phase's cycles driven by the operator's method calls: each StartAdjustment
     # and Stop timed from the call sent to its first state notification at that client
     call = out["call_latency_ms"]
-    assert len(out["calls"]) == 2 * 2 and call["missed"] == 0
+    # a cycle stopped on a silent process (decision 0030) is run again: its adjust counted
+    assert len(out["silent_stops"]) <= MAX_SILENT_STOPS
+    assert all(silent_process_stop(stop["faults"]) for stop in out["silent_stops"])
+    again = sum(1 for stop in out["silent_stops"] if stop["phase"] == "with")
+    assert len(out["calls"]) == 2 * 2 + again and call["missed"] == 0
     assert call["samples"] == len(out["calls"]) and call["goal_p99_below"] == 200.0
     figures = [call[k] for k in ("p50", "p99", "max", "call_p50", "call_p99")]
     assert all(isinstance(x, float) and math.isfinite(x) and x > 0 for x in figures)
@@ -607,7 +661,7 @@ def test_bench_opcua_reports_the_loop_and_the_latency_with_its_parts() -> None:
     assert call["call_p50"] <= call["call_p99"]
     assert 0 < call["to_server_p50"] <= call["to_server_p99"]
     assert {m: f["samples"] for m, f in call["by_method"].items()} == {
-        "StartAdjustment": 2,
+        "StartAdjustment": 2 + again,
         "Stop": 2,
     }
     assert isinstance(out["latency_goal_met"], bool)
