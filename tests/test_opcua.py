@@ -565,16 +565,22 @@ class _ScriptedService:
 
     def __init__(self, endings: list[dict[str, Any]]) -> None:
         self.endings, self.calls, self.mode = endings, [], "IDLE"
+        self.last: dict[str, Any] = {"mode": "IDLE"}
 
     def call(self, cmd: str, **args: Any) -> dict[str, Any]:
         self.calls.append(cmd)
         after = {"adjust": None, "stop": "IDLE", "clear": "STOPPED", "reset": "IDLE"}[cmd]
         self.mode = after or "ADJUST"
+        self.last = {"mode": self.mode}
         return {"ok": True}
 
+    def status(self) -> dict[str, Any]:
+        st = self.endings.pop(0) if self.mode == "ADJUST" else self.last
+        self.mode, self.last = st["mode"], st
+        return st
+
     def wait(self, pred: Any, timeout_s: float) -> dict[str, Any] | None:
-        st = self.endings.pop(0) if self.mode == "ADJUST" else {"mode": self.mode}
-        self.mode = st["mode"]
+        st = self.status()
         return st if pred(st) else None
 
 
