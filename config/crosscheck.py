@@ -375,9 +375,10 @@ def _envelope(cfg: ProjectConfig) -> str | None:
         what = f"the {name} layer's cylinders"
         spans.append((f"layers.{name}.half_span_x_m", layer.a_m, what, 0.0, True))
         spans.append((f"layers.{name}.half_span_y_m", layer.b_m, what, 0.0, False))
-    if cfg.frames is not None and cfg.walking is not None:
-        sub, reach = cfg.frames.sub, cfg.walking.step_length_m / 2.0
-        step = _g(cfg.walking.step_length_mm)
+    if cfg.walks:
+        frames, walking = cfg.walking_sections()
+        sub, reach = frames.sub, walking.step_length_m / 2.0
+        step = _g(walking.step_length_mm)
         what = f"S's legs at either end of a step (walking.step_length_mm {step})"
         spans.append(("frames.sub.half_span_x_m", sub.a_m, what, reach, True))
         spans.append(("frames.sub.half_span_y_m", sub.b_m, "S's legs", 0.0, False))

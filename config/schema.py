@@ -1193,6 +1193,10 @@ class Placement(Strict):
 # --------------------------------------------------------------------------- project
 
 
+#: Why a project without the frames and walking sections is refused a walk.
+CANNOT_WALK = "the project has no frames and walking sections: it cannot walk"
+
+
 class ProjectConfig(Strict):
     """A complete tunnel-project parameter set (one YAML file)."""
 
@@ -1229,6 +1233,17 @@ class ProjectConfig(Strict):
         return self
 
     opcua: OpcUa = OpcUa()
+
+    @property
+    def walks(self) -> bool:
+        """Whether the project has the frames and walking sections (they go together)."""
+        return self.frames is not None and self.walking is not None
+
+    def walking_sections(self) -> tuple[Frames, Walking]:
+        """The frames and walking sections; ValueError (:data:`CANNOT_WALK`) without."""
+        if self.frames is None or self.walking is None:
+            raise ValueError(CANNOT_WALK)
+        return self.frames, self.walking
 
     @model_validator(mode="after")
     def _inventory(self) -> ProjectConfig:

@@ -440,10 +440,8 @@ class WalkingRig(Rig):
         rod_mass_kg: float = 150.0,
         load_holding_valves: bool = True,
     ) -> None:
-        if cfg.frames is None or cfg.walking is None:
-            raise ValueError("the walking rig needs the project's frames and walking sections")
+        frames, walk = cfg.walking_sections()
         super().__init__(cfg, step_s, rod_mass_kg, load_holding_valves)
-        frames, walk = cfg.frames, cfg.walking
         self.walking = walk
         by_id = {c.id: c for c in cfg.cylinders_by_can_index}
         main = [by_id[c].can_index for c in cfg.layers.lower.cylinders]

@@ -13,6 +13,7 @@ import pytest
 
 from config import ConfigError, ProjectConfig, load_project, units
 from config.hil_scenario import HilScenario
+from config.schema import CANNOT_WALK
 from hil_sim.rig import Rig
 from hil_sim.simulator import HilSimulator
 from hil_sim.walking import WalkingRig
@@ -187,7 +188,7 @@ def test_contact_events_need_the_walking_rig(project: ProjectConfig) -> None:
 
 def test_walking_rig_needs_the_frames(project: ProjectConfig) -> None:
     bare = project.model_copy(update={"frames": None, "walking": None})
-    with pytest.raises(ValueError, match="needs the project's frames and walking"):
+    with pytest.raises(ValueError, match=f"^{CANNOT_WALK}$"):
         WalkingRig(bare)
 
 

@@ -185,7 +185,7 @@ def capacity(cfg: ProjectConfig, item: Item) -> None:
 
     for case, c in worst_cases(cfg):
         checks: list[tuple[str, bool, float, float, str]] = []
-        if c.walking is not None and c.frames is not None:
+        if c.walks:
             for direction in ("forward", "back"):
                 w = plan_walk(c, 1, direction=direction)
                 why = w.refusal.message if w.refusal is not None else ""
@@ -264,7 +264,7 @@ def budgets(cfg: ProjectConfig, item: Item) -> None:
     from wara.goals import step_time_limit_s
 
     step_s = 0.0
-    if cfg.walking is not None and cfg.frames is not None:
+    if cfg.walks:
         step_s = step_time_limit_s(cfg)
         planned = plan_walk(cfg, 1).duration_s
         item.rows += [
@@ -410,7 +410,7 @@ def _run_item(
 
 def _skipped(name: str, cfg: ProjectConfig, s: Settings) -> tuple[str, str] | None:
     """``(status, why)`` of an item not run: asked not to, or not the project's."""
-    if name == "walk" and (cfg.walking is None or cfg.frames is None):
+    if name == "walk" and (not cfg.walks):
         return NOT_APPLICABLE, "the project has no walking and frames sections: it does not walk"
     if name == "cycle" and (cfg.cycle is None or cfg.placement is None):
         return NOT_APPLICABLE, "the project has no cycle and placement sections: it does not place"

@@ -357,8 +357,7 @@ def yaw_inertias_kg_m2(cfg: ProjectConfig) -> tuple[float, float]:
     controller's model: the simulator has its own, ``hil_sim.walking``)."""
     from ipc_app.model.statics import MachineStatics
 
-    assert cfg.frames is not None and cfg.walking is not None
-    lo, up, sub = cfg.layers.lower, cfg.layers.upper, cfg.frames.sub
+    lo, up, sub = cfg.layers.lower, cfg.layers.upper, cfg.walking_sections()[0].sub
     o = MachineStatics(cfg).origin_upper
     rod = cfg.hydraulics.rod_mass_kg
 
@@ -411,7 +410,7 @@ def _leg_statics_kg(cfg: ProjectConfig) -> dict[str, tuple[float, str]]:
     upper = cfg.cylinder(cfg.layers.upper.cylinders[0]).group
     put(lower, float(np.max(f_lower)), "the lower platform, loaded")
     put(upper, float(np.max(f_upper)), "the upper platform, loaded")
-    if cfg.walking is None or cfg.frames is None:
+    if not cfg.walks:
         return out
     wm = WalkingMachine(cfg)
     travel = [c for c in cfg.cylinders if c.role == "travel"]
@@ -441,9 +440,9 @@ def _turned_kg(cfg: ProjectConfig, cyl: Cylinder, frame: str = "main") -> float 
     about the pivot (curves.md section 3), on each rod ``I / (2 b_T^2)`` (M with the part
     69 t on the shipped machine, against 31.7 t along the rails; S 4.8 t). None: a
     group whose relative modes move its common load."""
-    if cyl.role != "travel" or cfg.walking is None or cfg.frames is None:
+    if cyl.role != "travel" or not cfg.walks:
         return None
-    b_t = cfg.walking.travel_half_span_m
+    b_t = cfg.walking_sections()[1].travel_half_span_m
     n = sum(1 for c in cfg.cylinders if c.role == "travel")
     return yaw_inertias_kg_m2(cfg)[TURNED_FRAMES.index(frame)] / (n * b_t * b_t)
 

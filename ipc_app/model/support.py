@@ -96,8 +96,7 @@ class WalkingMachine:
         unloaded: bool = False,
         standing: StandingLoad | None = None,
     ) -> None:
-        if cfg.frames is None or cfg.walking is None:
-            raise ValueError("the project has no frames and walking sections: it cannot walk")
+        frames, _ = cfg.walking_sections()
         statics = MachineStatics(cfg)
         self.g_base = statics.g_base
         mu, cu = statics.upper
@@ -120,7 +119,7 @@ class WalkingMachine:
         self.main: MassProperties = lump(tuple(fixed))
         #: S's structure (S's frame)
         self.sub: MassProperties = lump(without_rods(cfg, "sub"))
-        lo, sub = cfg.layers.lower, cfg.frames.sub
+        lo, sub = cfg.layers.lower, frames.sub
         self.main_legs_xy = np.stack([S * lo.a_m, T * lo.b_m], axis=1)
         self.sub_legs_xy = np.stack([S * sub.a_m, T * sub.b_m], axis=1)
         #: M's lump as the YAML gives it (before a measured trim)
@@ -297,10 +296,10 @@ def boot_cap_pressures_pa(cfg: ProjectConfig) -> dict[str, float]:
     end of its travel, its hanging legs' rods on the body), which the layers' statics
     leave out (the frames)."""
     out = home_cap_pressures_pa(cfg)
-    if cfg.frames is None or cfg.walking is None:
+    if not cfg.walks:
         return out
     machine = WalkingMachine(cfg)
-    x_s = -cfg.walking.step_length_m / 2
+    x_s = -cfg.walking_sections()[1].step_length_m / 2
     legs = machine.legs_xy(x_s)
     rods = len(machine.sub_legs_xy) * machine.rod_mass_kg
     mass = machine.mass_kg + rods

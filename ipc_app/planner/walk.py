@@ -340,12 +340,10 @@ class _Planner:
     def __init__(
         self, cfg: ProjectConfig, start: WalkStart, direction: str, unloaded: bool
     ) -> None:
-        if cfg.frames is None or cfg.walking is None:
-            raise ValueError("the project has no frames and walking sections: it cannot walk")
+        _, self.walk = cfg.walking_sections()
         if direction not in ORDER:
             raise ValueError(f"direction must be one of {', '.join(ORDER)}, got {direction!r}")
         self.cfg = cfg
-        self.walk = cfg.walking
         self.direction = direction
         up = cfg.layers.upper
         fit = fit_layer(np.asarray(start.upper_extensions_m), up.a_m, up.b_m)

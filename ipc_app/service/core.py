@@ -33,7 +33,7 @@ from typing import Any
 import numpy as np
 import structlog
 
-from config.schema import ProjectConfig
+from config.schema import CANNOT_WALK, ProjectConfig
 from ipc_app.control.attitude import AttitudeController
 from ipc_app.model.placement import Pose
 from ipc_app.planner.placement import PlacementPlan
@@ -355,8 +355,8 @@ class ServiceCore:
         :attr:`on_axis` from the turns it measured). The reply: what it set, the
         estimate it replaced (the start's when none) and the change."""
         cfg = self.cfg
-        if cfg.walking is None or cfg.frames is None:
-            why = "locate refused: the project has no frames and walking sections: it cannot walk"
+        if not cfg.walks:
+            why = f"locate refused: {CANNOT_WALK}"
             return Reply.refused(why).to_dict()
         m = self.motions.active
         if isinstance(m, WalkMotion) and m.on_axis_pending:
@@ -449,7 +449,7 @@ class ServiceCore:
         rc = self.ring_cycle
         cycle = rc.status() if rc is not None else None
         snap = self.board.snapshot(self.link, self._inputs, self.motions.active, cycle)
-        if self.cfg.walking is not None and self.cfg.frames is not None:
+        if self.cfg.walks:
             # where the machine stands against the axis (what `wara ctl locate` replaces)
             snap["on_axis"] = (self.on_axis or on_axis_at_start(self.cfg)).to_dict()
         return snap

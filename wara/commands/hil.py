@@ -111,7 +111,7 @@ def rig_scenario(cfg: ProjectConfig, scenario: HilScenario, rig: str | None) -> 
     if rig is None:
         if "contact" in scenario.plant.model_fields_set:
             return scenario
-        rig = "walking" if cfg.walking is not None and cfg.frames is not None else "attitude"
+        rig = "walking" if cfg.walks else "attitude"
     plant = scenario.plant.model_copy(update={"contact": rig == "walking"})
     return scenario.model_copy(update={"plant": plant})
 
@@ -148,7 +148,7 @@ def _run(args: argparse.Namespace) -> int:
     cfg = load_project(args.config)
     scenario = scenario_with_faults(load_hil_scenario(args.scenario), args.fault)
     scenario = rig_scenario(cfg, scenario, args.rig)
-    if scenario.plant.contact and (cfg.walking is None or cfg.frames is None):
+    if scenario.plant.contact and (not cfg.walks):
         raise UsageError(
             "the walking rig needs the project's frames and walking sections "
             f"({cfg.project.name} has {'no walking' if cfg.walking is None else 'no frames'}); "

@@ -20,6 +20,7 @@ from pathlib import Path
 
 from config import load_project, units
 from config.numbers import decimal, integer
+from config.schema import CANNOT_WALK
 from ipc_app.planner.steering import OnAxis
 from ipc_app.planner.walk import DIRECTIONS, WalkPlan, WalkStart, plan_walk, start_state
 from wara.cli import EXIT_FAILED, EXIT_INFEASIBLE, EXIT_OK, UsageError, check_walk_steps
@@ -109,8 +110,8 @@ def run_walk_cmd(args: argparse.Namespace) -> int:
         raise UsageError("wara walk: give --steps N (the walk) or the verb plan")
     check_walk_steps(args.steps)
     cfg = load_project(args.config)
-    if cfg.frames is None or cfg.walking is None:
-        raise UsageError("the project has no frames and walking sections: it cannot walk")
+    if not cfg.walks:
+        raise UsageError(CANNOT_WALK)
     from wara.extras import require, require_realtime_simulator
 
     if args.plot:
@@ -178,8 +179,8 @@ def run_plan(args: argparse.Namespace) -> int:
     if args.start_x_s_mm is not None and not math.isfinite(args.start_x_s_mm):
         raise UsageError("--start-x-s-mm must be a finite number")
     cfg = load_project(args.config)
-    if cfg.frames is None or cfg.walking is None:
-        raise UsageError("the project has no frames and walking sections: it cannot walk")
+    if not cfg.walks:
+        raise UsageError(CANNOT_WALK)
     nominal = start_state(cfg)
     start = WalkStart(
         x_s_m=nominal.x_s_m if args.start_x_s_mm is None else units.mm(args.start_x_s_mm),

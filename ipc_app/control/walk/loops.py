@@ -86,10 +86,8 @@ class WalkLoops:
     TRAVEL_HOLD_INTEGRAL_RAD2_S2 = TRAVEL_HOLD_RAD_S**2 / 4
 
     def __init__(self, cfg: ProjectConfig, period_s: float, plan: WalkPlan) -> None:
-        if cfg.walking is None or cfg.frames is None:
-            raise ValueError("the project has no frames and walking sections: it cannot walk")
+        _, self.walk = cfg.walking_sections()
         self.cfg = cfg
-        self.walk = cfg.walking
         self.period_s = period_s
         self.plan = plan
         #: the present phase (None: before the first)

@@ -20,6 +20,7 @@ import numpy as np
 import structlog
 
 from config import units
+from config.schema import CANNOT_WALK
 from ipc_app.control.walk import WalkSequencer
 from ipc_app.model.support import WalkingMachine, cap_side_forces_n, standing_load
 from ipc_app.planner.steering import on_axis_at_start, walked
@@ -88,8 +89,8 @@ def plan_walk_here(
 ) -> WalkPlan | Reply:
     """Plan ``steps`` steps from the last measured state, in the planner process (the
     caller's thread waits; never the loop's); a refusal when the service cannot walk."""
-    if svc.cfg.walking is None or svc.cfg.frames is None:
-        msg = "the project has no frames and walking sections: it cannot walk"
+    if not svc.cfg.walks:
+        msg = CANNOT_WALK
         return Reply.bad_request(msg)
     start = walk_start(svc)
     if isinstance(start, str):
