@@ -196,7 +196,10 @@ def _mass_and_gravity(q, body_m, body_c, body_i, body_layer, rod_xy, rod_m, orig
     dr_l, dp_l = _rotation_partials(q[1], q[2])
     r_u = rotation(q[4], q[5])
     dr_u, dp_u = _rotation_partials(q[4], q[5])
-    r_lu = r_l @ r_u
+    r_lu = np.empty((3, 3))
+    for a in range(3):
+        for b in range(3):
+            r_lu[a, b] = r_l[a, 0] * r_u[0, b] + r_l[a, 1] * r_u[1, b] + r_l[a, 2] * r_u[2, b]
     jac = np.zeros((3, 6))
     omega = np.zeros((3, 6))
     wb = np.zeros((3, 6))
@@ -381,7 +384,7 @@ def _add_pad_forces(q, pads, pad_out, gen):
 @jit
 def _derivative(
     y, dy, u, ports, leak, f_ext, p, plat_idx, rod_xy, half_stroke, m_inv, q_g, pads, x_out,
-    f_out, pad_out,
+    f_out, pad_out, jrows, gen,
 ):  # fmt: skip
     """``dy = f(y)`` for the whole rig; writes rod positions/velocities and rod forces."""
     q = y[_Q : _Q + 6]
@@ -391,7 +394,6 @@ def _derivative(
     for i in range(N):
         x[i] = y[_X + i]
         v[i] = y[_V + i]
-    jrows = np.empty((8, 3))
     for j in range(8):
         qo = 3 * (j // 4)
         if j % 4 == 0:  # the layer's trigonometry, once for its four rods
@@ -403,7 +405,6 @@ def _derivative(
         x[i] = half_stroke[j] + d
         v[i] = j0 * qd[qo] + j1 * qd[qo + 1] + j2 * qd[qo + 2]
     cylinder_forces(y, dy, u, ports, leak, f_ext, p, x, v, f_out)
-    gen = np.empty(6)
     for a in range(6):
         gen[a] = q_g[a]
     _add_pad_forces(q, pads, pad_out, gen)
@@ -434,11 +435,8 @@ def _advance(
     platforms turn by microradians in that time.
     """
     n = y.shape[0]
-    k1 = np.empty(n)
-    k2 = np.empty(n)
-    k3 = np.empty(n)
-    k4 = np.empty(n)
-    tmp = np.empty(n)
+    stages = np.empty((5, n))
+    k1, k2, k3, k4, tmp = stages[0], stages[1], stages[2], stages[3], stages[4]
     m_mat, q_g = _mass_and_gravity(
         y[_Q : _Q + 6], body_m, body_c, body_i, body_layer, rod_xy, rod_m, origin_u, g_b
     )
@@ -447,7 +445,7 @@ def _advance(
     h6 = h / 6.0
     args = (
         u, ports, leak, f_ext, p, plat_idx, rod_xy, half_stroke, m_inv, q_g, pads, x_out, f_out,
-        pad_out,
+        pad_out, np.empty((8, 3)), np.empty(6),
     )  # fmt: skip
     for _ in range(n_steps):
         _derivative(y, k1, *args)
@@ -953,7 +951,7 @@ class Rig:
         _derivative(
             yy, dy, self.command, self.ports_open, self.valve_leak, self.external_force_n,
             self._p, self._plat_idx, self._rod_xy, self._half_stroke, inverse(m_mat), q_g,
-            self._pads, np.zeros((2, N)), np.zeros(N), np.zeros(4),
+            self._pads, np.zeros((2, N)), np.zeros(N), np.zeros(4), np.zeros((8, 3)), np.zeros(6),
         )  # fmt: skip
         return dy
 

@@ -195,8 +195,12 @@ def _capped(force, cap):
 def _walk_derivative(
     y, dy, u, ports, leak, f_ext, p, up_idx, up_xy, up_half, leg_idx, leg_xy, leg_sub,
     leg_half, travel_idx, e0, m_inv, q_g, foot_m, foot_inertia, g_b, k_c, c_c, ground, profile,
-    fric, anchor, k_t, c_t, mass_x, yaw, pads, x_out, f_out, n_out, pad_out,
+    fric, anchor, k_t, c_t, mass_x, yaw, pads, x_out, f_out, n_out, pad_out, ch, sh, jup, jleg,
+    normal, gen,
 ):  # fmt: skip
+    """``dy = f(y)`` for the walking rig; ``ch``, ``sh`` (2), ``jup`` (4, 3), ``jleg``
+    (8, 3), ``normal`` (2) and ``gen`` (6): scratch, given by the caller (an allocation
+    per call cost a sixth of the kernel)."""
     q = y[_Q : _Q + 6]
     qd = y[_QD : _QD + 6]
     x = x_out[0]
@@ -208,8 +212,6 @@ def _walk_derivative(
     v_s = y[_XW + 3] - y[_XW + 1]
     # headings: each frame's (its feet on the ground) and S's yaw psi in M (its legs and
     # the travel rods in M's frame)
-    ch = np.empty(2)
-    sh = np.empty(2)
     for frame in range(2):
         ch[frame] = math.cos(y[_YW + 2 * frame])
         sh[frame] = math.sin(y[_YW + 2 * frame])
@@ -218,14 +220,12 @@ def _walk_derivative(
     psi = y[_YW + 2] - y[_YW]
     psi_d = y[_YW + 3] - y[_YW + 1]
     b_t = yaw[_Y_BT]
-    jup = np.empty((4, 3))
     for j in range(4):
         d, j0, j1, j2 = extension_and_jacobian(q[3], q[4], q[5], up_xy[j, 0], up_xy[j, 1])
         jup[j, 0], jup[j, 1], jup[j, 2] = j0, j1, j2
         i = up_idx[j]
         x[i] = up_half[j] + d
         v[i] = j0 * qd[3] + j1 * qd[4] + j2 * qd[5]
-    jleg = np.empty((8, 3))
     for j in range(8):
         px = leg_xy[j, 0]
         py = leg_xy[j, 1]
@@ -242,7 +242,8 @@ def _walk_derivative(
         x[i] = e0 + x_s + side * s_psi
         v[i] = v_s + side * c_psi * psi_d
     cylinder_forces(y, dy, u, ports, leak, f_ext, p, x, v, f_out)
-    normal = np.zeros(2)
+    normal[0] = 0.0
+    normal[1] = 0.0
     for j in range(8):
         i = leg_idx[j]
         frame = leg_sub[j]
@@ -262,7 +263,6 @@ def _walk_derivative(
         dy[_HD + j] = (nf - f_out[i] + foot_m * g_b[2]) / foot_inertia
         dy[_X + i] = 0.0
         dy[_V + i] = 0.0
-    gen = np.empty(6)
     for a in range(6):
         gen[a] = q_g[a]
     _add_pad_forces(q, pads, pad_out, gen)
@@ -329,11 +329,8 @@ def _walk_advance(
     a slipping frame, and the lifted frame's lateral plan position follows the standing
     one's through the pivot."""
     n = y.shape[0]
-    k1 = np.empty(n)
-    k2 = np.empty(n)
-    k3 = np.empty(n)
-    k4 = np.empty(n)
-    tmp = np.empty(n)
+    stages = np.empty((5, n))
+    k1, k2, k3, k4, tmp = stages[0], stages[1], stages[2], stages[3], stages[4]
     m_mat, q_g = _mass_and_gravity(
         y[_Q : _Q + 6], body_m, body_c, body_i, body_layer, rod_xy, rod_m, origin_u, g_b
     )
@@ -343,7 +340,8 @@ def _walk_advance(
     args = (
         u, ports, leak, f_ext, p, up_idx, up_xy, up_half, leg_idx, leg_xy, leg_sub, leg_half,
         travel_idx, e0, m_inv, q_g, foot_m, foot_inertia, g_b, k_c, c_c, ground, profile, fric,
-        anchor, k_t, c_t, mass_x, yaw, pads, x_out, f_out, n_out, pad_out,
+        anchor, k_t, c_t, mass_x, yaw, pads, x_out, f_out, n_out, pad_out, np.empty(2),
+        np.empty(2), np.empty((4, 3)), np.empty((8, 3)), np.empty(2), np.empty(6),
     )  # fmt: skip
     normals = np.zeros(2)
     if n_steps == 0:
@@ -738,7 +736,8 @@ class WalkingRig(Rig):
             self.ground, self.profile, self.friction, self._anchor.copy(), self.shear_stiffness_n_m,
             self._c_t,
             self._mass_x, self._yaw.copy(), self._pads, np.zeros((2, N)), np.zeros(N),
-            np.zeros(8), np.zeros(4),
+            np.zeros(8), np.zeros(4), np.zeros(2), np.zeros(2), np.zeros((4, 3)), np.zeros((8, 3)),
+            np.zeros(2), np.zeros(6),
         )  # fmt: skip
         return dy
 
