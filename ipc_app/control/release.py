@@ -55,6 +55,11 @@ def upper_index(cfg: ProjectConfig) -> list[int]:
     return [cfg.cylinder(c).can_index for c in cfg.layers.upper.cylinders]
 
 
+def upper_cap_areas_m2(cfg: ProjectConfig) -> FloatArray:
+    """The upper cylinders' cap areas (4,), m^2, in the layer's order."""
+    return np.array([cfg.cylinder(c).cap_area_m2 for c in cfg.layers.upper.cylinders])
+
+
 def load_pressures_pa(cfg: ProjectConfig, p: FloatArray) -> FloatArray:
     """The upper cylinders' load pressures (4,), Pa: ``(p_A A_A - p_B A_B) / A_A`` from
     the chamber pressures ``p`` (19, 2)."""
