@@ -80,7 +80,9 @@ class Cycle(Strict):
     release_speed_mm_s: Annotated[Finite, Field(gt=0, le=20)] = 1.0
     #: ... until every upper cylinder's load pressure (rod force over cap area) is within
     #: this of its empty-platform value (the statics without the workpiece, less the
-    #: rods' friction while lowering); at loading, of its value with the part on
+    #: rods' friction while lowering); at loading, their mean (weighted by the cap areas:
+    #: their summed force) of its value with the part on (the part's COG as cast moves
+    #: its weight between the four, not their sum)
     platform_pressure_tolerance_mpa: Annotated[Finite, Field(gt=0, le=10)] = 0.2
     #: then a further lowering, clear of the part, before the controlled stop
     release_clearance_mm: Annotated[Finite, Field(ge=0, le=100)] = 5.0
