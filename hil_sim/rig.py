@@ -196,10 +196,7 @@ def _mass_and_gravity(q, body_m, body_c, body_i, body_layer, rod_xy, rod_m, orig
     dr_l, dp_l = _rotation_partials(q[1], q[2])
     r_u = rotation(q[4], q[5])
     dr_u, dp_u = _rotation_partials(q[4], q[5])
-    r_lu = np.empty((3, 3))
-    for a in range(3):
-        for b in range(3):
-            r_lu[a, b] = r_l[a, 0] * r_u[0, b] + r_l[a, 1] * r_u[1, b] + r_l[a, 2] * r_u[2, b]
+    r_lu = r_l @ r_u
     jac = np.zeros((3, 6))
     omega = np.zeros((3, 6))
     wb = np.zeros((3, 6))

@@ -410,7 +410,7 @@ def _run_item(
 
 def _skipped(name: str, cfg: ProjectConfig, s: Settings) -> tuple[str, str] | None:
     """``(status, why)`` of an item not run: asked not to, or not the project's."""
-    if name == "walk" and (not cfg.walks):
+    if name == "walk" and not cfg.walks:
         return NOT_APPLICABLE, "the project has no walking and frames sections: it does not walk"
     if name == "cycle" and (cfg.cycle is None or cfg.placement is None):
         return NOT_APPLICABLE, "the project has no cycle and placement sections: it does not place"

@@ -148,7 +148,7 @@ def _run(args: argparse.Namespace) -> int:
     cfg = load_project(args.config)
     scenario = scenario_with_faults(load_hil_scenario(args.scenario), args.fault)
     scenario = rig_scenario(cfg, scenario, args.rig)
-    if scenario.plant.contact and (not cfg.walks):
+    if scenario.plant.contact and not cfg.walks:
         raise UsageError(
             "the walking rig needs the project's frames and walking sections "
             f"({cfg.project.name} has {'no walking' if cfg.walking is None else 'no frames'}); "
