@@ -236,6 +236,26 @@ def _arcs(cfg: ProjectConfig) -> list[tuple[str, str, float | None]]:
     return out
 
 
+def tightest_curve(cfg: ProjectConfig) -> tuple[str, float, float] | None:
+    """The tightest arc the rings lie on: ``(its radius's key, signed radius m, a
+    chainage on it)``, the chainage one step in from where the rings meet it (the middle
+    of an arc shorter than two steps), so a step either way stays on it; ``None`` without
+    an arc (a straight axis, a table, no ``walking``)."""
+    al, w = cfg.tunnel.alignment, cfg.walking
+    if al is None or al.horizontal is None or w is None:
+        return None
+    elements = al.horizontal.elements
+    best: tuple[str, float, float] | None = None
+    for i, e in _ring_elements(elements, al.first_ring_chainage_m):
+        if not e.radius_m or (best is not None and abs(e.radius_m) >= abs(best[1])):
+            continue
+        start = max(e.start_chainage_m, al.first_ring_chainage_m)
+        end = elements[i + 1].start_chainage_m if i + 1 < len(elements) else math.inf
+        at = start + w.step_length_m if end - start >= 2.0 * w.step_length_m else (start + end) / 2
+        best = (f"tunnel.alignment.horizontal.elements[{i}].radius_m", e.radius_m, at)
+    return best
+
+
 def _radius_and_taper(cfg: ProjectConfig) -> str | None:
     part, gap = cfg.workpiece, cfg.acceptance.max_gap_mm
     w_l = 1000.0 * part.width_m * part.length_m  # mm m: the opening is w L / R

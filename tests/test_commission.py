@@ -20,6 +20,7 @@ import yaml
 from config import default_project_path
 from config.loader import validate_data
 from config.schema import ProjectConfig
+from ipc_app.planner.walk import plan_walk
 from tests.cli_helpers import run_main, run_wara
 from wara.commission import (
     FIT,
@@ -30,6 +31,7 @@ from wara.commission import (
     budgets,
     capacity,
     delay_margin,
+    steered_start,
     worst_cases,
 )
 from wara.commission_runs import campaign_spec, cycle_steps, goal_rows
@@ -78,7 +80,7 @@ def test_the_worst_cases_are_the_steepest_grades_of_the_alignment() -> None:
     cfg = validate_data(ProjectConfig, data, "metro")
     cases = worst_cases(cfg)
     assert len(cases) == 2  # as written, and the -0.2 % gradient's exact pitch (0.1146)
-    assert cases[1][1].base.pitch_deg == pytest.approx(0.11459, abs=1e-4)
+    assert cases[1].cfg.base.pitch_deg == pytest.approx(0.11459, abs=1e-4)
     data["tunnel"]["alignment"] = {
         "points": [
             {"chainage_m": 0, "x_m": 0, "y_m": 0, "z_m": 0},
@@ -87,8 +89,32 @@ def test_the_worst_cases_are_the_steepest_grades_of_the_alignment() -> None:
         ]
     }
     cfg = validate_data(ProjectConfig, data, "metro")
-    pitches = sorted(c.base.pitch_deg for _, c in worst_cases(cfg)[1:])
+    pitches = sorted(c.cfg.base.pitch_deg for c in worst_cases(cfg)[1:])
     assert pitches == pytest.approx([-0.5729, 1.7180], abs=1e-3)  # +1 % and -3 %
+
+
+def test_the_tightest_curve_is_a_worst_case_where_the_step_turns_its_most() -> None:
+    """The curved example project: its 400 m arc (ring 1 on it) on the 3 % grade is a
+    case, and there each step turns ``step / R`` plus the bounded correction, each way;
+    the capacity item plans it (and a straight project has no such case)."""
+    path = default_project_path().with_name("curved_grade_heavy_part.yaml")
+    cfg = validate_data(ProjectConfig, yaml.safe_load(path.read_text(encoding="utf-8")), "c")
+    (curve,) = [c for c in worst_cases(cfg) if c.curve is not None]
+    radius, chainage = curve.curve
+    assert radius == 400.0 and chainage == pytest.approx(2.0)  # one step in from ring 1
+    assert curve.cfg.base.pitch_deg == pytest.approx(-1.7184, abs=1e-3)  # rising 3 %
+    assert cfg.walking is not None
+    most = cfg.walking.step_length_m / radius + cfg.walking.max_heading_correction_per_step_rad
+    for direction, sign in (("forward", 1.0), ("back", -1.0)):
+        w = plan_walk(curve.cfg, 1, steered_start(curve, direction), direction=direction)
+        assert w.feasible
+        assert w.turns[0].turn_rad == pytest.approx(sign * most, rel=1e-3)
+    item = Item("capacity", "capacity")
+    capacity(cfg, item)
+    turning = [r for r in item.rows if r["case"] == curve.label and "turning" in r["plan"]]
+    assert len(turning) == 2 and item.status == FIT
+    metro = validate_data(ProjectConfig, metro_data(), "metro")
+    assert all(c.curve is None for c in worst_cases(metro))
 
 
 def test_a_part_too_heavy_for_the_supply_is_refused_by_the_capacity_item() -> None:

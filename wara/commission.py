@@ -7,7 +7,8 @@ It assembles what the other commands check, each as an *item* with a verdict
   validate`` runs them);
 - ``capacity``: the walk, attitude and placement planners' verdicts at the worst case
   (:func:`worst_cases`: the project's heaviest load, the part, on the steepest grades of
-  its alignment), against what the supply gives (:mod:`ipc_app.planner.capacity`);
+  its alignment and on its tightest curve), against what the supply gives
+  (:mod:`ipc_app.planner.capacity`);
 - ``delay-margin``: each loop's bandwidths and modelled delay margin
   (:mod:`ipc_app.control.tuning`, as ``wara sim delay-margin`` reports them);
 - ``budgets``: the step's time budget and the ring cycle's (:mod:`wara.goals`): the walks
@@ -32,7 +33,7 @@ import os
 import time
 import traceback
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -119,22 +120,66 @@ def with_pitch(cfg: ProjectConfig, pitch_deg: float) -> ProjectConfig:
     return cfg.model_copy(update={"base": cfg.base.model_copy(update={"pitch_deg": pitch_deg})})
 
 
-def worst_cases(cfg: ProjectConfig) -> list[tuple[str, ProjectConfig]]:
+@dataclass(frozen=True)
+class WorstCase:
+    """One case the capacity item plans: its label, the project as planned there and,
+    on a curve, where the walk starts against the axis each way
+    (:func:`steered_start`)."""
+
+    label: str
+    cfg: ProjectConfig
+    #: ``(signed radius m, chainage m)`` of the tightest curve the walk plans on
+    curve: tuple[float, float] | None = None
+
+
+def worst_cases(cfg: ProjectConfig) -> list[WorstCase]:
     """The cases the capacity item plans: the project as written, then the invert on
     each of the steepest grades of its alignment (the most rising and the most falling
-    segment, :func:`config.crosscheck.pitch_range_deg`) where they differ from it. The
-    load is the project's heaviest, the machine with its part (the planners' statics
-    carry the bodies of the YAML). A new kind of worst case (the tightest curve, when an
-    alignment can have one) is a case more here."""
-    cases = [(f"as written, base.pitch_deg {cfg.base.pitch_deg:g}", cfg)]
+    segment, :func:`config.crosscheck.pitch_range_deg`) where they differ from it, then
+    the tightest curve the rings lie on (:func:`config.crosscheck.tightest_curve`) on
+    its own grade, the walk steering back its most (:func:`steered_start`). The load is
+    the project's heaviest, the machine with its part (the planners' statics carry the
+    bodies of the YAML)."""
+    cases = [WorstCase(f"as written, base.pitch_deg {cfg.base.pitch_deg:g}", cfg)]
     rng = crosscheck.pitch_range_deg(cfg)
     if rng is not None:
         for pitch in sorted(set(rng)):
             if abs(pitch - cfg.base.pitch_deg) > 1e-6:
                 grade = -100.0 * math.tan(math.radians(pitch))
                 label = f"steepest grade {grade:+.3f} % (tunnel.alignment), pitch {pitch:.4f}"
-                cases.append((label, with_pitch(cfg, pitch)))
+                cases.append(WorstCase(label, with_pitch(cfg, pitch)))
+    curve = crosscheck.tightest_curve(cfg)
+    al = cfg.tunnel.alignment
+    if curve is not None and al is not None and al.vertical is not None:
+        from config.alignment import level
+
+        key, radius, chainage = curve
+        grade = level(al.vertical, chainage).grade
+        pitch = crosscheck.gradient_pitch_deg(100.0 * grade)
+        label = (
+            f"tightest curve {radius:g} m ({key}) at chainage {chainage:.1f} m, grade "
+            f"{100.0 * grade:+.3f} %, steering back its most"
+        )
+        cases.append(WorstCase(label, with_pitch(cfg, pitch), (radius, chainage)))
     return cases
+
+
+def steered_start(case: WorstCase, direction: str) -> Any:
+    """The walk's start in ``case`` (``None``: the planner's own, on the axis at ring 1's
+    rear joint face); on its curve, the machine on the axis with the heading error that
+    makes the step's correction (``walking.max_heading_correction_per_step_deg``) add to
+    the axis's turn: the step turns its most, ``step / R`` plus the correction."""
+    if case.curve is None:
+        return None
+    from ipc_app.planner.steering import OnAxis
+    from ipc_app.planner.walk import start_state
+
+    assert case.cfg.walking is not None
+    radius, chainage = case.curve
+    sign = 1.0 if direction == "forward" else -1.0
+    error = -sign * math.copysign(case.cfg.walking.max_heading_correction_per_step_rad, radius)
+    start = start_state(case.cfg)
+    return replace(start, on_axis=OnAxis(chainage, heading_error_rad=error))
 
 
 # ------------------------------------------------------------------ offline items
@@ -183,15 +228,19 @@ def capacity(cfg: ProjectConfig, item: Item) -> None:
     from ipc_app.planner.placement import plan_from_deviation
     from ipc_app.planner.walk import plan_walk
 
-    for case, c in worst_cases(cfg):
+    for wc in worst_cases(cfg):
+        case, c = wc.label, wc.cfg
         checks: list[tuple[str, bool, float, float, str]] = []
         if c.walks:
             for direction in ("forward", "back"):
-                w = plan_walk(c, 1, direction=direction)
+                w = plan_walk(c, 1, steered_start(wc, direction), direction=direction)
                 why = w.refusal.message if w.refusal is not None else ""
                 peak = _walk_pressure(c, w)
                 limit = pressure_limit_pa(c, "holds")
-                checks.append((f"walk 1 step {direction}, loaded", w.feasible, peak, limit, why))
+                what = f"walk 1 step {direction}, loaded"
+                if wc.curve is not None and w.turns:
+                    what += f", turning {units.to_deg(w.turns[0].turn_rad):+.3f} deg"
+                checks.append((what, w.feasible, peak, limit, why))
         for roll, pitch in EXAMPLES:
             p = plan(c, roll, pitch, with_trajectory=False)
             limit = pressure_limit_pa(c, "moves")
@@ -230,10 +279,7 @@ def capacity(cfg: ProjectConfig, item: Item) -> None:
             )
             if not ok:
                 item.refuse(f"{case}: {what}: {why}")
-    item.figures["cases"] = [case for case, _ in worst_cases(cfg)]
-    item.notes.append(
-        "a curved alignment's tightest curve is not a case yet: no planner takes a curve"
-    )
+    item.figures["cases"] = [wc.label for wc in worst_cases(cfg)]
 
 
 def delay_margin(cfg: ProjectConfig, item: Item) -> None:
