@@ -105,9 +105,15 @@ def walk_item(path: str, steps: int, item: Item, logs: Path, bar: Progress) -> N
     data = _child_json(code, out, err, item, "wara walk")
     if data is None:
         return
-    item.rows = goal_rows(data.get("steps", []), "step")
-    item.figures = {k: data.get(k) for k in ("passed", "distance_m", "final_mode", "missed")}
-    item.figures["steps"] = len(data.get("steps", []))
+    walked = data.get("steps", [])
+    # the walk's own goals (its distance, its heading against the axis's at the end)
+    whole = goal_rows([{"goals": data.get("goals", {})}], "")
+    for r in whole:
+        r["figure"], r["at"] = f"the walk's {r['figure']}", f"{len(walked)} step(s)"
+    item.rows = whole + goal_rows(walked, "step")
+    keys = ("passed", "distance_m", "heading_error_deg", "lateral_offset_mm", "final_mode")
+    item.figures = {k: data.get(k) for k in (*keys, "missed")}
+    item.figures["steps"] = len(walked)
     if data.get("refused") is not None:
         item.refuse(f"refused before it moved: {data.get('error') or data['refused']}")
     elif not data.get("passed"):
