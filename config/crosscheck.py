@@ -186,15 +186,18 @@ def gradient_pitch_deg(gradient_percent: float) -> float:
 
 def pitch_range_deg(cfg: ProjectConfig) -> tuple[float, float] | None:
     """The base pitches of the design axis's gradients, ``(least, most)`` deg (one
-    gradient: both the same; ``None`` without an alignment)."""
+    gradient: both the same; ``None`` without an alignment); of an axis by chainage, the
+    grades the rings lie on (the elements ending after ring 1's chainage)."""
     al = cfg.tunnel.alignment
     if al is None:
         return None
     if al.gradient_percent is not None:
         p = gradient_pitch_deg(al.gradient_percent)
         return p, p
-    if al.vertical is not None:
-        grades = [
+    if al.vertical is not None:  # the grades the rings lie on (the approach's are not)
+        on = [e for _, e in _ring_elements(al.vertical.elements, al.first_ring_chainage_m)]
+        grades = [e.gradient_percent for e in on if e.gradient_percent is not None]
+        grades = grades or [
             e.gradient_percent for e in al.vertical.elements if e.gradient_percent is not None
         ]
         return min(map(gradient_pitch_deg, grades)), max(map(gradient_pitch_deg, grades))
@@ -519,7 +522,8 @@ RULES: tuple[Rule, ...] = (
         "base-pitch-is-the-gradient",
         ("base.pitch_deg", "tunnel.alignment"),
         f"`pitch_deg` = -atan(`gradient_percent` / 100) within {_g(PITCH_TOLERANCE_DEG)} "
-        "deg (a `points` table: within its segments' range; `vertical`: its grades')",
+        "deg (a `points` table: within its segments' range; `vertical`: the grades "
+        "the rings lie on)",
         _base_pitch,
     ),
     Rule(

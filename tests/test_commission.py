@@ -103,6 +103,10 @@ def test_the_tightest_curve_is_a_worst_case_where_the_step_turns_its_most() -> N
     radius, chainage = curve.curve
     assert radius == 400.0 and chainage == pytest.approx(2.0)  # one step in from ring 1
     assert curve.cfg.base.pitch_deg == pytest.approx(-1.7184, abs=1e-3)  # rising 3 %
+    # the grades are those the rings lie on: the approach's 0.3 % behind ring 1 is no case
+    assert [c.cfg.base.pitch_deg for c in worst_cases(cfg)][1:] == pytest.approx(
+        [-1.7184] * 2, abs=1e-3
+    )
     assert cfg.walking is not None
     most = cfg.walking.step_length_m / radius + cfg.walking.max_heading_correction_per_step_rad
     for direction, sign in (("forward", 1.0), ("back", -1.0)):
