@@ -2,7 +2,9 @@
 the shipped machine on a 400 m curve to the left and a 3 % rising grade with 40 t parts
 tapered 47.5 mm (docs/curves.md). It validates, the walk plan carries the part, ring 2's
 target is within Table 4, and the part placed in lockstep on the simulator is judged
-against Table 4 with the gap at both ends of the joint."""
+against Table 4 with the gap at both ends of the joint; end to end in lockstep against
+its own goals: the attitude examples on its pitched invert, a step along the curve, and
+a ring cycle (a step there, ring 2 placed, a step back unloaded)."""
 
 from __future__ import annotations
 
@@ -17,6 +19,9 @@ from config import crosscheck, default_project_path, load_project
 from ipc_app.model.placement import Pose, axis_pose, ring_chainage_m
 from ipc_app.planner.placement import plan_from_deviation
 from tests.cli_helpers import run_main
+from tests.walk_checks import assert_steps_within_the_walk_goals
+from wara.cycle import run_cycle
+from wara.demo import run_demo
 from wara.place import run_place
 from wara.walk import run_walk
 
@@ -156,3 +161,37 @@ def test_a_step_in_its_sag_curve_sets_each_foot_on_the_invert_there(tmp_path: Pa
     invert = feet[:4] + forces[:4] / cfg.walking.contact.stiffness_n_m
     front, rear = invert[[0, 3]].mean(), invert[[1, 2]].mean()  # legs at +a: 1, 4
     assert front - rear == pytest.approx(want, abs=1e-4)
+
+
+@pytest.mark.slow(seconds=30)
+def test_the_attitude_examples_pass_on_its_pitched_invert() -> None:
+    """The attitude examples on the invert of the 3 % grade (base pitch -1.72 deg) with
+    the 40 t part, each within the project's tolerances."""
+    out = run_demo(str(CURVED), mode="lockstep")
+    assert out["passed"], out.get("error") or out["fault_reasons"]
+    assert out["final_mode"] == "COMPLETE" and len(out["examples"]) == 3
+    for ex in out["examples"]:
+        assert ex["passed"], ex
+        for figure, limit in out["tolerances"].items():
+            assert ex[figure] <= limit, (figure, ex)
+
+
+@pytest.mark.slow(seconds=60)
+def test_a_ring_cycle_on_the_curve_places_ring_2_within_table_4(tmp_path: Path) -> None:
+    """A ring cycle on the 400 m curve: a step there turning with the axis, ring 2's
+    tapered part placed (Table 4 on the simulator's truth, the gap at both ends of the
+    joint), a step back unloaded; each step within the project's walk goals."""
+    cfg = load_project(CURVED)
+    out = run_cycle(str(CURVED), 1, db_path=tmp_path / "a.sqlite", cfg=cfg)
+    assert out["error"] is None, out["error"]
+    assert out["fault_reasons"] == [], out["fault_reasons"]
+    (ring,) = out["rings"]
+    assert ring["passed"], ring
+    steps = [*ring["walks"]["walk"], *ring["walks"]["walk_back"]]
+    assert len(steps) == 2
+    assert_steps_within_the_walk_goals(cfg, steps)
+    acc = cfg.acceptance
+    table4 = {k: getattr(acc, k) for k in type(acc).model_fields if getattr(acc, k) is not None}
+    for key, limit in table4.items():  # Table 4 on the simulator's truth
+        assert abs(ring[key]) <= limit, (key, ring[key])
+    assert 0.0 <= ring["min_gap_mm"] <= ring["max_gap_mm"] <= acc.max_gap_mm
