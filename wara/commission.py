@@ -135,7 +135,8 @@ class WorstCase:
 def worst_cases(cfg: ProjectConfig) -> list[WorstCase]:
     """The cases the capacity item plans: the project as written, then the invert on
     each of the steepest grades of its alignment (the most rising and the most falling
-    segment, :func:`config.crosscheck.pitch_range_deg`) where they differ from it, then
+    segment, :func:`config.crosscheck.pitch_range_deg`) where they differ from it by more
+    than the cross-check's tolerance (the pitch as written is within it of its grade), then
     the tightest curve the rings lie on (:func:`config.crosscheck.tightest_curve`) on
     its own grade, the walk steering back its most (:func:`steered_start`). The load is
     the project's heaviest, the machine with its part (the planners' statics carry the
@@ -144,7 +145,7 @@ def worst_cases(cfg: ProjectConfig) -> list[WorstCase]:
     rng = crosscheck.pitch_range_deg(cfg)
     if rng is not None:
         for pitch in sorted(set(rng)):
-            if abs(pitch - cfg.base.pitch_deg) > 1e-6:
+            if abs(pitch - cfg.base.pitch_deg) > crosscheck.PITCH_TOLERANCE_DEG:
                 grade = -100.0 * math.tan(math.radians(pitch))
                 label = f"steepest grade {grade:+.3f} % (tunnel.alignment), pitch {pitch:.4f}"
                 cases.append(WorstCase(label, with_pitch(cfg, pitch)))
