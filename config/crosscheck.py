@@ -27,7 +27,7 @@ from collections.abc import Callable, Collection, Sequence
 from dataclasses import dataclass
 from typing import TypeVar
 
-from config import derived, units
+from config import alignment, derived, units
 from config.schema import WORKPIECE_BODY, HorizontalElement, ProjectConfig, VerticalElement
 
 #: A rule's check: ``None`` if the project keeps the rule, else the one-line reason.
@@ -187,7 +187,8 @@ def gradient_pitch_deg(gradient_percent: float) -> float:
 def pitch_range_deg(cfg: ProjectConfig) -> tuple[float, float] | None:
     """The base pitches of the design axis's gradients, ``(least, most)`` deg (one
     gradient: both the same; ``None`` without an alignment); of an axis by chainage, the
-    grades the rings lie on (the elements ending after ring 1's chainage)."""
+    grades the rings lie on: the grade at ring 1's chainage (on a vertical curve, where
+    the rings meet it) and the grade elements after it."""
     al = cfg.tunnel.alignment
     if al is None:
         return None
@@ -195,11 +196,10 @@ def pitch_range_deg(cfg: ProjectConfig) -> tuple[float, float] | None:
         p = gradient_pitch_deg(al.gradient_percent)
         return p, p
     if al.vertical is not None:  # the grades the rings lie on (the approach's are not)
-        on = [e for _, e in _ring_elements(al.vertical.elements, al.first_ring_chainage_m)]
-        grades = [e.gradient_percent for e in on if e.gradient_percent is not None]
-        grades = grades or [
-            e.gradient_percent for e in al.vertical.elements if e.gradient_percent is not None
-        ]
+        v = al.vertical
+        on = [e for _, e in _ring_elements(v.elements, al.first_ring_chainage_m)]
+        grades = [100.0 * alignment.level(v, al.first_ring_chainage_m).grade]
+        grades += [e.gradient_percent for e in on if e.gradient_percent is not None]
         return min(map(gradient_pitch_deg, grades)), max(map(gradient_pitch_deg, grades))
     pitches = []
     for a, b in zip(al.points, al.points[1:], strict=False):
@@ -523,7 +523,7 @@ RULES: tuple[Rule, ...] = (
         ("base.pitch_deg", "tunnel.alignment"),
         f"`pitch_deg` = -atan(`gradient_percent` / 100) within {_g(PITCH_TOLERANCE_DEG)} "
         "deg (a `points` table: within its segments' range; `vertical`: the grades "
-        "the rings lie on)",
+        "the rings lie on, from the grade at ring 1's chainage)",
         _base_pitch,
     ),
     Rule(
