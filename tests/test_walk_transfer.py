@@ -1,6 +1,7 @@
 """A transfer's control and checks (ipc_app/control/walk/, docs/walking.md): the
 releasing legs' position loops are told the decompression of their oil columns, the
-receiving legs are judged against the plan's line to their standing share."""
+receiving legs are judged against the plan's line to their standing share; a lowering's
+standing legs against their share standing alone."""
 
 from __future__ import annotations
 
@@ -221,3 +222,29 @@ def test_a_resume_with_the_receiving_legs_at_their_target_ends_the_ramp_at_once(
     assert run.ramp is not None and run.ramp.linear_s == pytest.approx(0.0, abs=1e-9)
     seq.update(2.0, x, p, set(range(seq.n)))
     assert run.progress == 1.0
+
+
+def test_a_lowerings_standing_legs_are_judged_against_their_share_standing_alone() -> None:
+    """7a (M lowering, S standing): M's feet landing leave S's legs minimum-norm shares
+    below what they carried alone; each S leg is judged against the larger (decision
+    0037), never less: a foot pressing outside S's support raises a share, and that one
+    is kept."""
+    seq, x, p = in_transfer("7a")
+    run = seq.run
+    assert run is not None and run.phase.key == "7a"
+    alone = seq.share(seq.x_s(x), SUB)  # S where it stands at the phase's start
+    x_s = float(run.phase.x_s_m[0])
+    assert np.allclose(run.standing_share_n, alone)
+    assert np.all(alone[list(MAIN)] == 0.0)
+    run.touched = [True] * 4  # M's feet on the invert, pressing 3 MPa each
+    run.touch_force_n = [1e6] * 4
+    p[[seq.legs[j] for j in MAIN], 0] = 3e6
+    seq.update(1.0 + PERIOD_S, x, p, set(range(seq.n)))
+    share8 = seq._share8(x_s)
+    contact = seq.contact_n(seq.forces_n(p) - seq.friction_n())
+    min_norm = seq.held_shares.expected_n(seq.machine, x_s, share8, contact, np.zeros(8), list(SUB))
+    expected = np.array(seq.figures.expected_n)
+    for j in SUB:
+        assert expected[j] == pytest.approx(max(min_norm[j], share8[j], alone[j]), rel=1e-9)
+    # the floor is what judges here: below it the minimum-norm share of what M leaves
+    assert np.any(np.maximum(min_norm, share8)[list(SUB)] < 0.95 * alone[list(SUB)])

@@ -164,7 +164,7 @@ class PhaseRun:
     ground_shift_m: FloatArray = field(default_factory=lambda: np.zeros(4))
     #: machine time its group left its sync band, s (None: inside)
     out_of_band_since_s: float | None = None
-    #: what the standing frame's legs carry alone (a preload's or transfer's), N
+    #: what the standing frame's legs carry alone (a lowering's, preload's or transfer's), N
     standing_share_n: FloatArray = field(default_factory=lambda: np.zeros(8))
     #: each leg's oil-column stiffness at its rod's position at the phase's start, N/m
     k_oil_n_m: FloatArray = field(default_factory=lambda: np.full(8, math.inf))

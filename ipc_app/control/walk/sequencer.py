@@ -171,6 +171,8 @@ class WalkSequencer(WalkLoops):
         run.touch_force_n = [0.0] * 4
         run.free_force_n = [math.nan] * 4
         run.pressing = [False] * 4
+        # what the standing frame's legs carry alone (the overload's floor for them)
+        run.standing_share_n = self.share(x_s, run.role.standing)
         mark = self.lift_marks.get(tuple(run.role.frame))
         if mark is not None:  # the expected ground follows the body since the lift
             touch = mark.touch_rods_now(*self._invert_now(run, x, p, x_s))
@@ -709,7 +711,9 @@ class WalkSequencer(WalkLoops):
     def _expected_n(self, run: PhaseRun, cyc: PhaseCycle, x_s: float) -> FloatArray:
         """Expected shares (the overload check's), N: a force-controlled leg the plan's
         force now, a leg held in position its minimum-norm share of what the others'
-        forces on the body leave of the load; never below the eight-leg share."""
+        forces on the body leave of the load; never below the eight-leg share, nor a
+        standing leg in a lowering, preload or transfer below what it carries standing
+        alone (``run.standing_share_n``)."""
         x_s_now = x_s if run.kind is PhaseKind.TRAVEL else float(run.phase.x_s_m[0])
         share8 = self._share8(x_s_now)
         held = list(run.role.standing)
@@ -720,10 +724,15 @@ class WalkSequencer(WalkLoops):
             ),
             share8,
         )  # fmt: skip
-        if run.kind.ramps_force:
-            # the standing frame's legs shed load to the other frame's preload and then its
-            # transfer: a leg is overloaded only above what it carried standing alone; a lag
-            # behind the plan's release is the preload and transfer checks' to judge
+        if run.kind.ramps_force or run.kind is PhaseKind.LOWER:
+            # the standing frame's legs shed load to the other frame's feet landing, its
+            # preload and then its transfer: a leg is overloaded only above what it
+            # carried standing alone; a lag behind the plan's release is the preload and
+            # transfer checks' to judge. In a lowering the feet's forces and the standing
+            # legs' move within a cycle as the feet land: their minimum-norm shares of
+            # what the feet leave ran 6 kN (12 % of a light corner's) ahead of the legs
+            # (the ring campaign's S legs at 110-114 % in the walk back's 7a; decision
+            # 0037)
             expected = np.maximum(expected, run.standing_share_n)
         return expected
 
