@@ -49,6 +49,14 @@ class PhaseKind(Enum):
         return self in (PhaseKind.PRELOAD, PhaseKind.TRANSFER)
 
     @property
+    def sheds_standing_load(self) -> bool:
+        """The standing frame only sheds load to the other frame's feet landing, its
+        preload and its transfer: its legs are overloaded only above their share
+        standing alone (``PhaseRun.standing_share_n``; decision 0037): lowering,
+        preload and transfer."""
+        return self in (PhaseKind.LOWER, PhaseKind.PRELOAD, PhaseKind.TRANSFER)
+
+    @property
     def holds_twist(self) -> bool:
         """The standing frame stands in position control alone on the invert, its twist
         mode controlled (``WalkSequencer._twist_control``): while the travel pair moves,
@@ -164,7 +172,7 @@ class PhaseRun:
     ground_shift_m: FloatArray = field(default_factory=lambda: np.zeros(4))
     #: machine time its group left its sync band, s (None: inside)
     out_of_band_since_s: float | None = None
-    #: what the standing frame's legs carry alone (a lowering's, preload's or transfer's), N
+    #: what the standing frame's legs carry alone (where its kind sheds_standing_load), N
     standing_share_n: FloatArray = field(default_factory=lambda: np.zeros(8))
     #: each leg's oil-column stiffness at its rod's position at the phase's start, N/m
     k_oil_n_m: FloatArray = field(default_factory=lambda: np.full(8, math.inf))

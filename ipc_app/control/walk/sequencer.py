@@ -155,6 +155,8 @@ class WalkSequencer(WalkLoops):
         if k == 0 or ph.step != self.plan.phases[k - 1].step:
             self.steps.append(StepFigures(ph.step, started_s=now))
         self.phase_log.append((now, ph.step, ph.key))
+        if run.kind.sheds_standing_load:  # the overload's floor for its standing legs
+            run.standing_share_n = self.share(x_s, run.role.standing)
         self._START[run.kind](self, run, x, p, x_s)
         self.run = run
         self.figures.margin_ahead_m = self._margin_ahead(ph, x_s)
@@ -171,8 +173,6 @@ class WalkSequencer(WalkLoops):
         run.touch_force_n = [0.0] * 4
         run.free_force_n = [math.nan] * 4
         run.pressing = [False] * 4
-        # what the standing frame's legs carry alone (the overload's floor for them)
-        run.standing_share_n = self.share(x_s, run.role.standing)
         mark = self.lift_marks.get(tuple(run.role.frame))
         if mark is not None:  # the expected ground follows the body since the lift
             touch = mark.touch_rods_now(*self._invert_now(run, x, p, x_s))
@@ -207,8 +207,6 @@ class WalkSequencer(WalkLoops):
         control, the releasing legs' rates (:meth:`_set_release_rate`)."""
         f = run.start_force_n
         receiving, releasing = run.role.frame, run.role.standing
-        # what the standing frame's legs carry alone (the overload's floor for them)
-        run.standing_share_n = self.share(x_s, releasing)
         if run.kind is PhaseKind.PRELOAD:
             run.target_force_n = run.phase.leg_forces_n[-1].copy()
         else:
@@ -724,15 +722,11 @@ class WalkSequencer(WalkLoops):
             ),
             share8,
         )  # fmt: skip
-        if run.kind.ramps_force or run.kind is PhaseKind.LOWER:
-            # the standing frame's legs shed load to the other frame's feet landing, its
-            # preload and then its transfer: a leg is overloaded only above what it
-            # carried standing alone; a lag behind the plan's release is the preload and
-            # transfer checks' to judge. In a lowering the feet's forces and the standing
-            # legs' move within a cycle as the feet land: their minimum-norm shares of
-            # what the feet leave ran 6 kN (12 % of a light corner's) ahead of the legs
-            # (the ring campaign's S legs at 110-114 % in the walk back's 7a; decision
-            # 0037)
+        if run.kind.sheds_standing_load:
+            # a leg is overloaded only above what it carried standing alone; a lag behind
+            # the plan's release is the preload and transfer checks' to judge, the feet
+            # landing in a lowering move the minimum-norm shares ahead of the legs'
+            # pressures within a cycle (decision 0037)
             expected = np.maximum(expected, run.standing_share_n)
         return expected
 
