@@ -70,7 +70,7 @@ def test_a_step_is_judged_against_the_projects_walking_keys(project: ProjectConf
 def test_the_step_time_follows_the_planned_step_and_its_touch_downs(
     project: ProjectConfig,
 ) -> None:
-    """The shipped 2 m step is planned in 109.4 s (its transfers' ramps blended in and out,
+    """The shipped 2 m step is planned in 119.6 s (its transfers' ramps blended in and out,
     ipc_app.planner.force_ramp); each of its two lowerings may take the
     whole touch-down window (2 x 10 mm at the derived 2.4 mm/s). Half the touch-down
     speed doubles the windows; a shorter step plans shorter."""
@@ -78,7 +78,7 @@ def test_the_step_time_follows_the_planned_step_and_its_touch_downs(
     assert walking is not None
     limit = step_time_limit_s(project)
     window_s = 20.0 / 2.4
-    assert limit == pytest.approx(109.4 + 2 * window_s, abs=0.1)
+    assert limit == pytest.approx(119.6 + 2 * window_s, abs=0.1)
     slow = _with(project, "walking", touchdown_speed_mm_s=1.2)
     assert step_time_limit_s(slow) == pytest.approx(limit + 2 * window_s, abs=1e-6)
     short = _with(project, "walking", step_length_mm=200.0)
