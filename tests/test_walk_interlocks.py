@@ -5,11 +5,13 @@ from __future__ import annotations
 import math
 from typing import Any
 
+import numpy as np
 import pytest
 
 from config import load_project
 from config.schema import Walking
 from ipc_app.control.walk import WalkFigures
+from ipc_app.control.walk.forces import RodFriction
 from ipc_app.service.ctl import parse
 from ipc_app.service.interlocks import SPECS, Applies, Interlock
 from ipc_app.service.walk_interlocks import (
@@ -85,6 +87,40 @@ def test_overload_names_the_leg_and_its_percentage(lim: WalkLimits) -> None:
     assert c.value == pytest.approx(111.0) and c.limit == 110.0
     forces[5] = 109e3
     assert walk_causes(fig(leg_force_n=tuple(forces)), LEGS, lim) == []
+
+
+def test_a_leg_is_overloaded_only_beyond_what_its_seal_may_hold_unseen(lim: WalkLimits) -> None:
+    """A rod at rest holds any force within its seal's Coulomb friction: a leg's
+    pressures then read its load give or take that much. The overload judges the force
+    less the friction its motion does not tell (docs/walking.md)."""
+    forces = [100e3] * 8
+    forces[7] = 111.5e3  # 111.5 % on the pressures
+    at_rest = (2e3,) * 8  # the whole Coulomb friction unseen
+    assert walk_causes(fig(leg_force_n=tuple(forces), friction_unknown_n=at_rest), LEGS, lim) == []
+    forces[7] = 112.5e3  # 110.5 % even with the seal holding 2 kN of it
+    (c,) = walk_causes(fig(leg_force_n=tuple(forces), friction_unknown_n=at_rest), LEGS, lim)
+    assert c.where == "sub_leg_4" and c.value == pytest.approx(110.5)
+    assert "112.5 kN, less 2.0 kN its seal may hold, of an expected 100.0 kN" in c.text()
+    # the same leg moving: its friction is known from its motion, nothing unseen
+    (c,) = walk_causes(fig(leg_force_n=tuple(forces), friction_unknown_n=(0.0,) * 8), LEGS, lim)
+    assert c.value == pytest.approx(112.5)
+
+
+def test_the_friction_a_legs_motion_does_not_tell() -> None:
+    """At rest a rod's whole Coulomb friction is unknown (its sign and size: the seal
+    holds what it holds), at :attr:`RodFriction.COULOMB_SPEED_M_S` or faster none, in
+    between in proportion."""
+    coulomb = np.full(8, 2000.0)
+    rf = RodFriction(coulomb, np.zeros(8), 0.005)
+    x = np.zeros(8)
+    rf.restart(0.0, x)
+    rf.friction_n()
+    assert rf.unknown_n == pytest.approx((2000.0,) * 8)
+    speeds = np.array([0.0, 0.25, 0.5, 1.0, -0.25, -1.0, 0.0, 2.0]) * RodFriction.COULOMB_SPEED_M_S
+    for k in range(1, 12):  # the window filled at these speeds
+        rf.record(k * 0.005, speeds * k * 0.005)
+    rf.friction_n()
+    assert rf.unknown_n == pytest.approx((2000.0, 1500.0, 1000.0, 0.0, 1500.0, 0.0, 2000.0, 0.0))
 
 
 def test_touchdown_transfer_stability_and_slip(lim: WalkLimits) -> None:

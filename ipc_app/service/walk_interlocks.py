@@ -85,17 +85,19 @@ def walk_causes(fig: WalkFigures, leg_ids: Sequence[str], lim: WalkLimits) -> li
             )
         )
     if on(Interlock.OVERLOAD) and fig.leg_force_n:
-        ratios = [f / e for f, e in zip(fig.leg_force_n, fig.expected_n, strict=True)]
+        ratios = fig.force_ratios()
         j = max(range(len(ratios)), key=ratios.__getitem__)
         if ratios[j] > lim.overload_ratio:
+            unknown = fig.friction_unknown_n[j] if fig.friction_unknown_n else 0.0
             out.append(
                 Cause(
                     Interlock.OVERLOAD,
                     where=leg_ids[j],
                     value=100.0 * ratios[j],
                     limit=lim.overload_percent,
-                    detail=f"{fig.leg_force_n[j] / units.KN:.1f} kN of an expected "
-                    f"{fig.expected_n[j] / units.KN:.1f} kN (step {fig.step} phase {ph})",
+                    detail=f"{fig.leg_force_n[j] / units.KN:.1f} kN, less {unknown / units.KN:.1f} "
+                    f"kN its seal may hold, of an expected {fig.expected_n[j] / units.KN:.1f} "
+                    f"kN (step {fig.step} phase {ph})",
                 )
             )
     if on(Interlock.TOUCHDOWN) and fig.no_touchdown:

@@ -21,6 +21,9 @@ class WalkFigures:
     leg_force_n: tuple[float, ...] = ()
     #: expected force of each leg now (the plan's, at least its eight-leg share)
     expected_n: tuple[float, ...] = ()
+    #: the seal friction each leg's force may carry that its motion does not tell, N
+    #: (:attr:`~ipc_app.control.walk.forces.RodFriction.unknown_n`; empty: none)
+    friction_unknown_n: tuple[float, ...] = ()
     #: largest |sync error| of the moving leg group / the travel pair (0: not moving)
     leg_sync_m: float = 0.0
     travel_sync_m: float = 0.0
@@ -42,6 +45,15 @@ class WalkFigures:
     overdue_s: float = 0.0
     #: the worst receiving leg's share at a transfer's end (id, ratio), else ("", 1.0)
     share_off: tuple[str, float] = ("", 1.0)
+
+    def force_ratios(self) -> list[float]:
+        """Each leg's force over its expected share, the overload's figure: the force
+        less the seal friction it may carry unseen (a leg is judged overloaded only
+        when its load certainly is; docs/walking.md)."""
+        unknown = self.friction_unknown_n or (0.0,) * len(self.leg_force_n)
+        return [
+            (f - u) / e for f, u, e in zip(self.leg_force_n, unknown, self.expected_n, strict=True)
+        ]
 
 
 @dataclass
@@ -77,5 +89,4 @@ class StepFigures:
         self.max_leg_sync_error_m = max(self.max_leg_sync_error_m, fig.leg_sync_m)
         self.max_travel_sync_error_m = max(self.max_travel_sync_error_m, fig.travel_sync_m)
         self.min_stability_margin_m = min(self.min_stability_margin_m, fig.margin_m)
-        ratio = max(f / e for f, e in zip(fig.leg_force_n, fig.expected_n, strict=True))
-        self.max_leg_force_ratio = max(self.max_leg_force_ratio, ratio)
+        self.max_leg_force_ratio = max(self.max_leg_force_ratio, max(fig.force_ratios()))

@@ -52,6 +52,11 @@ class RodFriction:
         self.positions_m = np.zeros((rows, 8))
         self.times_s = [0.0] * rows
         self.next_row = 0
+        #: the Coulomb friction each leg's force may carry that :meth:`friction_n` could
+        #: not tell from its motion, N (8, of the last call): the whole of it at rest,
+        #: none at :attr:`COULOMB_SPEED_M_S` or faster (a seal at rest holds any force
+        #: within it; docs/walking.md, the expected shares)
+        self.unknown_n: tuple[float, ...] = tuple(coulomb_n.tolist())
 
     def restart(self, now_s: float, leg_positions_m: FloatArray) -> None:
         """Every row at the legs' positions now: at rest."""
@@ -80,12 +85,16 @@ class RodFriction:
         c_speed = self.COULOMB_SPEED_M_S
         out = [0.0] * 8
         if not span_s > 0.0:
+            self.unknown_n = tuple(self.coulomb_n.tolist())
             return np.array(out)
+        unknown = [0.0] * 8
         for j, (coulomb, viscous) in enumerate(self._friction):
             v = (newest[j] - oldest[j]) / span_s
             c = v / c_speed
             c = -1.0 if c < -1.0 else (1.0 if c > 1.0 else c)
             out[j] = coulomb * c + viscous * v
+            unknown[j] = coulomb * (1.0 - abs(c))
+        self.unknown_n = tuple(unknown)
         return np.array(out)
 
 

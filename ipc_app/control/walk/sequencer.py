@@ -704,6 +704,7 @@ class WalkSequencer(WalkLoops):
                 if i in self.force_mode:
                     judged[j] = aligned[j]
         fig.leg_force_n = tuple(judged)
+        fig.friction_unknown_n = self.rod_friction.unknown_n
         fig.phase_t_s = run.clock_s
 
     def _expected_n(self, run: PhaseRun, cyc: PhaseCycle, x_s: float) -> FloatArray:
