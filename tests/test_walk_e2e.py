@@ -74,7 +74,7 @@ def fault(evs: list[dict[str, Any]]) -> dict[str, Any]:
 
 
 def test_a_short_step_completes_with_every_phase_in_the_record(tmp_path: Path) -> None:
-    out, evs = walk(tmp_path, project(tmp_path))
+    out, evs = walk(tmp_path, project(tmp_path), plot_dir=tmp_path / "plots")
     assert out["final_mode"] == "COMPLETE", out["fault_reasons"]
     assert list(phase_starts(evs)) == ["1", "2", "3", "4", "5", "6", "7a", "7b", "7c", "8"]
     (done,) = [e for e in evs if e["kind"] == "walk_done"]
@@ -83,6 +83,9 @@ def test_a_short_step_completes_with_every_phase_in_the_record(tmp_path: Path) -
     for e in evs:
         if e["kind"] == "walk_phase":
             assert e["bus_load_percent"] <= 50.0
+    # walk.png: forces, rods, margin, the part's turn in each transfer, the phases
+    (png,) = out["plots"]
+    assert Path(png).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 
 def test_a_hole_under_a_foot_stops_the_lowering(tmp_path: Path) -> None:

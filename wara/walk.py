@@ -81,13 +81,15 @@ def against_axis(
 @dataclass
 class WalkTrace:
     """Per sample: time, phase index, leg forces (kN, truth), leg and travel rods (mm),
-    the service's stability margin."""
+    the service's stability margin, and in a transfer the part's roll and pitch change
+    from the transfer's start (mdeg, truth: the judged figure; NaN outside one)."""
 
     t: list[float] = field(default_factory=list)
     phase: list[int] = field(default_factory=list)
     forces_kn: list[list[float]] = field(default_factory=list)
     x_mm: list[list[float]] = field(default_factory=list)
     margin_m: list[float] = field(default_factory=list)
+    transfer_attitude_mdeg: list[tuple[float, float]] = field(default_factory=list)
 
 
 def walk_scenario(base: HilScenario | None = None) -> HilScenario:
@@ -208,8 +210,10 @@ def _follow(
                 say(f"step {st['step']} {st['direction']}")
             last = now
             att0 = rig.workpiece_attitude_rad() if st["phase"] in TRANSFER else None
+        turned = (math.nan, math.nan)
         if att0 is not None:
             r, pch = rig.workpiece_attitude_rad()
+            turned = (units.to_deg(r - att0[0]) * 1e3, units.to_deg(pch - att0[1]) * 1e3)
             change = units.to_deg(max(abs(r - att0[0]), abs(pch - att0[1])))
             truths[-1].attitude_change_deg = max(truths[-1].attitude_change_deg, change)
         if (mode == "lockstep" and h._k % 10 == 0) or mode == "realtime":
@@ -221,6 +225,7 @@ def _follow(
             trace.x_mm.append((rig.rod_positions_m[legs] * units.to_mm(1.0)).tolist())
             fm = st["stability_margin_m"]
             trace.margin_m.append(np.nan if fm is None else fm)
+            trace.transfer_attitude_mdeg.append(turned)
         if st["done"] or core.modes.mode not in (Mode.EXECUTE, Mode.HELD, Mode.SUSPENDED):
             break  # done, or ended otherwise (ridden through a suspension)
     if len(truths) > first and truths[-1].xy_end is None:
@@ -309,7 +314,8 @@ def _finish(
 def plot_walk(
     trace: WalkTrace, leg_ids: tuple[str, ...], goals: tuple[Goal, ...], out_dir: Path
 ) -> Path:
-    """Leg forces, leg and travel positions, the stability margin and the phase (PNG)."""
+    """Leg forces, leg and travel positions, the stability margin, the part's roll and
+    pitch change in each transfer against its limit, and the phase (PNG)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -317,7 +323,7 @@ def plot_walk(
 
     out_dir.mkdir(parents=True, exist_ok=True)
     t = np.asarray(trace.t)
-    fig, ax = plt.subplots(4, 1, figsize=(11, 12), sharex=True)
+    fig, ax = plt.subplots(5, 1, figsize=(11, 14), sharex=True)
     f = np.asarray(trace.forces_kn)
     for j, cid in enumerate(leg_ids):
         ax[0].plot(t, f[:, j], label=cid)
@@ -333,9 +339,19 @@ def plot_walk(
     margin = next(g.limit for g in goals if g.figure == "min_stability_margin_m")
     ax[2].axhline(margin, color="r", ls="--")
     ax[2].set_ylabel("stability margin m")
-    ax[3].plot(t, trace.phase, drawstyle="steps-post")
-    ax[3].set_ylabel("phase (index)")
-    ax[3].set_xlabel("machine time s")
+    turned = np.asarray(trace.transfer_attitude_mdeg, dtype=float).reshape(-1, 2)
+    ax[3].plot(t, turned[:, 0], label="roll")
+    ax[3].plot(t, turned[:, 1], label="pitch")
+    limit_mdeg = 1e3 * next(
+        g.limit for g in goals if g.figure == "max_transfer_attitude_change_deg"
+    )
+    for sign in (1.0, -1.0):
+        ax[3].axhline(sign * limit_mdeg, color="r", ls="--")
+    ax[3].set_ylabel("part's turn in a transfer mdeg")
+    ax[3].legend(ncol=2, fontsize=7)
+    ax[4].plot(t, trace.phase, drawstyle="steps-post")
+    ax[4].set_ylabel("phase (index)")
+    ax[4].set_xlabel("machine time s")
     path = out_dir / "walk.png"
     fig.tight_layout()
     fig.savefig(path, dpi=90)
