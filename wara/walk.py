@@ -213,8 +213,9 @@ def _follow(
         turned = (math.nan, math.nan)
         if att0 is not None:
             r, pch = rig.workpiece_attitude_rad()
-            turned = (units.to_deg(r - att0[0]) * 1e3, units.to_deg(pch - att0[1]) * 1e3)
-            change = units.to_deg(max(abs(r - att0[0]), abs(pch - att0[1])))
+            d_roll, d_pitch = units.to_deg(r - att0[0]), units.to_deg(pch - att0[1])
+            turned = (d_roll * 1e3, d_pitch * 1e3)
+            change = max(abs(d_roll), abs(d_pitch))
             truths[-1].attitude_change_deg = max(truths[-1].attitude_change_deg, change)
         if (mode == "lockstep" and h._k % 10 == 0) or mode == "realtime":
             legs = [cfg.cylinder(c).can_index for c in st["leg_forces_kn"]] + travel
