@@ -248,3 +248,28 @@ def test_a_lowerings_standing_legs_are_judged_against_their_share_standing_alone
         assert expected[j] == pytest.approx(max(min_norm[j], share8[j], alone[j]), rel=1e-9)
     # the floor is what judges here: below it the minimum-norm share of what M leaves
     assert np.any(np.maximum(min_norm, share8)[list(SUB)] < 0.95 * alone[list(SUB)])
+
+
+def test_the_force_loops_are_told_the_bodys_motion_on_the_holding_frame() -> None:
+    """Decision 0041: each force-controlled leg is told ``-k_leg w``, ``w`` the body's
+    speed at its foot from the plane of the holding frame's rods (low-passed), from rest
+    whenever the holding frame changes or the walk resumes."""
+    seq, x, _p = in_transfer("7c")
+    receiving = [seq.legs[j] for j in MAIN]
+    xy = seq.machine.legs_xy(seq.x_s(x))
+    heave_m_s, roll_rad_s = 1e-3, 2e-3  # the holding rods: up, and rolling about x
+    told: dict[int, float] = {}
+    for k in range(60):  # 0.3 s: 15 time constants of the filter (0.8 ** 59: 2e-6 left)
+        t = k * PERIOD_S
+        for j in SUB:
+            x[seq.legs[j]] = seq.half[seq.legs[j]] + (heave_m_s + roll_rad_s * xy[j, 1]) * t
+        told = seq.body_motion_n_s(SUB, x, receiving)
+        if k == 0:
+            assert told == {i: 0.0 for i in receiving}  # from rest
+    for j, i in zip(MAIN, receiving, strict=True):
+        w = heave_m_s + roll_rad_s * xy[j, 1]
+        assert told[i] == pytest.approx(-seq.leg_k_n_m[i] * w, rel=1e-4)
+    # no frame of four holding, or no leg in force control: nothing told, and from rest
+    assert seq.body_motion_n_s((4, 5, 6), x, receiving) == {}
+    assert seq.body_motion_n_s(SUB, x, []) == {}
+    assert seq.body_motion_n_s(SUB, x, receiving) == {i: 0.0 for i in receiving}

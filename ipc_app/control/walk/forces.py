@@ -5,6 +5,7 @@ the releasing legs' rates come from.
 
 - :class:`RodFriction`: each leg's rod friction from its measured motion.
 - :class:`LegForceSamples`: the legs' forces taken at one instant.
+- :class:`HoldingFrameSpeed`: the body's speed at the feet, from the holding frame's rods.
 - :func:`equilibrium_matrix`, :func:`min_norm_forces` and :class:`HeldLegShares`: the
   body's equilibrium (heave, roll, pitch) on the eight legs, the minimum-norm forces of
   some legs that give a load, a held leg's share of what the others leave.
@@ -96,6 +97,64 @@ class RodFriction:
             unknown[j] = coulomb * (1.0 - abs(c))
         self.unknown_n = tuple(unknown)
         return np.array(out)
+
+
+class HoldingFrameSpeed:
+    """The body's vertical speed at the feet, from the rods of the frame that holds it
+    (decision 0041).
+
+    While one frame holds the body in position control and the other's legs run in
+    force control (a touched foot, a preload, a transfer), the body's motion on the
+    holding legs' oil columns moves the force-controlled feet too: a foot's force changes
+    by ``-k_leg w`` (``w`` the body's speed there, up positive), a disturbance the force
+    loop would otherwise learn a period late through its observer, against a plant whose
+    valve has a fraction of its gain under load, and the two frames ring in roll (0040).
+    So each force loop is told it as a known disturbance.
+
+    ``w``: the plane through the holding legs' rod extensions (least squares over the
+    four), differenced each period and low-passed over :attr:`FILTER_S`, taken at the
+    foot. The filter starts at rest when the holding frame changes and after a stop."""
+
+    #: the low-pass of the plane's rates, s: four periods of the 5 ms loop smooth the
+    #: rods' 1 um resolution (a 1 um step is 0.2 mm/s over one period)
+    FILTER_S = 0.02
+
+    def __init__(self, period_s: float) -> None:
+        self.period_s = period_s
+        #: the holding frame (leg indices; ``()``: none, at rest from the next start)
+        self.frame: tuple[int, ...] = ()
+        self._fit = np.zeros((3, 4))
+        self._xy: list[list[float]] = []
+        self._coef: list[float] = [0.0, 0.0, 0.0]
+        self._rate: list[float] = [0.0, 0.0, 0.0]
+
+    def restart(self) -> None:
+        """No frame holds (or a stop): the next :meth:`start` begins at rest."""
+        self.frame = ()
+
+    def start(self, frame: tuple[int, ...], legs_xy: FloatArray, rods_m: list[float]) -> None:
+        """``frame`` (four leg indices) holds from now, the legs at ``legs_xy`` (8, 2),
+        its rods at ``rods_m`` (4, m); the body at rest."""
+        self.frame = frame
+        self._fit = np.linalg.pinv(np.column_stack([np.ones(4), legs_xy[list(frame)]]))
+        self._xy = legs_xy.tolist()
+        self._coef = (self._fit @ np.array(rods_m)).tolist()
+        self._rate = [0.0, 0.0, 0.0]
+
+    def update(self, rods_m: list[float]) -> None:
+        """This period's rod extensions of the holding frame (4, m)."""
+        coef = (self._fit @ np.array(rods_m)).tolist()
+        dt = self.period_s
+        gain = dt / (self.FILTER_S + dt)
+        for k in range(3):
+            speed = (coef[k] - self._coef[k]) / dt
+            self._rate[k] += gain * (speed - self._rate[k])
+        self._coef = coef
+
+    def at(self, leg: int) -> float:
+        """The body's speed at leg ``leg``'s foot (index 0-7), m/s, up positive."""
+        r, (x_m, y_m) = self._rate, self._xy[leg]
+        return r[0] + r[1] * x_m + r[2] * y_m
 
 
 class LegForceSamples:

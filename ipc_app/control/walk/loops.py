@@ -24,6 +24,7 @@
 from __future__ import annotations
 
 import math
+from collections.abc import Collection
 
 import numpy as np
 from numpy.typing import NDArray
@@ -38,7 +39,12 @@ from ipc_app.control.tuning import (
     position_bandwidths,
     turn_bandwidths,
 )
-from ipc_app.control.walk.forces import HeldLegShares, LegForceSamples, RodFriction
+from ipc_app.control.walk.forces import (
+    HeldLegShares,
+    HoldingFrameSpeed,
+    LegForceSamples,
+    RodFriction,
+)
 from ipc_app.control.walk.phases import MAIN, PHASES, SUB, PhaseKind, PhaseRun
 from ipc_app.model.kinematics import fit_layer
 from ipc_app.model.support import (
@@ -149,6 +155,11 @@ class WalkLoops:
             b0 = cylinder_b0(cyl, cfg.hydraulics, order=1) * leg_stiffness_n_m(cfg, cyl)
             wc, wo = force_bandwidths(cfg, cyl)
             self.force[i] = LADRC(1, b0, wc, wo, period_s, rate_limit=ctl.ladrc.rate_limit_per_s)
+        #: each leg's stiffness against the invert, N/m, and the body's speed at the feet
+        #: from the holding frame's rods: a force loop's known disturbance
+        #: (:meth:`body_motion_n_s`)
+        self.leg_k_n_m = {i: leg_stiffness_n_m(cfg, by_index[i]) for i in self.legs}
+        self.body_speed = HoldingFrameSpeed(period_s)
         #: the legs (``can_index``) in force control
         self.force_mode: set[int] = set()
         #: the twist-mode controller of a standing frame: a force loop on its legs'
@@ -251,6 +262,25 @@ class WalkLoops:
         """The legs' cap-side forces (8,) at one instant, N, for the checks
         (:class:`~.forces.LegForceSamples`)."""
         return self.force_samples.aligned_n(now, f, age_s)
+
+    def body_motion_n_s(
+        self, holding: tuple[int, ...], x: FloatArray, force_legs: Collection[int]
+    ) -> dict[int, float]:
+        """Each force-controlled leg's (``can_index`` in ``force_legs``) known
+        disturbance this period, N/s: ``-k_leg w``, ``w`` the body's speed at its foot
+        from the ``holding`` frame's rods (:class:`~.forces.HoldingFrameSpeed`); none
+        while no frame of four holds or no leg is in force control."""
+        speed = self.body_speed
+        if not force_legs or len(holding) != 4:
+            speed.restart()
+            return {}
+        rods = [float(x[self.legs[j]]) for j in holding]
+        if speed.frame != holding:
+            speed.start(holding, self.machine.legs_xy(self.x_s(x)), rods)
+        else:
+            speed.update(rods)
+        k = self.leg_k_n_m
+        return {i: -k[i] * speed.at(self.legs.index(i)) for i in force_legs}
 
     # ----------------------------------------------------------------- the hold
 

@@ -310,6 +310,7 @@ class WalkSequencer(WalkLoops):
         self.pair_live = False  # the travel pair's loops too, at the rods
         self.slow_integral.clear()  # the travel pair's slow hold too, at no command
         self._twist_started = False  # the twist loop too, at the forces now
+        self.body_speed.restart()  # the body's speed at the feet too, at rest
         for j, i in enumerate(self.legs):
             if i in self.force_mode:
                 self.force[i].reset(float(f[j]))
@@ -368,7 +369,7 @@ class WalkSequencer(WalkLoops):
             cyc.position_ref_m, x, self._twist_frame(run.phase), active
         )
         self._synchronize(run, cyc)
-        self._drive(u, cyc, active, twist_frame)
+        self._drive(run, u, cyc, active, twist_frame)
         self._check_figures(run, cyc, f_aligned)
         self.steps[-1].take(fig)
         self.last_refs = cyc.position_ref_m
@@ -658,16 +659,24 @@ class WalkSequencer(WalkLoops):
             run.clock_s += self.period_s
 
     def _drive(
-        self, u: FloatArray, cyc: PhaseCycle, active: set[int], twist_frame: tuple[int, ...]
+        self,
+        run: PhaseRun,
+        u: FloatArray,
+        cyc: PhaseCycle,
+        active: set[int],
+        twist_frame: tuple[int, ...],
     ) -> None:
-        """The commands ``u``: the force-controlled legs', the position-controlled
-        active ones', the slow holds', then the standing frame's twist mode."""
+        """The commands ``u``: the force-controlled legs' (told the body's motion on
+        the holding frame, :meth:`body_motion_n_s`), the position-controlled active
+        ones', the slow holds', then the standing frame's twist mode."""
         x, refs, f = cyc.position_m, cyc.position_ref_m, cyc.leg_force_n
         self.force_ref_n[:] = math.nan
+        told = self.body_motion_n_s(run.role.standing, x, cyc.force_ref)
         for i, (ref_n, rate_n_s) in cyc.force_ref.items():
             j = self.legs.index(i)
             self.force_ref_n[j] = ref_n
-            u[i] = self.force[i].update(ref_n, float(f[j]), rate_n_s if self.feedforward else 0.0)
+            rate = rate_n_s if self.feedforward else 0.0
+            u[i] = self.force[i].update(ref_n, float(f[j]), rate, told[i])
             refs[i] = float(x[i])
         self._hold(
             u, refs, cyc.rate_ref_m_s, x, active, skip=set(cyc.force_ref),
