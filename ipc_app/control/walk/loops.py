@@ -150,15 +150,16 @@ class WalkLoops:
         self.rod_friction = RodFriction(self.coulomb_n, self.viscous_n_s_m, period_s)
         self.force_samples = LegForceSamples(self.legs)
         self.force: dict[int, LADRC] = {}
+        #: each leg's stiffness against the invert, N/m (its force loop's ``b0`` and its
+        #: known disturbance, :meth:`body_motion_n_s`)
+        self.leg_k_n_m: dict[int, float] = {}
         for i in self.legs:
             cyl = by_index[i]
-            b0 = cylinder_b0(cyl, cfg.hydraulics, order=1) * leg_stiffness_n_m(cfg, cyl)
+            self.leg_k_n_m[i] = leg_stiffness_n_m(cfg, cyl)
+            b0 = cylinder_b0(cyl, cfg.hydraulics, order=1) * self.leg_k_n_m[i]
             wc, wo = force_bandwidths(cfg, cyl)
             self.force[i] = LADRC(1, b0, wc, wo, period_s, rate_limit=ctl.ladrc.rate_limit_per_s)
-        #: each leg's stiffness against the invert, N/m, and the body's speed at the feet
-        #: from the holding frame's rods: a force loop's known disturbance
-        #: (:meth:`body_motion_n_s`)
-        self.leg_k_n_m = {i: leg_stiffness_n_m(cfg, by_index[i]) for i in self.legs}
+        #: the body's speed at the feet from the holding frame's rods
         self.body_speed = HoldingFrameSpeed(period_s)
         #: the legs (``can_index``) in force control
         self.force_mode: set[int] = set()
